@@ -1,0 +1,1 @@
+"""The wire: Zenoh keys, typed messages with a validating msgpack codec, session config."""

@@ -1,0 +1,51 @@
+"""Command-line plumbing shared by ``python -m agents.leader`` and ``python -m agents.follower``."""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Callable
+
+import zenoh
+
+from agents.link import AgentAbort, RunFinished
+from protocol.config import AgentSettings, load_agent_settings
+from protocol.session import zenoh_config
+
+
+def parser(description: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("--config", required=True, help="run configuration (the config.toml of a run)")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
+    p.add_argument("--mode", choices=("peer", "client"), default="client")
+    p.add_argument("--user", help="Zenoh user name (router with authentication)")
+    p.add_argument("--password", help="Zenoh password")
+    p.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
+                   help="extra Zenoh configuration, inserted as JSON5")
+    p.add_argument("--log-level", default="WARNING")
+    return p
+
+
+def run_cli(args: argparse.Namespace, body: Callable[[zenoh.Session, AgentSettings], None]) -> int:
+    """Open the session from ``args``, run ``body``; map the outcome to an exit status."""
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
+    try:
+        settings = load_agent_settings(args.config)
+        conf = zenoh_config(args.mode, connect=args.connect, listen=args.listen, user=args.user,
+                            password=args.password, extra=args.cfg)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        with zenoh.open(conf) as session:
+            body(session, settings)
+    except RunFinished:
+        return 0
+    except AgentAbort as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    return 0

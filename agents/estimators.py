@@ -1,0 +1,504 @@
+"""Data-streaming EDMD: the follower's one-step predictor (pure numpy).
+
+`StreamingEDMD` implements the paper's Algorithm 1 (batch pseudoinverse refitted at every
+step) and an online variant with rank-one (Sherman–Morrison) updates, plus the options of
+SPEC §6 beyond the paper: time-delay lifting, an affine observable, exponential forgetting,
+a sliding window and Tikhonov regularisation. `delay_embed` is the time-delay (Hankel)
+lifting of a whole measurement history.
+"""
+
+from __future__ import annotations
+
+import numbers
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = ["StreamingEDMD", "delay_embed"]
+
+FloatArray = NDArray[np.float64]
+
+# The online estimator starts (or resumes) its rank-one recursion only once the weighted
+# data matrix has a condition number below this. The recursion works with the inverse Gram
+# matrix P, whose condition number is the square of the data's, so its rounding error is
+# about eps * cond**2 ~ 2e-8 relative at this limit (far less in practice); a worse
+# conditioned fit is computed by the exact pseudoinverse instead.
+_MAX_RECURSIVE_COND = 1e4
+# A window downdate whose Sherman–Morrison denominator 1 - w x^T P x falls below this
+# removes almost all of the information in some direction: the Gram matrix is close to
+# singular, so the fit is recomputed from the pairs held in the window instead.
+_MIN_DOWNDATE_DENOMINATOR = 1e-3
+
+
+def delay_embed(history: ArrayLike, delays: int) -> FloatArray:
+    """Lift a measurement history by time-delay (Hankel) embedding.
+
+    Parameters
+    ----------
+    history : array_like, shape (m, d)
+        Measurements ``z_0 ... z_{m-1}``, oldest first.
+    delays : int
+        Number ``D >= 0`` of past copies appended to each measurement.
+
+    Returns
+    -------
+    ndarray, shape (m - D, d * (D + 1))
+        Row ``i`` is ``[z_{i+D}, z_{i+D-1}, ..., z_i]``: the newest measurement first, then
+        its ``D`` predecessors. The first ``D`` measurements only fill the delay line.
+
+    Raises
+    ------
+    ValueError
+        If `history` is not a finite 2-D array with more than `delays` rows, or `delays` is
+        not an integer ``>= 0``.
+
+    Examples
+    --------
+    >>> delay_embed([[1.0], [2.0], [3.0]], delays=1)
+    array([[2., 1.],
+           [3., 2.]])
+    """
+    delays = _check_count("delays", delays, minimum=0)
+    samples = np.asarray(history, dtype=float)
+    if samples.ndim != 2:
+        raise ValueError(f"history must be a 2-D array (m, d), got shape {samples.shape}")
+    if samples.shape[0] <= delays:
+        raise ValueError(
+            f"history must have more than delays={delays} rows, got {samples.shape[0]}"
+        )
+    if not np.isfinite(samples).all():
+        raise ValueError("history must contain only finite values")
+    return _embed(samples, delays)
+
+
+def _embed(samples: FloatArray, delays: int) -> FloatArray:
+    """`delay_embed` without argument checks (the estimator's inner loop calls it)."""
+    m = samples.shape[0]
+    return np.hstack([samples[delays - k : m - k] for k in range(delays + 1)])
+
+
+class StreamingEDMD:
+    """Data-streaming EDMD: fit a Koopman matrix to a measurement stream, predict one step.
+
+    Each measurement ``z_i`` (shape ``(d,)``) is lifted to ``psi_i`` (shape ``(n,)``)::
+
+        psi_i = [z_i, z_{i-1}, ..., z_{i-D}, 1]      (D = delays; the 1 only if affine)
+
+    so ``n = d * (D + 1) + affine``. With lifted samples ``psi_0 ... psi_m`` the snapshot
+    pairs are ``X = [psi_0 ... psi_{m-1}]`` and ``Y = [psi_1 ... psi_m]`` (both
+    ``(n, m)``), and ``K`` (``(n, n)``) solves the weighted, regularised least-squares
+    problem::
+
+        K = argmin  sum_i w_i ||y_i - K x_i||^2 + ridge * ||K||_F^2,   w_i = forget**(m-1-i)
+
+    over the ``window`` newest pairs (all pairs if ``window`` is None). With ``W =
+    diag(w)`` the solution is ``K = Y W X^T (X W X^T + ridge I)^{-1}``; it is computed as
+    ``K = Y W^{1/2} (X W^{1/2})^+`` (Moore–Penrose, ``numpy.linalg.pinv``) when ``ridge ==
+    0``, so rank-deficient data still get the minimum-norm fit, and as the pseudoinverse
+    of the data augmented with ``sqrt(ridge) I`` otherwise. The defaults give the paper's
+    Algorithm 1: ``K = Y X^+`` and the prediction ``K psi_m``, of which the first ``d``
+    entries (the measurement block) are returned.
+
+    ``online=False`` refits ``K`` from the stored history at each prediction (cost
+    ``O(m n^2)``). ``online=True`` updates ``K`` and ``P = (X W X^T + ridge I)^{-1}`` by
+    recursive least squares at each `observe` (Sherman–Morrison rank-one steps, ``O(n^2)``
+    per pair whatever the history length; ``O(n^3)`` when forgetting and ridge are
+    combined): the new pair is added, and with a window the pair that leaves it is removed
+    by a rank-one downdate. While ``X W X^T + ridge I`` is singular or badly conditioned
+    (too few independent pairs, e.g. at the start), the online estimator computes the same
+    pseudoinverse fit as the batch one from a bounded summary of the data (the window's
+    pairs, or a ``(2n, 2n)`` triangular factor of all pairs) and starts the recursion from
+    the exact inverse once the data are well conditioned. From then on both agree to
+    rounding error.
+
+    Parameters
+    ----------
+    online : bool, default False
+        Recursive rank-one updates (True) or the batch pseudoinverse (False).
+    delays : int, default 0
+        Number ``D >= 0`` of past measurements in the lifted vector.
+    affine : bool, default False
+        Append the constant observable 1 to the lifted vector.
+    forget : float, default 1.0
+        Exponential forgetting factor in ``(0, 1]``; a pair ``k`` steps older than the
+        newest has weight ``forget**k``.
+    window : int or None, default None
+        Use only the ``window >= 1`` newest pairs.
+    ridge : float, default 0.0
+        Tikhonov regularisation ``>= 0``.
+
+    Attributes
+    ----------
+    K : ndarray, shape (n, n)
+        The fitted matrix (a copy).
+    n_observed : int
+        Measurements observed since construction or `reset`.
+    n_pairs : int
+        Snapshot pairs the current fit uses.
+    lifted_dim : int
+        ``n``, the length of the lifted vector.
+    recursive : bool
+        Whether the online estimator is currently updating ``K`` by rank-one steps.
+
+    Notes
+    -----
+    With ``forget < 1`` and ``ridge == 0``, data that stop exciting some direction make
+    ``X W X^T`` decay towards singularity in that direction and ``P`` grow like
+    ``forget**-k`` (the classic recursive-least-squares wind-up); the online and batch
+    fits then drift apart. A small ``ridge`` (which keeps ``P <= I / ridge``) or a
+    ``window`` (whose fit is recomputed from its pairs when a downdate nearly empties a
+    direction) avoids it.
+
+    References
+    ----------
+    M. O. Williams, I. G. Kevrekidis and C. W. Rowley, "A data-driven approximation of
+    the Koopman operator: extending dynamic mode decomposition", J. Nonlinear Sci. 25
+    (2015) 1307-1346. The data-streaming form is Algorithm 1 of Wang, Banks, Mezić and
+    Hikihara, "Trajectory estimation in unknown nonlinear manifold using Koopman operator
+    theory" (``paper/trajectory-estimation-koopman.tex``).
+
+    Examples
+    --------
+    A linear system ``z_{i+1} = A z_i`` is recovered exactly:
+
+    >>> import numpy as np
+    >>> A = np.array([[0.9, -0.2], [0.2, 0.9]])
+    >>> est = StreamingEDMD(online=True)
+    >>> z = np.array([1.0, 0.5])
+    >>> for _ in range(10):
+    ...     est.observe(z)
+    ...     z = A @ z
+    >>> bool(np.allclose(est.K, A))
+    True
+    >>> bool(np.allclose(est.predict(), z))
+    True
+    >>> est.predict([1.0, 0.0]).round(12)
+    array([0.9, 0.2])
+    """
+
+    def __init__(
+        self,
+        online: bool = False,
+        delays: int = 0,
+        affine: bool = False,
+        forget: float = 1.0,
+        window: int | None = None,
+        ridge: float = 0.0,
+    ) -> None:
+        self.online = _check_bool("online", online)
+        self.delays = _check_count("delays", delays, minimum=0)
+        self.affine = _check_bool("affine", affine)
+        self.forget = _check_real("forget", forget, "(0, 1]", lambda v: 0.0 < v <= 1.0)
+        self.window = None if window is None else _check_count("window", window, minimum=1)
+        self.ridge = _check_real("ridge", ridge, "[0, inf)", lambda v: 0.0 <= v < np.inf)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget all data and the fit; keep the settings."""
+        self._dim: int | None = None
+        self._recent: FloatArray | None = None  # delay line (D + 1, d), oldest first
+        self._n_observed = 0
+        self._n_pairs_seen = 0
+        self._psi_last: FloatArray | None = None
+        # Lifted samples, oldest first: all of them in batch mode, the window + 1 newest
+        # when there is a window; none for the online estimator without a window.
+        self._history: FloatArray | None = None
+        self._history_len = 0
+        self._K: FloatArray | None = None  # batch: cache cleared by observe
+        self._P: FloatArray | None = None  # online: inverse regularised Gram matrix
+        # Online without a window, before the recursion starts: R with R^T R equal to the
+        # weighted sum of [x; y][x; y]^T, i.e. the pairs up to an orthogonal transform.
+        self._sqrt_data: FloatArray | None = None
+
+    # ------------------------------------------------------------------ public API
+
+    @property
+    def n_observed(self) -> int:
+        """Measurements observed since construction or `reset`."""
+        return self._n_observed
+
+    @property
+    def n_pairs(self) -> int:
+        """Snapshot pairs the current fit uses (at most `window`)."""
+        if self.window is None:
+            return self._n_pairs_seen
+        return min(self._n_pairs_seen, self.window)
+
+    @property
+    def lifted_dim(self) -> int:
+        """Length ``n = d * (delays + 1) + affine`` of the lifted vector.
+
+        Raises
+        ------
+        RuntimeError
+            Before the first `observe` (the measurement dimension ``d`` is not known).
+        """
+        if self._dim is None:
+            raise RuntimeError("lifted_dim is known only after the first observe")
+        return self._dim * (self.delays + 1) + int(self.affine)
+
+    @property
+    def recursive(self) -> bool:
+        """Whether the online estimator currently updates K by rank-one steps."""
+        return self._P is not None
+
+    @property
+    def K(self) -> FloatArray:
+        """The fitted matrix, shape ``(n, n)`` (a copy).
+
+        Raises
+        ------
+        RuntimeError
+            Before ``delays + 2`` measurements have been observed.
+        """
+        return self._fitted_K().copy()
+
+    def observe(self, z: ArrayLike) -> None:
+        """Append the newest measurement and update the fit.
+
+        Parameters
+        ----------
+        z : array_like, shape (d,)
+            The measurement; ``d`` is fixed by the first call.
+
+        Raises
+        ------
+        ValueError
+            If `z` is not a finite 1-D array of the established length.
+        """
+        z = self._check_measurement(z)
+        if self._recent is None:
+            self._dim = z.size
+            self._recent = np.zeros((self.delays + 1, z.size))
+        self._recent[:-1] = self._recent[1:]
+        self._recent[-1] = z
+        self._n_observed += 1
+        if self._n_observed <= self.delays:
+            return  # still filling the delay line: no lifted sample yet
+        psi = self._lift(self._recent)
+        x, self._psi_last = self._psi_last, psi
+        leaving = self._leaving_pair() if self.online and x is not None else None
+        if not self.online or self.window is not None:
+            self._push_history(psi)  # the online estimator without a window keeps none
+        if x is None:
+            return  # the first lifted sample: no pair yet
+        self._n_pairs_seen += 1
+        if not self.online:
+            self._K = None
+        elif self._P is None:
+            if self.window is None:
+                self._absorb_pair(x, psi)
+            self._refit()
+        else:
+            self._recursive_step(x, psi, leaving)
+
+    def predict(self, z: ArrayLike | None = None) -> FloatArray:
+        """Predict the next measurement.
+
+        Parameters
+        ----------
+        z : array_like, shape (d,), optional
+            If given, predict from `z` taken as the newest measurement (one step after the
+            last observed one, whose delays it uses), without appending it: for when the
+            newest measurement is only approximately known. By default predict from the
+            last observed measurement.
+
+        Returns
+        -------
+        ndarray, shape (d,)
+            The measurement block of ``K psi``.
+
+        Raises
+        ------
+        RuntimeError
+            Before ``delays + 2`` measurements have been observed.
+        ValueError
+            If `z` is not a finite 1-D array of the observed length.
+        """
+        K = self._fitted_K()
+        if z is None:
+            psi = self._psi_last
+        else:
+            z = self._check_measurement(z)
+            psi = self._lift(np.vstack([self._recent[1:], z]))
+        return K[: self._dim] @ psi
+
+    # ------------------------------------------------------------------ internals
+
+    def _check_measurement(self, z: ArrayLike) -> FloatArray:
+        try:
+            arr = np.asarray(z, dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"z must be a 1-D array of floats: {exc}") from exc
+        if arr.ndim != 1 or arr.size == 0:
+            raise ValueError(f"z must be a non-empty 1-D array, got shape {arr.shape}")
+        if self._dim is not None and arr.size != self._dim:
+            raise ValueError(
+                f"z must have length {self._dim} (fixed by the first observe), got {arr.size}"
+            )
+        if not np.isfinite(arr).all():
+            raise ValueError(f"z must be finite, got {arr}")
+        return arr
+
+    def _lift(self, recent: FloatArray) -> FloatArray:
+        """Lifted vector ``(n,)`` of the newest row of a ``(D + 1, d)`` delay line."""
+        psi = _embed(recent, self.delays)[0]
+        return np.append(psi, 1.0) if self.affine else psi
+
+    def _fitted_K(self) -> FloatArray:
+        if self._n_pairs_seen == 0:
+            raise RuntimeError(
+                f"StreamingEDMD(delays={self.delays}) needs {self.delays + 2} observed "
+                f"samples to fit K, it has {self._n_observed}"
+            )
+        if self._K is None:  # batch mode, new data since the last fit
+            self._refit()
+        return self._K
+
+    def _push_history(self, psi: FloatArray) -> None:
+        if self._history is None:
+            capacity = 64 if self.window is None else 2 * (self.window + 1)
+            self._history = np.empty((capacity, psi.size))
+        if self._history_len == self._history.shape[0]:
+            if self.window is None:
+                grown = np.empty((2 * self._history_len, psi.size))
+                grown[: self._history_len] = self._history
+                self._history = grown
+            else:  # keep the `window` newest samples; with psi they span the window
+                keep = self._history[self._history_len - self.window : self._history_len]
+                self._history[: self.window] = keep.copy()
+                self._history_len = self.window
+        self._history[self._history_len] = psi
+        self._history_len += 1
+
+    def _held_samples(self) -> FloatArray:
+        """Lifted samples ``(p + 1, n)`` spanning the pairs in use, oldest first."""
+        start = 0 if self.window is None else max(0, self._history_len - self.window - 1)
+        return self._history[start : self._history_len]
+
+    def _leaving_pair(self) -> tuple[FloatArray, FloatArray] | None:
+        """The pair that the next one pushes out of a full window (copies), else None."""
+        if self.window is None:
+            return None
+        held = self._held_samples()
+        if held.shape[0] < self.window + 1:
+            return None
+        return held[0].copy(), held[1].copy()
+
+    def _absorb_pair(self, x: FloatArray, y: FloatArray) -> None:
+        """Add a pair to the triangular summary of all pairs (online, no window)."""
+        row = np.concatenate([x, y])[np.newaxis]
+        if self._sqrt_data is None:
+            stacked = row
+        else:
+            stacked = np.vstack([np.sqrt(self.forget) * self._sqrt_data, row])
+        # Orthogonal row transforms leave X^T X-type products and the pseudoinverse fit
+        # unchanged, so at most 2n rows ever need to be kept.
+        if stacked.shape[0] > stacked.shape[1]:
+            stacked = np.linalg.qr(stacked, mode="r")
+        self._sqrt_data = stacked
+
+    def _weighted_pairs(self) -> tuple[FloatArray, FloatArray]:
+        """``(X W^{1/2}, Y W^{1/2})``, each ``(n, columns)``, of the pairs in use."""
+        if self.online and self.window is None:
+            n = self._sqrt_data.shape[1] // 2
+            return self._sqrt_data[:, :n].T, self._sqrt_data[:, n:].T
+        held = self._held_samples()
+        x, y = held[:-1].T, held[1:].T
+        if self.forget < 1.0:
+            ages = np.arange(x.shape[1] - 1, -1, -1)
+            root_weights = np.sqrt(self.forget) ** ages
+            x, y = x * root_weights, y * root_weights
+        return x, y
+
+    def _refit(self) -> None:
+        """Fit K from the held data; online, start the recursion if well conditioned."""
+        x, y = self._weighted_pairs()
+        if self.ridge > 0.0:
+            # Tikhonov as least squares on the data plus n pseudo-pairs (sqrt(ridge) e_k, 0).
+            n = x.shape[0]
+            x = np.hstack([x, np.sqrt(self.ridge) * np.eye(n)])
+            y = np.hstack([y, np.zeros((n, n))])
+        self._K = y @ np.linalg.pinv(x)
+        if self.online:
+            self._P = _inverse_gram(x)
+            if self._P is not None:
+                self._sqrt_data = None
+
+    def _recursive_step(
+        self, x: FloatArray, y: FloatArray, leaving: tuple[FloatArray, FloatArray] | None
+    ) -> None:
+        """Add pair ``(x, y)`` and remove `leaving` by rank-one steps on ``K`` and ``P``."""
+        lam = self.forget
+        if lam < 1.0:
+            beta = (1.0 - lam) * self.ridge
+            if beta == 0.0:
+                # G <- lam G and C <- lam C (C = Y W X^T): P scales, K = C P does not.
+                self._P /= lam
+            else:
+                # G <- lam G + beta I keeps the ridge at `ridge`, not lam * ridge:
+                # P' = (lam P^{-1} + beta I)^{-1} = (lam I + beta P)^{-1} P, and with
+                # C' = lam C, K' = C' P' = K (I - beta P'). lam I + beta P has eigenvalues
+                # in [lam, 1] because P <= I / ridge, so the solve is well conditioned.
+                n = self._P.shape[0]
+                self._P = np.linalg.solve(lam * np.eye(n) + beta * self._P, self._P)
+                self._K -= beta * (self._K @ self._P)
+        self._rank_one(x, y, 1.0)
+        if leaving is not None and not self._rank_one(*leaving, -(lam**self.window)):
+            self._refit()
+            return
+        # Rounding in the outer-product updates makes P drift from symmetry; an asymmetric
+        # P feeds asymmetric errors into later gains and the drift grows until P may lose
+        # positive definiteness. Its symmetric part is the nearest symmetric matrix.
+        self._P = 0.5 * (self._P + self._P.T)
+
+    def _rank_one(self, x: FloatArray, y: FloatArray, weight: float) -> bool:
+        """Add ``weight * (x, y)`` to the fit (a downdate if negative).
+
+        Returns False, leaving the fit unchanged, if the Sherman–Morrison denominator shows
+        that the update would leave the Gram matrix (nearly) singular.
+        """
+        Px = self._P @ x
+        denominator = 1.0 + weight * (x @ Px)
+        if denominator < _MIN_DOWNDATE_DENOMINATOR:
+            return False
+        gain = (weight / denominator) * Px
+        self._K += np.outer(y - self._K @ x, gain)
+        self._P -= np.outer(gain, Px)
+        return True
+
+
+def _inverse_gram(x: FloatArray) -> FloatArray | None:
+    """``(x x^T)^{-1}`` for ``x`` of shape ``(n, c)``, or None unless well conditioned."""
+    n, columns = x.shape
+    if columns < n:
+        return None
+    u, s, _ = np.linalg.svd(x, full_matrices=False)
+    if not s[-1] > s[0] / _MAX_RECURSIVE_COND:
+        return None
+    return (u / s**2) @ u.T
+
+
+def _check_bool(name: str, value: object) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be a bool, got {value!r}")
+    return bool(value)
+
+
+def _check_count(name: str, value: object, minimum: int) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _check_real(
+    name: str, value: object, interval: str, inside: Callable[[float], bool]
+) -> float:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{name} must be a real number in {interval}, got {value!r}")
+    if not inside(float(value)):  # NaN fails every comparison
+        raise ValueError(f"{name} must be a real number in {interval}, got {value!r}")
+    return float(value)

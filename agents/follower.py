@@ -1,0 +1,70 @@
+"""A follower: estimates its leader's rod end, moves there, snaps on it (``python -m agents.follower``).
+
+One tick (SPEC §4): sense the leader (``pre``); from tick ``init_ticks`` on, move to the
+policy's estimate and sense again (``moved``); snap onto the rod end if it is in range (else
+count a lost tick); sense once more (``settled``) and record the measurement; publish the
+observation and the rod.
+"""
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import zenoh
+
+from agents.cli import parser, run_cli
+from agents.link import AgentLink
+from agents.policies import NotReady, Policy, make_policy
+from protocol.config import AgentSettings
+from protocol.messages import ActRequest, Observation
+
+
+def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick: int) -> Observation:
+    """Run one tick of the follower; returns the observation it publishes."""
+    pre = link.sense(tick, "pre")
+    prediction = None
+    if tick < settings.init_ticks:
+        offset, rod = np.zeros(2), pre.rod
+    else:
+        try:
+            proposal = policy.propose(pre)
+            offset, prediction = proposal.offset, proposal.prediction
+        except NotReady:
+            offset = np.zeros(2)
+        link.act(ActRequest(tick=tick, action="move", offset=(float(offset[0]), float(offset[1]))))
+        rod = link.sense(tick, "moved").rod
+    lost = not link.act(ActRequest(tick=tick, action="snap")).moved
+    settled = link.sense(tick, "settled")
+    target = None if lost or rod is None else offset + np.asarray(rod)
+    measurement = policy.record(settled, target)
+    return Observation(tick=tick, estimator=policy.name, measurement=measurement,
+                       prediction=prediction, lost=lost)
+
+
+def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int) -> None:
+    """Lockstep follower loop; returns by raising RunFinished when the world is done."""
+    if not 1 <= agent_id <= settings.followers:
+        raise ValueError(f"--id must be in 1..{settings.followers} for this run, got {agent_id}")
+    policy = make_policy(settings)
+    link = AgentLink(session, settings.run_id, agent_id, agent_id - 1,
+                     query_timeout=settings.agent_timeout)
+    try:
+        tick, timeout = -1, settings.start_timeout
+        while True:
+            tick = link.wait_step(tick, timeout)
+            timeout = settings.agent_timeout * (settings.followers + 2)
+            link.publish_obs(follower_tick(link, policy, settings, tick))
+            link.publish_rod(tick, settings.spacing, settings.side)
+    finally:
+        link.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = parser("Follower agent of a column-formation run.")
+    p.add_argument("--id", type=int, required=True, help="follower id K (1 = behind the leader)")
+    args = p.parse_args(argv)
+    return run_cli(args, lambda session, settings: run_follower(session, settings, args.id))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

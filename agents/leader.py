@@ -1,0 +1,35 @@
+"""The leader: drives its geodesic tick by tick and holds its rod out (``python -m agents.leader``)."""
+from __future__ import annotations
+
+import sys
+
+import zenoh
+
+from agents.cli import parser, run_cli
+from agents.link import AgentLink
+from protocol.config import AgentSettings
+from protocol.messages import ActRequest
+
+
+def run_leader(session: zenoh.Session, settings: AgentSettings) -> None:
+    """Lockstep leader loop; returns by raising RunFinished when the world is done."""
+    link = AgentLink(session, settings.run_id, 0, None, query_timeout=settings.agent_timeout)
+    try:
+        tick, timeout = -1, settings.start_timeout
+        while True:
+            tick = link.wait_step(tick, timeout)
+            timeout = settings.agent_timeout * (settings.followers + 2)
+            t = tick * settings.comm_period
+            link.act(ActRequest(tick=tick, action="drive", t=t))
+            link.publish_rod(tick, settings.spacing, settings.side)
+    finally:
+        link.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser("Leader agent of a column-formation run.").parse_args(argv)
+    return run_cli(args, run_leader)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,331 @@
+"""Typed messages and the one msgpack codec that validates them (SPEC §8).
+
+Every payload is a msgpack map ``{"v": 1, "type": <name>, "tick": j, ...}``. Each message is a
+small frozen dataclass whose fields carry a *kind* (see ``_KINDS``); :func:`decode` checks the
+schema version, the type tag, unknown or missing fields, every field's type, length and
+finiteness, and optionally the tick order and the agent id, and raises :class:`ProtocolError`
+with a message naming the problem. Transport code lives elsewhere (``protocol.session``).
+
+>>> msg = decode(encode(Rod(tick=3, length=3.57, side=1)), Rod)
+>>> msg.length
+3.57
+>>> decode(b"\\x81\\xa1v\\x02", Rod)
+Traceback (most recent call last):
+...
+protocol.messages.ProtocolError: unsupported schema version 2 (this build speaks 1)
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any, ClassVar
+
+import msgpack
+
+SCHEMA_VERSION = 1
+MAX_TICK = 10_000_000
+MAX_VECTOR = 64
+MAX_TEXT = 4096
+
+
+class ProtocolError(ValueError):
+    """A payload that does not follow the protocol; the message names the problem."""
+
+
+# --- field kinds -------------------------------------------------------------------------------
+
+
+def _finite(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ProtocolError(f"field {name!r} must be a number, got {type(value).__name__}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise ProtocolError(f"field {name!r} must be finite, got {value}")
+    return value
+
+
+def _positive(name: str, value: Any) -> float:
+    value = _finite(name, value)
+    if value <= 0:
+        raise ProtocolError(f"field {name!r} must be positive, got {value}")
+    return value
+
+
+def _count(name: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ProtocolError(f"field {name!r} must be an integer, got {type(value).__name__}")
+    if not 0 <= value <= MAX_TICK:
+        raise ProtocolError(f"field {name!r} must be in [0, {MAX_TICK}], got {value}")
+    return value
+
+
+def _side(name: str, value: Any) -> int:
+    if isinstance(value, bool) or value not in (1, -1):
+        raise ProtocolError(f"field {name!r} must be 1 or -1, got {value!r}")
+    return int(value)
+
+
+def _flag(name: str, value: Any) -> bool:
+    if not isinstance(value, bool):
+        raise ProtocolError(f"field {name!r} must be a boolean, got {type(value).__name__}")
+    return value
+
+
+def _text(name: str, value: Any) -> str:
+    if not isinstance(value, str):
+        raise ProtocolError(f"field {name!r} must be a string, got {type(value).__name__}")
+    if len(value) > MAX_TEXT:
+        raise ProtocolError(f"field {name!r} is longer than {MAX_TEXT} characters")
+    return value
+
+
+def _vector(length: int | None):
+    def check(name: str, value: Any) -> tuple[float, ...]:
+        if not isinstance(value, (list, tuple)):
+            raise ProtocolError(f"field {name!r} must be a list, got {type(value).__name__}")
+        if length is not None and len(value) != length:
+            raise ProtocolError(f"field {name!r} must have length {length}, got {len(value)}")
+        if len(value) > MAX_VECTOR:
+            raise ProtocolError(f"field {name!r} is longer than {MAX_VECTOR}")
+        return tuple(_finite(f"{name}[{i}]", x) for i, x in enumerate(value))
+
+    return check
+
+
+def _optional(check):
+    def optional(name: str, value: Any):
+        return None if value is None else check(name, value)
+
+    return optional
+
+
+def _choice(*allowed: str):
+    def check(name: str, value: Any) -> str:
+        if value not in allowed:
+            raise ProtocolError(f"field {name!r} must be one of {allowed}, got {value!r}")
+        return value
+
+    return check
+
+
+_KINDS = {
+    "finite": _finite,
+    "positive": _positive,
+    "count": _count,
+    "side": _side,
+    "flag": _flag,
+    "text": _text,
+    "vec2": _vector(2),
+    "vec2?": _optional(_vector(2)),
+    "vec3?": _optional(_vector(3)),
+    "vec?": _optional(_vector(None)),
+    "phase": _choice("pre", "moved", "settled"),
+    "action": _choice("drive", "move", "snap"),
+}
+
+
+def _kind(name: str, default: Any = ...) -> Any:
+    if name not in _KINDS:
+        raise ValueError(f"unknown field kind {name!r}")
+    if default is ...:
+        return field(metadata={"kind": name})
+    return field(default=default, metadata={"kind": name})
+
+
+# --- messages ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Message:
+    """Base of all messages: the tick they belong to."""
+
+    TYPE: ClassVar[str] = ""
+    tick: int = _kind("count")
+
+
+@dataclass(frozen=True)
+class TickStart(Message):
+    """``world/tick``: tick j starts at time t."""
+
+    TYPE: ClassVar[str] = "tick"
+    t: float = _kind("finite", 0.0)
+
+
+@dataclass(frozen=True)
+class SenseRequest(Message):
+    """Query to ``world/sense/<id>``: what the agent's sensors read now.
+
+    ``phase`` names the moment inside the tick (``pre`` before moving, ``moved`` after moving
+    to the estimate, ``settled`` after the snap); it keys the sensor-noise stream.
+    """
+
+    TYPE: ClassVar[str] = "sense"
+    phase: str = _kind("phase", "pre")
+
+
+@dataclass(frozen=True)
+class Sensing(Message):
+    """Reply of ``world/sense/<id>``; every vector is xy in the agent's local frame (§5).
+
+    ``r``/``theta``: Euclidean distance and bearing (rad, wrapped to (-pi, pi]) to the leader.
+    ``rod``: offset to the leader's rod end, or None beyond the sensing range.
+    ``velocity``: odometry of the last completed interval (None before one exists).
+    ``oracle_velocity``: the exact velocity to the next ideal position (only if the run asks).
+    ``gps``/``leader_gps``: absolute (x, y, z) of agent and leader (only with GPS enabled).
+    """
+
+    TYPE: ClassVar[str] = "sensing"
+    r: float = _kind("finite", 0.0)
+    theta: float = _kind("finite", 0.0)
+    rod: tuple[float, float] | None = _kind("vec2?", None)
+    velocity: tuple[float, float] | None = _kind("vec2?", None)
+    oracle_velocity: tuple[float, float] | None = _kind("vec2?", None)
+    gps: tuple[float, float, float] | None = _kind("vec3?", None)
+    leader_gps: tuple[float, float, float] | None = _kind("vec3?", None)
+
+
+@dataclass(frozen=True)
+class ActRequest(Message):
+    """Query to ``world/act/<id>``.
+
+    ``drive`` (leader only): follow the leader's geodesic to time ``t``.
+    ``move`` (followers): move by the xy ``offset`` in the local frame, keeping the heading.
+    ``snap`` (followers): move onto the leader's visible rod end and take the §3 heading.
+    """
+
+    TYPE: ClassVar[str] = "act"
+    action: str = _kind("action", "move")
+    t: float | None = field(default=None, metadata={"kind": "finite?"})
+    offset: tuple[float, float] | None = _kind("vec2?", None)
+
+
+@dataclass(frozen=True)
+class ActResult(Message):
+    """Reply of ``world/act/<id>``: ``moved`` is False when a snap found no visible rod end."""
+
+    TYPE: ClassVar[str] = "acted"
+    moved: bool = _kind("flag", True)
+
+
+@dataclass(frozen=True)
+class Rod(Message):
+    """``agent/<id>/rod``: the agent settled at ``tick`` and holds its rod out."""
+
+    TYPE: ClassVar[str] = "rod"
+    length: float = _kind("positive", 1.0)
+    side: int = _kind("side", 1)
+
+
+@dataclass(frozen=True)
+class Observation(Message):
+    """``agent/<id>/obs``: the agent's settled measurement and what it had predicted for it."""
+
+    TYPE: ClassVar[str] = "obs"
+    estimator: str = _kind("text", "")
+    measurement: tuple[float, ...] | None = _kind("vec?", None)
+    prediction: tuple[float, ...] | None = _kind("vec?", None)
+    lost: bool = _kind("flag", False)
+
+
+@dataclass(frozen=True)
+class Done(Message):
+    """``world/done``: the run ended; ``results`` is the results folder."""
+
+    TYPE: ClassVar[str] = "done"
+    results: str = _kind("text", "")
+    complete: bool = _kind("flag", True)
+    reason: str = _kind("text", "")
+
+
+@dataclass(frozen=True)
+class ErrorReply(Message):
+    """Error reply of a queryable: ``error`` names the problem."""
+
+    TYPE: ClassVar[str] = "error"
+    error: str = _kind("text", "")
+
+
+_KINDS["finite?"] = _optional(_finite)
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.TYPE: cls
+    for cls in (TickStart, SenseRequest, Sensing, ActRequest, ActResult, Rod, Observation, Done,
+                ErrorReply)
+}
+
+
+# --- codec -------------------------------------------------------------------------------------
+
+
+def encode(msg: Message) -> bytes:
+    """Serialise ``msg`` to msgpack, validating it first (a bad message is never sent)."""
+    if not isinstance(msg, Message) or type(msg) not in MESSAGE_TYPES.values():
+        raise ProtocolError(f"cannot encode {type(msg).__name__}: not a protocol message")
+    body: dict[str, Any] = {"v": SCHEMA_VERSION, "type": msg.TYPE}
+    for f in fields(msg):
+        value = getattr(msg, f.name)
+        body[f.name] = list(value) if isinstance(value, tuple) else value
+    _validate(type(msg), body)
+    return msgpack.packb(body, use_bin_type=True)
+
+
+def decode(
+    data: bytes | bytearray | memoryview,
+    expected: type[Message] | tuple[type[Message], ...],
+    *,
+    min_tick: int | None = None,
+) -> Message:
+    """Parse and validate a payload.
+
+    Parameters
+    ----------
+    data : bytes
+        The msgpack payload.
+    expected : Message subclass or tuple of them
+        The message type(s) this channel carries.
+    min_tick : int, optional
+        Reject a message whose tick is lower (tick monotonicity on a channel).
+
+    Raises
+    ------
+    ProtocolError
+        With a message naming the problem.
+    """
+    try:
+        body = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True)
+    except Exception as exc:  # msgpack raises several unrelated exception types
+        raise ProtocolError(f"payload is not valid msgpack ({type(exc).__name__})") from None
+    if not isinstance(body, dict):
+        raise ProtocolError(f"payload must be a msgpack map, got {type(body).__name__}")
+    version = body.get("v")
+    if version != SCHEMA_VERSION:
+        raise ProtocolError(
+            f"unsupported schema version {version!r} (this build speaks {SCHEMA_VERSION})"
+        )
+    allowed = expected if isinstance(expected, tuple) else (expected,)
+    cls = MESSAGE_TYPES.get(body.get("type"))  # type: ignore[arg-type]
+    if cls not in allowed:
+        names = ", ".join(repr(c.TYPE) for c in allowed)
+        raise ProtocolError(f"message type {body.get('type')!r} not accepted here (want {names})")
+    values = _validate(cls, body)
+    if min_tick is not None and values["tick"] < min_tick:
+        raise ProtocolError(f"tick {values['tick']} is older than tick {min_tick} already seen")
+    return cls(**values)
+
+
+def _validate(cls: type[Message], body: dict[str, Any]) -> dict[str, Any]:
+    spec = {f.name: f for f in fields(cls)}
+    unknown = set(body) - set(spec) - {"v", "type"}
+    if unknown:
+        raise ProtocolError(f"{cls.TYPE}: unknown field(s) {sorted(map(str, unknown))}")
+    values = {}
+    for name, f in spec.items():
+        if name not in body:
+            raise ProtocolError(f"{cls.TYPE}: missing field {name!r}")
+        values[name] = _KINDS[f.metadata["kind"]](name, body[name])
+    return values
+
+
+def error_payload(tick: int, problem: str) -> bytes:
+    """An encoded :class:`ErrorReply` (tick clamped into range so it always encodes)."""
+    tick = tick if isinstance(tick, int) and 0 <= tick <= MAX_TICK else 0
+    return encode(ErrorReply(tick=tick, error=problem[:MAX_TEXT]))

@@ -1,0 +1,73 @@
+"""The one helper that builds the ``zenoh.Config`` of every process (STYLE: zenoh examples)."""
+from __future__ import annotations
+
+import json
+import socket
+from collections.abc import Sequence
+
+import zenoh
+
+MODES = ("peer", "client", "router")
+
+
+def zenoh_config(
+    mode: str = "peer",
+    *,
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    multicast_scouting: bool = False,
+    user: str | None = None,
+    password: str | None = None,
+    extra: Sequence[str] = (),
+) -> zenoh.Config:
+    """Build a session configuration.
+
+    Parameters
+    ----------
+    mode : {"peer", "client", "router"}
+        Zenoh mode; the world acting as embedded router uses ``"router"``.
+    listen, connect : sequence of str
+        Endpoints such as ``"tcp/127.0.0.1:7447"``.
+    multicast_scouting : bool
+        Off by default: every process finds the others through explicit endpoints only.
+    user, password : str, optional
+        Credentials for a router with user/password authentication.
+    extra : sequence of str
+        ``KEY:VALUE`` pairs inserted with ``insert_json5`` (``--cfg`` of the zenoh examples).
+    """
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    for name, endpoints in (("listen", listen), ("connect", connect)):
+        for endpoint in endpoints:
+            if not isinstance(endpoint, str) or "/" not in endpoint:
+                raise ValueError(f"{name} endpoint must look like 'tcp/HOST:PORT', got {endpoint!r}")
+    if (user is None) != (password is None):
+        raise ValueError("user and password must be given together")
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
+    conf.insert_json5("scouting/gossip/enabled", "true")
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    if mode == "client" and not connect:
+        raise ValueError("client mode needs at least one connect endpoint")
+    if user is not None:
+        conf.insert_json5(
+            "transport/auth/usrpwd", json.dumps({"user": user, "password": password})
+        )
+    for item in extra:
+        key, sep, value = item.partition(":")
+        if not sep or not key:
+            raise ValueError(f"extra config must be KEY:VALUE, got {item!r}")
+        conf.insert_json5(key, value)
+    return conf
+
+
+def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
+    """A ``tcp/host:port`` endpoint on a port that is free right now (loopback by default)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind((host, 0))
+        port = sock.getsockname()[1]
+    return f"tcp/{host}:{port}"

@@ -1,0 +1,150 @@
+"""``python -m swarm``: run one case (``run``), and more subcommands as they come (SPEC §9)."""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+from protocol.config import RunConfig, config_from_dict, load_config
+
+# CLI flag -> (config field, argparse kwargs). Flags left unset do not override the file.
+RUN_FLAGS: dict[str, tuple[str, dict]] = {
+    "--surface": ("surface", {"help": "preset (elliptic, hyperbolic, wavy, plane, gaussian-hill, "
+                                      "ripple, hemisphere) or package.module:name"}),
+    "--followers": ("followers", {"type": int}),
+    "--comm-period": ("comm_period", {"type": float, "help": "T_c, time between messages"}),
+    "--spacing": ("spacing", {"type": float, "help": "rod length d (Riemannian)"}),
+    "--ticks": ("ticks", {"type": int}),
+    "--init-ticks": ("init_ticks", {"type": int}),
+    "--estimator": ("estimator", {"choices": ("edmd", "stay", "persist", "auto")}),
+    "--dictionary": ("dictionary", {"choices": tuple("abcdefg")}),
+    "--velocity": ("velocity", {"choices": ("oracle", "lagged", "estimated")}),
+    "--online": ("online", {"action": "store_const", "const": True}),
+    "--delays": ("delays", {"type": int}),
+    "--affine": ("affine", {"action": "store_const", "const": True}),
+    "--forget": ("forget", {"type": float}),
+    "--window": ("window", {"type": int, "help": "sliding window of pairs (0 = all)"}),
+    "--ridge": ("ridge", {"type": float}),
+    "--gps": ("gps", {"action": "store_const", "const": True}),
+    "--noise-range": ("noise_range", {"type": float}),
+    "--noise-bearing": ("noise_bearing", {"type": float}),
+    "--noise-velocity": ("noise_velocity", {"type": float}),
+    "--noise-move": ("noise_move", {"type": float}),
+    "--side": ("side", {"choices": ("left", "right")}),
+    "--leader-start": ("leader_start", {"metavar": "X,Y,VX,VY"}),
+    "--seed": ("seed", {"type": int}),
+    "--sensing-range": ("sensing_range", {"type": float, "help": "R_s (inf = unlimited)"}),
+    "--mode": ("mode", {"choices": ("lockstep", "realtime")}),
+    "--time-scale": ("time_scale", {"type": float}),
+    "--agent-timeout": ("agent_timeout", {"type": float}),
+    "--run-id": ("run_id", {}),
+}
+
+
+def add_run_flags(p: argparse.ArgumentParser) -> None:
+    for flag, (dest, kwargs) in RUN_FLAGS.items():
+        p.add_argument(flag, dest=dest, default=None, **kwargs)
+    p.add_argument("--config", help="TOML file with any of the options; flags override it")
+
+
+def config_from_args(args: argparse.Namespace) -> RunConfig:
+    """Defaults, then the ``--config`` file, then the flags given (ValueError on bad input)."""
+    from swarm.launch import new_run_id
+
+    base = load_config(args.config) if args.config else RunConfig(run_id=new_run_id())
+    data = base.to_dict()
+    for dest, _ in RUN_FLAGS.values():
+        value = getattr(args, dest)
+        if value is not None:
+            data[dest] = value
+    if isinstance(data.get("leader_start"), str):
+        try:
+            data["leader_start"] = tuple(float(x) for x in data["leader_start"].split(","))
+        except ValueError:
+            raise ValueError(f"--leader-start must be X,Y,VX,VY numbers, got {data['leader_start']!r}") from None
+    if args.config and args.run_id is None and "run_id" not in _file_keys(args.config):
+        data["run_id"] = new_run_id()
+    return config_from_dict(data)
+
+
+def _file_keys(path: str) -> set[str]:
+    import tomllib
+
+    with open(path, "rb") as fh:
+        return set(tomllib.load(fh))
+
+
+def format_summary(summary: dict) -> str:
+    """The per-follower table printed at the end of a run."""
+    head = (f"{'follower':>8}  {'required (' + summary['estimator'] + ')':>20}  {'rmse':>8}  "
+            f"{'stay':>8}  {'persist':>8}  {'lost':>4}  {'missed':>6}")
+    lines = [head, "-" * len(head)]
+    for k, s in summary["followers"].items():
+        lines.append(f"{k:>8}  {_num(s['mean_required_range']):>20}  {_num(s['rmse']):>8}  "
+                     f"{_num(s['mean_stay_range']):>8}  {_num(s['mean_persist_range']):>8}  "
+                     f"{s['lost_ticks']:>4}  {s['missed_ticks']:>6}")
+    state = "complete" if summary["complete"] else f"INCOMPLETE: {summary['reason']}"
+    lines.append(f"surface {summary['surface']}, comm period {summary['comm_period']}, "
+                 f"{summary['ticks_completed']} ticks, {summary['wall_time']:.1f} s wall, {state}")
+    return "\n".join(lines)
+
+
+def _num(x: float | None) -> str:
+    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.4f}"
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from swarm.launch import launch
+
+    try:
+        config = config_from_args(args)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.out) if args.out else Path("runs") / config.run_id
+    bar = tqdm(total=config.ticks, desc=f"{config.surface} {config.estimator}", unit="tick",
+               disable=None)
+    try:
+        summary = launch(config, out, in_process=args.in_process, on_tick=lambda j: bar.update(1))
+    except (ValueError, RuntimeError) as exc:
+        bar.close()
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        bar.close()
+        print(f"interrupted: partial result in {out}", file=sys.stderr)
+        return 130
+    bar.close()
+    print(format_summary(summary))
+    print(f"results: {out}")
+    if args.plot:
+        from swarm.plots import plot_run
+
+        for path in plot_run(out):
+            print(f"figure: {path}")
+    return 0 if summary["complete"] else 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m swarm",
+                                description="Column formation on an unknown surface over Zenoh.")
+    sub = p.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="run one case (default: the paper's type I case)")
+    add_run_flags(run)
+    layout = run.add_mutually_exclusive_group()
+    layout.add_argument("--processes", dest="in_process", action="store_false",
+                        help="agents as separate processes (default)")
+    layout.add_argument("--in-process", dest="in_process", action="store_true",
+                        help="agents as sessions in this process")
+    run.add_argument("--out", help="results folder (default runs/<run_id>)")
+    run.add_argument("--plot", action="store_true", help="draw the run's figures at the end")
+    run.set_defaults(func=cmd_run, in_process=False)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args)

@@ -1,0 +1,146 @@
+"""Protocol: keys, codec round trips, and every kind of malformed payload rejected clearly."""
+from __future__ import annotations
+
+import math
+
+import msgpack
+import pytest
+
+from protocol import keys
+from protocol.config import RunConfig, config_from_dict, dump_config, load_agent_settings, load_config
+from protocol.messages import (
+    MESSAGE_TYPES, ActRequest, ActResult, Done, ErrorReply, Observation, ProtocolError, Rod,
+    SenseRequest, Sensing, TickStart, decode, encode,
+)
+from protocol.session import free_tcp_endpoint, zenoh_config
+
+SAMPLES = [
+    TickStart(tick=3, t=3.84),
+    SenseRequest(tick=4, phase="moved"),
+    Sensing(tick=4, r=3.5, theta=-1.2, rod=(0.1, -0.2), velocity=None, oracle_velocity=(1.0, 0.0),
+            gps=(1.0, 2.0, 3.0), leader_gps=(4.0, 5.0, 6.0)),
+    ActRequest(tick=5, action="drive", t=6.4),
+    ActRequest(tick=5, action="move", offset=(0.5, -0.25)),
+    ActResult(tick=5, moved=False),
+    Rod(tick=7, length=3.57, side=-1),
+    Observation(tick=7, estimator="edmd-b", measurement=(3.5, 0.1), prediction=None, lost=True),
+    Done(tick=39, results="runs/x", complete=True, reason=""),
+    ErrorReply(tick=0, error="bad"),
+]
+
+
+@pytest.mark.parametrize("msg", SAMPLES, ids=lambda m: m.TYPE)
+def test_round_trip(msg):
+    assert decode(encode(msg), type(msg)) == msg
+
+
+def test_every_message_type_is_sampled():
+    assert {type(m) for m in SAMPLES} == set(MESSAGE_TYPES.values())
+
+
+def _raw(**body):
+    return msgpack.packb(body, use_bin_type=True)
+
+
+GOOD_ROD = {"v": 1, "type": "rod", "tick": 2, "length": 3.57, "side": 1}
+
+
+@pytest.mark.parametrize("payload, fragment", [
+    (b"\xc1", "not valid msgpack"),
+    (msgpack.packb([1, 2]), "must be a msgpack map"),
+    (_raw(**{**GOOD_ROD, "v": 2}), "unsupported schema version 2"),
+    (_raw(**{k: v for k, v in GOOD_ROD.items() if k != "v"}), "unsupported schema version None"),
+    (_raw(**{**GOOD_ROD, "type": "obs"}), "message type 'obs' not accepted"),
+    (_raw(**{k: v for k, v in GOOD_ROD.items() if k != "length"}), "missing field 'length'"),
+    (_raw(**{**GOOD_ROD, "extra": 1}), "unknown field(s) ['extra']"),
+    (_raw(**{**GOOD_ROD, "length": "3"}), "'length' must be a number"),
+    (_raw(**{**GOOD_ROD, "length": math.nan}), "'length' must be finite"),
+    (_raw(**{**GOOD_ROD, "length": math.inf}), "'length' must be finite"),
+    (_raw(**{**GOOD_ROD, "length": -1.0}), "'length' must be positive"),
+    (_raw(**{**GOOD_ROD, "side": 0}), "'side' must be 1 or -1"),
+    (_raw(**{**GOOD_ROD, "side": True}), "'side' must be 1 or -1"),
+    (_raw(**{**GOOD_ROD, "tick": -1}), "'tick' must be in"),
+    (_raw(**{**GOOD_ROD, "tick": 1.5}), "'tick' must be an integer"),
+    (_raw(**{**GOOD_ROD, "tick": True}), "'tick' must be an integer"),
+])
+def test_malformed_rod_rejected(payload, fragment):
+    with pytest.raises(ProtocolError) as err:
+        decode(payload, Rod)
+    assert fragment in str(err.value)
+
+
+@pytest.mark.parametrize("body, fragment", [
+    ({"rod": [1.0]}, "'rod' must have length 2"),
+    ({"rod": [1.0, "x"]}, "'rod[1]' must be a number"),
+    ({"gps": [1.0, 2.0]}, "'gps' must have length 3"),
+    ({"velocity": "fast"}, "'velocity' must be a list"),
+    ({"theta": math.inf}, "'theta' must be finite"),
+])
+def test_malformed_sensing_rejected(body, fragment):
+    good = {"v": 1, "type": "sensing", "tick": 1, "r": 1.0, "theta": 0.0, "rod": None,
+            "velocity": None, "oracle_velocity": None, "gps": None, "leader_gps": None}
+    with pytest.raises(ProtocolError) as err:
+        decode(_raw(**{**good, **body}), Sensing)
+    assert fragment in str(err.value)
+
+
+def test_bad_choice_and_tick_order():
+    req = {"v": 1, "type": "sense", "tick": 1, "phase": "later"}
+    with pytest.raises(ProtocolError, match="'phase' must be one of"):
+        decode(_raw(**req), SenseRequest)
+    with pytest.raises(ProtocolError, match="older than tick 5"):
+        decode(encode(Rod(tick=4, length=1.0, side=1)), Rod, min_tick=5)
+
+
+def test_encode_refuses_invalid_message():
+    with pytest.raises(ProtocolError, match="'length' must be positive"):
+        encode(Rod(tick=1, length=0.0, side=1))
+    with pytest.raises(ProtocolError, match="not a protocol message"):
+        encode("rod")  # type: ignore[arg-type]
+
+
+def test_keys():
+    assert keys.sense("r1", 3) == "swarm/r1/world/sense/3"
+    assert keys.rod("r1") == "swarm/r1/agent/*/rod"
+    assert keys.alive("r1", 2) == "swarm/r1/alive/agent/2"
+    assert keys.agent_from_key("swarm/r1/agent/12/obs") == 12
+    assert keys.agent_from_key("swarm/r1/world/act/0") == 0
+    with pytest.raises(ValueError, match="names no agent id"):
+        keys.agent_from_key("swarm/r1/world/act/x")
+    with pytest.raises(ValueError, match="run_id"):
+        keys.tick("bad/id")
+    with pytest.raises(ValueError, match="agent id"):
+        keys.obs("r", -1)
+
+
+def test_zenoh_config_helper():
+    ep = free_tcp_endpoint()
+    conf = zenoh_config("router", listen=[ep])
+    assert '"router"' in conf.get_json("mode")
+    assert conf.get_json("scouting/multicast/enabled") == "false"
+    with pytest.raises(ValueError, match="mode must be one of"):
+        zenoh_config("bogus")
+    with pytest.raises(ValueError, match="client mode needs"):
+        zenoh_config("client")
+    with pytest.raises(ValueError, match="listen endpoint"):
+        zenoh_config("peer", listen=["7447"])
+
+
+def test_config_round_trip_and_errors(tmp_path):
+    cfg = RunConfig(run_id="abc", surface="wavy", followers=3, sensing_range=math.inf,
+                    leader_start=(1.0, 2.0, 1.0, 0.0), surface_params={"a": 0.5})
+    dump_config(cfg, tmp_path / "c.toml")
+    assert load_config(tmp_path / "c.toml") == cfg
+    settings = load_agent_settings(tmp_path / "c.toml")
+    assert not hasattr(settings, "surface") and settings.followers == 3
+    with pytest.raises(ValueError, match="unknown configuration option"):
+        config_from_dict({"surfaec": "wavy"})
+    with pytest.raises(ValueError, match="forget must be in"):
+        RunConfig(forget=1.5)
+    with pytest.raises(ValueError, match="enable gps"):
+        RunConfig(dictionary="d")
+    with pytest.raises(ValueError, match="estimator must be one of"):
+        RunConfig(estimator="magic")
+    (tmp_path / "bad.toml").write_text("followers = [")
+    with pytest.raises(ValueError, match="not valid TOML"):
+        load_config(tmp_path / "bad.toml")

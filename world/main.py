@@ -1,0 +1,83 @@
+"""Entry point of the world process: ``python -m world --config run.toml [--listen EP] [--out DIR]``."""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import zenoh
+
+from protocol.config import RunConfig, dump_config, load_config
+from protocol.session import zenoh_config
+from world.service import WorldService
+from world.sim import resolve_leader_start
+from world.surfaces import make_surface
+
+
+def resolve(config: RunConfig) -> RunConfig:
+    """Fill in what the config leaves to the surface (the leader start); validates the surface."""
+    surface = make_surface(config.surface, config.surface_params)
+    return config.replace(leader_start=resolve_leader_start(config, surface))
+
+
+def default_out(config: RunConfig) -> Path:
+    return Path("runs") / config.run_id
+
+
+def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
+              on_tick: Callable[[int], None] | None = None,
+              on_ready: Callable[[WorldService], None] | None = None) -> dict:
+    """Run one world on a new session built from ``conf``; return the summary.
+
+    Writes ``config.toml`` (resolved) before the first tick. ``on_ready`` gets the service once
+    its queryables and token are declared (launchers start agents then, and may ``abort`` it).
+    """
+    config = resolve(config)
+    surface = make_surface(config.surface, config.surface_params)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    dump_config(config, out_dir / "config.toml")
+    with zenoh.open(conf) as session:
+        service = WorldService(session, config, surface, out_dir, on_tick=on_tick)
+        try:
+            if on_ready is not None:
+                on_ready(service)
+            return service.run()
+        finally:
+            service.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description="The world process: hidden surface, sensing, motion, results.")
+    p.add_argument("--config", required=True, help="run configuration TOML")
+    group = p.add_mutually_exclusive_group()
+    group.add_argument("--listen", action="append", metavar="ENDPOINT",
+                       help="act as embedded Zenoh router listening here (default tcp/127.0.0.1:7447)")
+    group.add_argument("--connect", action="append", metavar="ENDPOINT",
+                       help="connect as a client to a Zenoh router (e.g. docker-compose's zenohd)")
+    p.add_argument("--out", help="results folder (default runs/<run_id>)")
+    p.add_argument("--user"), p.add_argument("--password")
+    p.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE")
+    p.add_argument("--log-level", default="WARNING")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
+    try:
+        config = load_config(args.config)
+        if args.connect:
+            conf = zenoh_config("client", connect=args.connect, user=args.user,
+                                password=args.password, extra=args.cfg)
+        else:
+            conf = zenoh_config("router", listen=args.listen or ["tcp/127.0.0.1:7447"],
+                                user=args.user, password=args.password, extra=args.cfg)
+        summary = run_world(config, conf, args.out or default_out(config))
+    except (ValueError, RuntimeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    if not summary["complete"]:
+        print(f"error: run incomplete: {summary['reason']}", file=sys.stderr)
+        return 1
+    return 0

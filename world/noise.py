@@ -1,0 +1,35 @@
+"""Sensor and actuation noise streams keyed by (seed, agent, tick, channel, phase) (SPEC §5).
+
+Each draw comes from its own ``numpy.random.Generator`` seeded by that key, so the numbers do
+not depend on the order in which processes ask: any process layout gives the same run.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+CHANNELS = {"range": 1, "bearing": 2, "velocity": 3, "move": 4}
+PHASES = {"pre": 0, "moved": 1, "settled": 2, "act": 3}
+
+
+def gaussian(
+    seed: int, agent: int, tick: int, channel: str, phase: str, sigma: float, size: int = 1
+) -> np.ndarray:
+    """Draw ``size`` N(0, sigma²) values from the stream named by the key.
+
+    Returns zeros (without touching a generator) when ``sigma`` is 0.
+
+    >>> a = gaussian(7, 1, 5, "range", "pre", 0.1)
+    >>> b = gaussian(7, 1, 5, "range", "pre", 0.1)
+    >>> bool(a[0] == b[0]) and bool(a[0] != gaussian(7, 2, 5, "range", "pre", 0.1)[0])
+    True
+    """
+    if channel not in CHANNELS:
+        raise ValueError(f"channel must be one of {sorted(CHANNELS)}, got {channel!r}")
+    if phase not in PHASES:
+        raise ValueError(f"phase must be one of {sorted(PHASES)}, got {phase!r}")
+    if sigma < 0:
+        raise ValueError(f"sigma must be non-negative, got {sigma}")
+    if sigma == 0:
+        return np.zeros(size)
+    rng = np.random.default_rng([seed, agent, tick, CHANNELS[channel], PHASES[phase]])
+    return rng.normal(0.0, sigma, size)

@@ -1,0 +1,291 @@
+"""The world's physics and bookkeeping, free of any transport (SPEC §3–§5, §7).
+
+:class:`WorldSim` owns the hidden surface and every agent's absolute pose. The Zenoh service
+(``world.service``) turns queries into calls of :meth:`sense`, :meth:`drive`, :meth:`move`
+and :meth:`snap`, and tick events into :meth:`start_tick` / :meth:`finish_tick`. Requests
+that break the protocol's rules raise :class:`RequestError` (answered as an error reply);
+conditions that end the run (leaving the surface's domain) raise :class:`RunEnded`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from protocol.config import RunConfig
+from protocol.messages import Sensing
+from world import geometry
+from world.noise import gaussian
+from world.surfaces import Surface, surface_leader_start
+
+MAX_OFFSET = 1e6
+
+
+class RequestError(ValueError):
+    """An agent's request that the world refuses; the message names the problem."""
+
+
+class RunEnded(RuntimeError):
+    """A condition that ends the run early (the result is written, marked incomplete)."""
+
+
+@dataclass
+class AgentState:
+    """Absolute pose and per-tick record of one agent (world-private)."""
+
+    pos: np.ndarray
+    heading: np.ndarray
+    settled: dict[int, np.ndarray] = field(default_factory=dict)
+    estimate: np.ndarray | None = None
+    acted: str = ""
+    lost: bool = False
+    missed: bool = False
+
+
+def resolve_leader_start(config: RunConfig, surface: Surface) -> tuple[float, float, float, float]:
+    """The run's leader start: the config's, else the surface's default (ValueError if none)."""
+    if config.leader_start is not None:
+        return config.leader_start
+    start = surface_leader_start(surface)
+    if start is None:
+        raise ValueError(
+            f"surface {config.surface!r} has no default leader start: give leader_start"
+        )
+    return tuple(float(x) for x in start)  # type: ignore[return-value]
+
+
+class WorldSim:
+    """Ground truth of one run.
+
+    Parameters
+    ----------
+    config : RunConfig
+        The resolved run configuration (``leader_start`` must be set).
+    surface : Surface
+        The hidden surface.
+    """
+
+    def __init__(self, config: RunConfig, surface: Surface) -> None:
+        if config.leader_start is None:
+            raise ValueError("config.leader_start must be resolved before building the world")
+        self.config = config
+        self.surface = surface
+        self.side = config.side_sign
+        n = config.followers
+        start = np.asarray(config.leader_start, dtype=float)
+        # One tick past the end so the oracle velocity exists at the last tick.
+        self.ideal = geometry.ideal_formation(
+            surface, start, n, config.spacing, config.comm_period, config.ticks + 1, self.side
+        )
+        self.agents = [AgentState(pos=start[:2].copy(), heading=start[2:].copy())]
+        for _ in range(n):
+            prev = self.agents[-1]
+            end, u = geometry.rod_end(surface, prev.pos, prev.heading, config.spacing, self.side)
+            heading = geometry.heading_at_rod_end(surface, end, u, self.side)
+            self.agents.append(AgentState(pos=end, heading=heading))
+        self.leader_velocity = start[2:].copy()
+        self.leader_time = 0.0
+        self.tick = -1
+        self._rod_cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._rows: dict[int, dict] = {}
+
+    # --- ticks ---------------------------------------------------------------------------------
+
+    @property
+    def n_agents(self) -> int:
+        return len(self.agents)
+
+    def time_of(self, tick: int) -> float:
+        return tick * self.config.comm_period
+
+    def start_tick(self, tick: int) -> None:
+        """Open tick ``tick`` (must follow the previous one)."""
+        if tick != self.tick + 1:
+            raise RuntimeError(f"tick {tick} cannot follow tick {self.tick}")
+        self.tick = tick
+        self._rod_cache.clear()
+        for agent in self.agents:
+            agent.estimate, agent.acted, agent.lost, agent.missed = None, "", False, False
+
+    def is_settled(self, agent: int, tick: int | None = None) -> bool:
+        return (self.tick if tick is None else tick) in self.agents[agent].settled
+
+    def mark_missed(self, agent: int) -> None:
+        """Realtime mode: ``agent`` did not settle in time; it keeps its pose for this tick."""
+        state = self.agents[agent]
+        state.missed = True
+        state.settled[self.tick] = state.pos.copy()
+
+    def finish_tick(self) -> list[dict]:
+        """Ground-truth rows of the current tick, one per agent (SPEC §7 columns)."""
+        j, cfg = self.tick, self.config
+        rows = []
+        for k, state in enumerate(self.agents):
+            if j not in state.settled:
+                raise RuntimeError(f"agent {k} has not settled at tick {j}")
+            pos = state.settled[j]
+            row = {"tick": j, "t": self.time_of(j), "agent": k, "pos_x": pos[0], "pos_y": pos[1]}
+            if k > 0:
+                ideal = self._leader_rod(k)[0]
+                prev = state.settled.get(j - 1, pos)
+                lead_now = self.agents[k - 1].settled[j]
+                lead_prev = self.agents[k - 1].settled.get(j - 1, lead_now)
+                persist = prev + (lead_now - lead_prev)
+                row.update(
+                    estimator=cfg.estimator, ideal_x=ideal[0], ideal_y=ideal[1],
+                    stay_range=_dist(prev, ideal), persist_range=_dist(persist, ideal),
+                    lost=int(state.lost), missed=int(state.missed),
+                    formation_error=_dist(pos, self.ideal[k, j]),
+                )
+                if state.estimate is not None:
+                    row.update(est_x=state.estimate[0], est_y=state.estimate[1],
+                               required_range=_dist(state.estimate, ideal))
+            rows.append(row)
+        for state in self.agents:  # keep only what velocities and baselines still need
+            for old in [t for t in state.settled if t < j - 1]:
+                del state.settled[old]
+        return rows
+
+    # --- requests ------------------------------------------------------------------------------
+
+    def _check_request(self, agent: int, tick: int) -> None:
+        if not 0 <= agent < self.n_agents:
+            raise RequestError(f"unknown agent id {agent} (this run has agents 0..{self.n_agents - 1})")
+        if tick != self.tick:
+            raise RequestError(f"request for tick {tick}, but the world is at tick {self.tick}")
+        if self.agents[agent].missed:
+            raise RequestError(f"agent {agent} missed tick {tick}; wait for the next tick")
+
+    def _check_follower_turn(self, agent: int, *, settled_ok: bool = False) -> None:
+        if agent == 0:
+            raise RequestError("agent 0 is the leader: it has no leader to sense or follow")
+        if not self.is_settled(agent - 1):
+            raise RequestError(f"agent {agent - 1} has not settled at tick {self.tick} yet")
+        if self.is_settled(agent) and not settled_ok:
+            raise RequestError(f"agent {agent} already settled at tick {self.tick}")
+
+    def drive(self, agent: int, tick: int, t: float) -> None:
+        """The leader follows its geodesic to time ``t`` (which must be this tick's time)."""
+        self._check_request(agent, tick)
+        if agent != 0:
+            raise RequestError(f"only the leader (agent 0) may drive, not agent {agent}")
+        if self.is_settled(0):
+            raise RequestError(f"the leader already drove at tick {tick}")
+        target = self.time_of(tick)
+        if not math.isclose(t, target, rel_tol=1e-9, abs_tol=1e-9):
+            raise RequestError(f"drive time {t} is not tick {tick}'s time {target}")
+        leader = self.agents[0]
+        if target > self.leader_time:
+            try:
+                leader.pos, self.leader_velocity = geometry.integrate_geodesic(
+                    self.surface, leader.pos, self.leader_velocity, target - self.leader_time
+                )
+            except geometry.SurfaceDomainError as exc:
+                raise RunEnded(f"the leader left the surface's domain: {exc}") from None
+            leader.heading = self.leader_velocity.copy()
+            self.leader_time = target
+        leader.settled[tick] = leader.pos.copy()
+
+    def sense(self, agent: int, tick: int, phase: str) -> Sensing:
+        """What follower ``agent``'s sensors read now, in its local frame (SPEC §5)."""
+        self._check_request(agent, tick)
+        self._check_follower_turn(agent, settled_ok=phase == "settled")
+        cfg, state = self.config, self.agents[agent]
+        leader = self.agents[agent - 1]
+        rel = leader.pos - state.pos
+        r = math.hypot(rel[0], rel[1]) + gaussian(cfg.seed, agent, tick, "range", phase, cfg.noise_range)[0]
+        theta = math.atan2(rel[1], rel[0]) + gaussian(
+            cfg.seed, agent, tick, "bearing", phase, cfg.noise_bearing)[0]
+        theta = math.atan2(math.sin(theta), math.cos(theta))
+        end = self._leader_rod(agent)[0]
+        offset = end - state.pos
+        visible = tick < cfg.init_ticks or _norm(offset) <= cfg.sensing_range
+        velocity = self._odometry(agent, tick, phase)
+        oracle = None
+        if cfg.velocity == "oracle" and self.is_settled(agent):
+            oracle = (self.ideal[agent, tick + 1] - state.pos) / cfg.comm_period
+        gps = leader_gps = None
+        if cfg.gps:
+            gps, leader_gps = self._gps(state.pos), self._gps(leader.pos)
+        return Sensing(
+            tick=tick, r=r, theta=theta, rod=_tup(offset) if visible else None,
+            velocity=_tup(velocity), oracle_velocity=_tup(oracle), gps=gps, leader_gps=leader_gps,
+        )
+
+    def move(self, agent: int, tick: int, offset: tuple[float, float]) -> None:
+        """Follower moves by the local-frame ``offset`` toward its estimate (with actuation noise)."""
+        self._check_request(agent, tick)
+        self._check_follower_turn(agent)
+        state, cfg = self.agents[agent], self.config
+        if tick < cfg.init_ticks:
+            raise RequestError(f"tick {tick} is an initial tick: followers only snap")
+        if state.acted:
+            raise RequestError(f"agent {agent} already moved at tick {tick}")
+        step = np.asarray(offset, dtype=float)
+        if step.shape != (2,) or not np.all(np.isfinite(step)) or _norm(step) > MAX_OFFSET:
+            raise RequestError(f"move offset must be two finite numbers of size <= {MAX_OFFSET:g}")
+        step = step + gaussian(cfg.seed, agent, tick, "move", "act", cfg.noise_move, 2)
+        self._relocate(agent, state.pos + step)
+        state.estimate = state.pos.copy()
+        state.acted = "move"
+
+    def snap(self, agent: int, tick: int) -> bool:
+        """Follower moves onto its leader's rod end if it sees it; returns False (lost) if not."""
+        self._check_request(agent, tick)
+        self._check_follower_turn(agent)
+        state, cfg = self.agents[agent], self.config
+        if tick >= cfg.init_ticks and state.acted != "move":
+            raise RequestError(f"agent {agent} must move to its estimate before snapping")
+        end, u = self._leader_rod(agent)
+        seen = tick < cfg.init_ticks or _norm(end - state.pos) <= cfg.sensing_range
+        if seen:
+            self._relocate(agent, end)
+            state.heading = geometry.heading_at_rod_end(self.surface, end, u, self.side)
+        state.lost = not seen
+        state.settled[tick] = state.pos.copy()
+        return seen
+
+    # --- helpers -------------------------------------------------------------------------------
+
+    def _leader_rod(self, agent: int) -> tuple[np.ndarray, np.ndarray]:
+        """End and end tangent of agent ``agent - 1``'s rod at its current pose (cached per tick)."""
+        if agent not in self._rod_cache:
+            leader = self.agents[agent - 1]
+            try:
+                self._rod_cache[agent] = geometry.rod_end(
+                    self.surface, leader.pos, leader.heading, self.config.spacing, self.side
+                )
+            except geometry.SurfaceDomainError as exc:
+                raise RunEnded(f"agent {agent - 1}'s rod leaves the surface's domain: {exc}") from None
+        return self._rod_cache[agent]
+
+    def _relocate(self, agent: int, pos: np.ndarray) -> None:
+        contains = getattr(self.surface, "contains", None)
+        if contains is not None and not contains(pos):
+            raise RunEnded(f"agent {agent} would leave the surface's domain at {pos.tolist()}")
+        self.agents[agent].pos = np.asarray(pos, dtype=float).copy()
+
+    def _odometry(self, agent: int, tick: int, phase: str) -> np.ndarray | None:
+        settled = self.agents[agent].settled
+        last = tick if tick in settled else tick - 1
+        if last not in settled or last - 1 not in settled:
+            return None
+        v = (settled[last] - settled[last - 1]) / self.config.comm_period
+        return v + gaussian(self.config.seed, agent, tick, "velocity", phase,
+                            self.config.noise_velocity, 2)
+
+    def _gps(self, pos: np.ndarray) -> tuple[float, float, float]:
+        return float(pos[0]), float(pos[1]), float(self.surface.height(pos))
+
+
+def _norm(v: np.ndarray) -> float:
+    return math.hypot(float(v[0]), float(v[1]))
+
+
+def _dist(a: np.ndarray, b: np.ndarray) -> float:
+    return _norm(np.asarray(a) - np.asarray(b))
+
+
+def _tup(v: np.ndarray | None) -> tuple[float, float] | None:
+    return None if v is None else (float(v[0]), float(v[1]))
