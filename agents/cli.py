@@ -34,13 +34,20 @@ def run_cli(args: argparse.Namespace, body: Callable[[zenoh.Session, AgentSettin
     try:
         settings = load_agent_settings(args.config)
         conf = zenoh_config(args.mode, connect=args.connect, listen=args.listen, user=args.user,
-                            password=args.password, extra=args.cfg)
+                            password=args.password, connect_timeout=settings.start_timeout,
+                            extra=args.cfg)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     try:
         with zenoh.open(conf) as session:
             body(session, settings)
+    except zenoh.ZError as exc:
+        print(f"error: Zenoh: {exc}", file=sys.stderr)
+        return 1
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     except RunFinished:
         return 0
     except AgentAbort as exc:

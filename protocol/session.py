@@ -18,6 +18,7 @@ def zenoh_config(
     multicast_scouting: bool = False,
     user: str | None = None,
     password: str | None = None,
+    connect_timeout: float = 30.0,
     extra: Sequence[str] = (),
 ) -> zenoh.Config:
     """Build a session configuration.
@@ -32,6 +33,9 @@ def zenoh_config(
         Off by default: every process finds the others through explicit endpoints only.
     user, password : str, optional
         Credentials for a router with user/password authentication.
+    connect_timeout : float
+        Seconds to keep retrying the connect endpoints at start-up (a process may start
+        before the router it connects to); opening fails after that.
     extra : sequence of str
         ``KEY:VALUE`` pairs inserted with ``insert_json5`` (``--cfg`` of the zenoh examples).
     """
@@ -50,7 +54,13 @@ def zenoh_config(
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:
+        if connect_timeout <= 0:
+            raise ValueError(f"connect_timeout must be positive, got {connect_timeout}")
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+        conf.insert_json5("connect/timeout_ms", str(int(connect_timeout * 1000)))
+        conf.insert_json5("connect/exit_on_failure", "true")
+        conf.insert_json5("connect/retry", json.dumps(
+            {"period_init_ms": 50, "period_max_ms": 500, "period_increase_factor": 2}))
     if mode == "client" and not connect:
         raise ValueError("client mode needs at least one connect endpoint")
     if user is not None:

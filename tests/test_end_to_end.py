@@ -1,0 +1,147 @@
+"""End to end over Zenoh: in-process sessions, separate processes, and a hand-assembled run
+give identical numbers, and the numbers match the geometry's ground truth."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol.config import RunConfig, load_config
+from protocol.session import free_tcp_endpoint
+from swarm.launch import agent_commands, launch
+from world import ideal_formation
+from world.results import TICK_COLUMNS, read_ticks
+from world.surfaces import make_surface
+
+ROOT = Path(__file__).resolve().parents[1]
+SUMMARY_KEYS = {"mean_required_range", "rmse", "mean_stay_range", "mean_persist_range",
+                "lost_ticks", "missed_ticks", "estimated_ticks"}
+
+
+def _numbers(run_dir: Path) -> tuple[str, dict]:
+    summary = json.loads((run_dir / "summary.json").read_text())
+    return (run_dir / "ticks.csv").read_text(), summary["followers"]
+
+
+@pytest.fixture(scope="module")
+def chain_config() -> RunConfig:
+    return RunConfig(run_id="e2e", surface="wavy", followers=2, ticks=14, agent_timeout=20.0)
+
+
+@pytest.fixture(scope="module")
+def in_process_run(tmp_path_factory, chain_config):
+    out = tmp_path_factory.mktemp("inproc")
+    summary = launch(chain_config, out, in_process=True)
+    return out, summary
+
+
+def test_results_folder(in_process_run, chain_config):
+    out, summary = in_process_run
+    assert summary["complete"] and summary["ticks_completed"] == chain_config.ticks
+    header = (out / "ticks.csv").read_text().splitlines()[0].split(",")
+    assert tuple(header) == TICK_COLUMNS
+    on_disk = json.loads((out / "summary.json").read_text())
+    assert set(on_disk["followers"]) == {"1", "2"}
+    for stats in on_disk["followers"].values():
+        assert set(stats) == SUMMARY_KEYS
+        assert stats["estimated_ticks"] == chain_config.ticks - chain_config.init_ticks
+    resolved = load_config(out / "config.toml")
+    assert resolved.leader_start == (30.0, 5.0, 1.0, 0.0) and resolved.run_id == "e2e"
+    assert not list(out.glob(".*.tmp"))  # atomic writes leave no temporaries
+
+
+def test_ground_truth(in_process_run, chain_config):
+    """With R_s = inf and no noise, every follower settles on the ideal formation of §3."""
+    out, _ = in_process_run
+    rows = read_ticks(out / "ticks.csv")
+    cfg = load_config(out / "config.toml")
+    truth = ideal_formation(make_surface(cfg.surface), cfg.leader_start, cfg.followers,
+                            cfg.spacing, cfg.comm_period, cfg.ticks)
+    for row in rows:
+        pos = np.array([row["pos_x"], row["pos_y"]])
+        np.testing.assert_allclose(pos, truth[row["agent"], row["tick"]], atol=1e-9)
+        if row["agent"] > 0:
+            assert row["formation_error"] < 1e-9
+            ideal = np.array([row["ideal_x"], row["ideal_y"]])
+            np.testing.assert_allclose(ideal, truth[row["agent"], row["tick"]], atol=1e-9)
+            if row["tick"] >= cfg.init_ticks:
+                est = np.array([row["est_x"], row["est_y"]])
+                assert row["required_range"] == pytest.approx(np.hypot(*(est - ideal)), abs=1e-12)
+            else:
+                assert row["est_x"] is None and row["required_range"] is None
+
+
+def test_processes_match_in_process(tmp_path, in_process_run, chain_config):
+    out, _ = in_process_run
+    summary = launch(chain_config, tmp_path / "procs", in_process=False)
+    assert summary["complete"]
+    assert _numbers(tmp_path / "procs") == _numbers(out)
+
+
+def test_hand_assembled_run_matches(tmp_path, in_process_run):
+    """``python -m world`` + ``python -m agents.*`` from the written config.toml: same numbers."""
+    out, _ = in_process_run
+    endpoint = free_tcp_endpoint()
+    config = out / "config.toml"
+    procs = [subprocess.Popen([sys.executable, "-m", "world", "--config", str(config),
+                               "--listen", endpoint, "--out", str(tmp_path / "hand")], cwd=ROOT)]
+    try:
+        procs += [subprocess.Popen(cmd, cwd=ROOT) for cmd in agent_commands(config, endpoint, 2)]
+        codes = [p.wait(timeout=90) for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    assert codes == [0, 0, 0, 0]
+    assert _numbers(tmp_path / "hand") == _numbers(out)
+
+
+def test_world_start_timeout(tmp_path):
+    """A world whose agents never come fails with a clear message, not a hang."""
+    from protocol.config import dump_config
+
+    dump_config(RunConfig(run_id="lonely", start_timeout=1.0), tmp_path / "c.toml")
+    proc = subprocess.run([sys.executable, "-m", "world", "--config", str(tmp_path / "c.toml"),
+                           "--listen", free_tcp_endpoint(), "--out", str(tmp_path / "o")],
+                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1
+    assert "agents 0, 1 did not come up within 1 s" in proc.stderr
+
+
+def test_agent_without_world_exits(tmp_path):
+    from protocol.config import dump_config
+
+    dump_config(RunConfig(run_id="orphan", start_timeout=1.0), tmp_path / "c.toml")
+    proc = subprocess.run([sys.executable, "-m", "agents.leader", "--config",
+                           str(tmp_path / "c.toml"), "--mode", "peer"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1
+    assert "is the world running?" in proc.stderr
+
+
+def test_agents_never_import_world():
+    """Static check of every module in agents/, and a live import check in a fresh interpreter."""
+    import ast
+
+    for path in (ROOT / "agents").glob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            for name in names:
+                top = name.split(".")[0]
+                assert top not in ("world", "scipy", "swarm"), f"{path.name} imports {name}"
+    code = ("import sys, agents.leader, agents.follower, agents.policies, agents.estimators; "
+            "bad = [m for m in ('world', 'scipy', 'swarm') if m in sys.modules]; "
+            "print(bad); sys.exit(1 if bad else 0)")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
