@@ -16,6 +16,7 @@ protocol.messages.ProtocolError: unsupported schema version 2 (this build speaks
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar
@@ -87,6 +88,12 @@ def _vector(length: int | None):
             raise ProtocolError(f"field {name!r} must have length {length}, got {len(value)}")
         if len(value) > MAX_VECTOR:
             raise ProtocolError(f"field {name!r} is longer than {MAX_VECTOR}")
+        try:  # fast path: plain finite floats
+            out = tuple(float(x) for x in value if type(x) is float)
+            if len(out) == len(value) and all(map(math.isfinite, out)):
+                return out
+        except (TypeError, ValueError):
+            pass
         return tuple(_finite(f"{name}[{i}]", x) for i, x in enumerate(value))
 
     return check
@@ -261,9 +268,9 @@ def encode(msg: Message) -> bytes:
     if not isinstance(msg, Message) or type(msg) not in MESSAGE_TYPES.values():
         raise ProtocolError(f"cannot encode {type(msg).__name__}: not a protocol message")
     body: dict[str, Any] = {"v": SCHEMA_VERSION, "type": msg.TYPE}
-    for f in fields(msg):
-        value = getattr(msg, f.name)
-        body[f.name] = list(value) if isinstance(value, tuple) else value
+    for name, _ in _spec(type(msg))[0]:
+        value = getattr(msg, name)
+        body[name] = list(value) if isinstance(value, tuple) else value
     _validate(type(msg), body)
     return msgpack.packb(body, use_bin_type=True)
 
@@ -312,16 +319,23 @@ def decode(
     return cls(**values)
 
 
+@functools.cache
+def _spec(cls: type[Message]) -> tuple[tuple[tuple[str, Any], ...], frozenset[str]]:
+    """Per message class: (field name, checker) pairs and the set of allowed keys."""
+    pairs = tuple((f.name, _KINDS[f.metadata["kind"]]) for f in fields(cls))
+    return pairs, frozenset(name for name, _ in pairs) | {"v", "type"}
+
+
 def _validate(cls: type[Message], body: dict[str, Any]) -> dict[str, Any]:
-    spec = {f.name: f for f in fields(cls)}
-    unknown = set(body) - set(spec) - {"v", "type"}
-    if unknown:
+    pairs, allowed = _spec(cls)
+    if not allowed.issuperset(body):
+        unknown = set(body) - allowed
         raise ProtocolError(f"{cls.TYPE}: unknown field(s) {sorted(map(str, unknown))}")
     values = {}
-    for name, f in spec.items():
+    for name, check in pairs:
         if name not in body:
             raise ProtocolError(f"{cls.TYPE}: missing field {name!r}")
-        values[name] = _KINDS[f.metadata["kind"]](name, body[name])
+        values[name] = check(name, body[name])
     return values
 
 
