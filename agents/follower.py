@@ -1,7 +1,7 @@
 """A follower: estimates its leader's rod end, moves there, snaps on it (``python -m agents.follower``).
 
-One tick (SPEC §4): sense the leader (``pre``); from tick ``init_ticks`` on, move to the
-policy's estimate and sense again (``moved``); snap onto the rod end if it is in range (else
+One tick (SPEC §4): sense the leader (``pre``) and ask the policy for its estimate; from tick
+``init_ticks`` on, move there and sense again (``moved``); snap onto the rod end if it is in range (else
 count a lost tick); sense once more (``settled``) and record the measurement; publish the
 observation and the rod.
 """
@@ -22,15 +22,14 @@ from protocol.messages import ActRequest, Observation
 def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick: int) -> Observation:
     """Run one tick of the follower; returns the observation it publishes."""
     pre = link.sense(tick, "pre")
-    prediction = None
+    try:  # during the initial ticks the prediction is only scored, not followed
+        proposal = policy.propose(pre)
+        offset, prediction = proposal.offset, proposal.prediction
+    except NotReady:
+        offset, prediction = np.zeros(2), None
     if tick < settings.init_ticks:
         offset, rod = np.zeros(2), pre.rod
     else:
-        try:
-            proposal = policy.propose(pre)
-            offset, prediction = proposal.offset, proposal.prediction
-        except NotReady:
-            offset = np.zeros(2)
         link.act(ActRequest(tick=tick, action="move", offset=(float(offset[0]), float(offset[1]))))
         rod = link.sense(tick, "moved").rod
     lost = not link.act(ActRequest(tick=tick, action="snap")).moved

@@ -119,12 +119,16 @@ class EDMDPolicy(Policy):
     """
 
     def __init__(self, dictionary: str, comm_period: float, velocity: str = "lagged",
-                 **estimator) -> None:
+                 cartesian: bool = False, **estimator) -> None:
         if dictionary not in "abcdefg" or len(dictionary) != 1:
             raise ValueError(f"dictionary must be one of a..g, got {dictionary!r}")
+        if cartesian and dictionary != "b":
+            raise ValueError("cartesian applies to dictionary b only")
         self.dictionary = dictionary
         self.velocity = velocity
+        self.cartesian = cartesian
         self.name = f"edmd-{dictionary}" + (f"-{velocity}" if dictionary == "c" else "")
+        self.name += "-xy" if cartesian else ""
         self.comm_period = comm_period
         self.edmd = StreamingEDMD(**estimator)
         self.velocity_edmd = StreamingEDMD(**estimator) if velocity == "estimated" else None
@@ -158,6 +162,9 @@ class EDMDPolicy(Policy):
             if d in "defg":
                 z = self.edmd.predict()
                 return Proposal(z[:2] - np.asarray(pre.gps[:2]), tuple(z))
+            if d == "b" and self.cartesian:
+                z = self.edmd.predict()
+                return Proposal(polar(pre.r, pre.theta) - z, tuple(z))
             if d == "b":
                 z = self.edmd.predict()
             elif self.velocity == "oracle":
@@ -177,8 +184,8 @@ class EDMDPolicy(Policy):
                 self.edmd.observe(velocity)
             measurement = tuple(velocity) if velocity is not None else ()
         elif d == "b":
-            self.edmd.observe(np.asarray(rel))
-            measurement = rel
+            measurement = tuple(polar(*rel)) if self.cartesian else rel
+            self.edmd.observe(np.asarray(measurement))
         elif d == "c":
             measurement = self._record_c(rel, velocity, settled)
         else:
@@ -206,23 +213,71 @@ class EDMDPolicy(Policy):
         return rel + (tuple(velocity) if velocity is not None else ())
 
 
+class LeaderInputEDMD(Policy):
+    """EDMD with the leader's displacement as an input (beyond the paper; EDMDc-style).
+
+    Before moving at tick j+1 the follower has not moved since it settled at tick j, so its two
+    relative measurements give the leader's displacement ``u_j = l_{j+1} - l_j`` exactly (up
+    to sensor noise). The lifted sample is ``psi_j = [x_j, u_j]`` with ``x_j`` the Cartesian
+    relative position at tick j; it is complete only at tick j+1, and the prediction's first
+    two components give ``x*_{j+1}``. Least squares fits each row separately, so the
+    prediction is ``x_{j+1} = A x_j + B u_j (+ c with affine)``, learnt from the stream.
+    """
+
+    name = "edmd-bu"
+
+    def __init__(self, **estimator) -> None:
+        self.edmd = StreamingEDMD(**estimator)
+        self.unwrap = Unwrapper()
+        self.last_xy: np.ndarray | None = None
+        self.completed = True
+
+    def propose(self, pre: Sensing) -> Proposal:
+        if self.last_xy is None:
+            raise NotReady("edmd-bu needs one settled measurement")
+        here = polar(pre.r, pre.theta)
+        if not self.completed:
+            self.edmd.observe(np.r_[self.last_xy, here - self.last_xy])
+            self.completed = True
+        try:
+            z = self.edmd.predict()
+        except RuntimeError as exc:
+            raise NotReady(str(exc)) from None
+        return Proposal(here - z[:2], tuple(z[:2]))
+
+    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        rel = (settled.r, self.unwrap(settled.theta))
+        self.last_xy, self.completed = polar(*rel), False
+        return rel
+
+
 class Auto(Policy):
     """Run several candidate policies side by side; follow the one with the lowest recent error.
 
-    Every candidate proposes each tick; once the true ideal position is seen (``target``), each
-    candidate's one-step error |offset − target| enters a sliding window of ``horizon`` ticks.
-    The candidate with the lowest mean squared error over the window is followed; candidates
-    that are not ready yet are skipped; ties go to the earlier candidate in the list.
+    Every candidate proposes each tick (initial ticks included, where nothing moves); once the
+    true ideal position is seen (``target``), each candidate's one-step error
+    |offset - target| enters a sliding window of ``horizon`` ticks. The candidate with the
+    lowest mean squared error over the window is followed; candidates not ready yet are
+    skipped; ties go to the earlier candidate.
+
+    Safeguard (``trust``): the first candidate is the anchor (``persist``: the relative position
+    does not change). A followed proposal may differ from the anchor's by at most ``trust``
+    times the largest change of relative position seen within the window (the anchor's recent
+    errors), so a model that extrapolates wildly right after a change of regime is clipped to
+    what the recent data has shown possible.
     """
 
     name = "auto"
 
-    def __init__(self, candidates: list[Policy], horizon: int = 4) -> None:
+    def __init__(self, candidates: list[Policy], horizon: int = 4, trust: float | None = 3.0) -> None:
         if not candidates:
             raise ValueError("candidates must not be empty")
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
+        if trust is not None and trust <= 0:
+            raise ValueError(f"trust must be positive or None, got {trust}")
         self.candidates = candidates
+        self.trust = trust
         self.errors = [deque(maxlen=horizon) for _ in candidates]
         self.proposals: list[Proposal | None] = []
         self.chosen: int | None = None
@@ -242,7 +297,14 @@ class Auto(Policy):
         if not ready:
             raise NotReady("no candidate is ready")
         self.chosen = min(ready, key=lambda i: (self._score(i), i))
-        return self.proposals[self.chosen]
+        chosen, anchor = self.proposals[self.chosen], self.proposals[0]
+        if self.trust is None or anchor is None or not self.errors[0] or self.chosen == 0:
+            return chosen
+        radius = self.trust * max(self.errors[0])
+        if float(np.hypot(*(chosen.offset - anchor.offset))) <= radius:
+            return chosen
+        self.chosen = 0
+        return anchor
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
         if target is not None:
@@ -255,14 +317,21 @@ class Auto(Policy):
 
 
 def auto_candidates(settings: AgentSettings) -> list[Policy]:
-    """The candidate set of ``auto`` (documented in the README)."""
+    """The candidate set of ``auto``: the anchor ``persist`` first, then EDMD variants.
+
+    Chosen on the paper's type I-III surfaces at T_c = 1.28 (the held-out gaussian-hill and
+    ripple surfaces were not used to choose them); see the README's estimator table.
+    """
     tc = settings.comm_period
     return [
         Persist(),
         EDMDPolicy("b", tc),
         EDMDPolicy("b", tc, delays=1),
-        EDMDPolicy("b", tc, delays=1, affine=True, window=8),
-        EDMDPolicy("b", tc, affine=True, window=6),
+        EDMDPolicy("b", tc, cartesian=True, delays=2),
+        LeaderInputEDMD(delays=1, window=10),
+        LeaderInputEDMD(delays=1, affine=True),
+        LeaderInputEDMD(affine=True),
+        EDMDPolicy("b", tc, cartesian=True, delays=1, affine=True, window=8),
     ]
 
 

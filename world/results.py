@@ -25,13 +25,14 @@ OBS_COLUMNS = ("tick", "agent", "estimator", "lost", "measurement", "prediction"
 class RunRecorder:
     """Collects ground-truth rows and agents' observations and writes the results folder."""
 
-    def __init__(self, out_dir: str | Path, config: RunConfig) -> None:
-        self.out_dir = Path(out_dir)
+    def __init__(self, out_dir: str | Path | None, config: RunConfig) -> None:
+        self.out_dir = None if out_dir is None else Path(out_dir)
         self.config = config
         self.rows: list[dict] = []
         self.observations: list[dict] = []
         self.missed: dict[int, int] = {}
-        self.out_dir.mkdir(parents=True, exist_ok=True)
+        if self.out_dir is not None:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
 
     @property
     def ticks_done(self) -> int:
@@ -87,6 +88,8 @@ class RunRecorder:
 
     def write(self, *, complete: bool, reason: str = "", wall_time: float = 0.0) -> None:
         """Write ``ticks.csv``, ``observations.csv`` and ``summary.json`` atomically."""
+        if self.out_dir is None:
+            raise RuntimeError("this recorder has no results folder")
         write_atomic(self.out_dir / "ticks.csv", _csv(TICK_COLUMNS, self.rows))
         write_atomic(self.out_dir / "observations.csv", _csv(OBS_COLUMNS, self.observations))
         summary = self.summary(complete=complete, reason=reason, wall_time=wall_time)

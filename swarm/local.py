@@ -1,0 +1,69 @@
+"""The same run without a network: agents call the world's simulation directly.
+
+Every number comes from the same code as a Zenoh run (``WorldSim`` for the world,
+``agents.follower.follower_tick`` and the policies for the followers); only the transport is
+replaced by function calls, with the messages still passed through the codec. A test checks
+that this layout gives numbers identical to the Zenoh layouts. Used for fast estimator studies
+and for the benchmark tables; ``swarm experiment`` itself runs over Zenoh.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from agents.follower import follower_tick
+from agents.policies import Policy, make_policy
+from protocol.config import AgentSettings, RunConfig
+from protocol.messages import ActRequest, ActResult, Message, Sensing, decode, encode
+from world.main import resolve
+from world.results import RunRecorder
+from world.sim import WorldSim
+from world.surfaces import make_surface
+
+
+class LocalLink:
+    """The ``sense``/``act`` half of ``agents.link.AgentLink``, answered by a ``WorldSim``."""
+
+    def __init__(self, sim: WorldSim, agent: int) -> None:
+        self.sim, self.agent = sim, agent
+
+    @staticmethod
+    def _wire(msg: Message) -> Message:
+        return decode(encode(msg), type(msg))
+
+    def sense(self, tick: int, phase: str) -> Sensing:
+        return self._wire(self.sim.sense(self.agent, tick, phase))
+
+    def act(self, request: ActRequest) -> ActResult:
+        request = self._wire(request)
+        moved = True
+        if request.action == "move":
+            self.sim.move(self.agent, request.tick, request.offset)
+        else:
+            moved = self.sim.snap(self.agent, request.tick)
+        return ActResult(tick=request.tick, moved=moved)
+
+
+def run_local(config: RunConfig, out_dir: str | Path | None = None,
+              policy_factory: Callable[[AgentSettings], Policy] = make_policy,
+              ) -> tuple[dict, list[dict]]:
+    """Run ``config`` in this thread; return (summary, ticks rows). Writes results if ``out_dir``.
+
+    ``policy_factory`` builds each follower's policy (default: the one the config names);
+    estimator studies pass their own.
+    """
+    config = resolve(config)
+    sim = WorldSim(config, make_surface(config.surface, config.surface_params))
+    settings = AgentSettings.from_config(config)
+    policies = [policy_factory(settings) for _ in range(config.followers)]
+    links = [LocalLink(sim, k) for k in range(1, config.followers + 1)]
+    recorder = RunRecorder(out_dir, config)
+    for tick in range(config.ticks):
+        sim.start_tick(tick)
+        sim.drive(0, tick, sim.time_of(tick))
+        for k, (link, policy) in enumerate(zip(links, policies), start=1):
+            recorder.add_observation(k, follower_tick(link, policy, settings, tick))
+        recorder.add_tick(sim.finish_tick())
+    if out_dir is not None:
+        recorder.write(complete=True)
+    return recorder.summary(complete=True), recorder.rows
