@@ -7,20 +7,18 @@ also carry an integer ``kind`` and a float64 ``params`` array, which
 :func:`preset_derivatives`, a numba kernel, turns into the same derivatives for the fast
 geodesic integrator of :mod:`world.geometry`.
 
-Preset parameters, passed by keyword to the class or through :func:`make_surface`:
+Presets (``name``: ``F(x, y)``, keyword parameters with defaults, passed to the class or
+through :func:`make_surface`):
 
-============== ========================================== =================================
-name           F(x, y)                                    parameters (defaults)
-============== ========================================== =================================
-elliptic       (x² + y²)/30                               —
-hyperbolic     (x² − y²)/30                               —
-wavy           sin(x/3) + cos(y/3)                        —
-plane          a·x + b·y                                  a (0.3), b (−0.2)
-gaussian-hill  A·exp(−((x−x0)² + (y−y0)²)/(2σ²))          amplitude (6), sigma (8), x0, y0 (0)
-ripple         A·sin(k·sqrt(x² + y² + ε))                 amplitude (1.5), wavenumber (0.25),
-                                                          epsilon (1)
-hemisphere     sqrt(R² − x² − y²) on x² + y² < R²         radius (20)
-============== ========================================== =================================
+- ``elliptic``: ``(x² + y²)/30``
+- ``hyperbolic``: ``(x² − y²)/30``
+- ``wavy``: ``sin(x/3) + cos(y/3)``
+- ``plane``: ``a·x + b·y``; ``a = 0.3``, ``b = −0.2``
+- ``gaussian-hill`` (held out): ``A·exp(−((x − x0)² + (y − y0)²)/(2σ²))``;
+  ``amplitude = 6``, ``sigma = 8``, ``x0 = 0``, ``y0 = 0``
+- ``ripple`` (held out): ``A·sin(k·sqrt(x² + y² + ε))``; ``amplitude = 1.5``,
+  ``wavenumber = 0.25``, ``epsilon = 1``
+- ``hemisphere``: ``sqrt(R² − x² − y²)`` on the open disc ``x² + y² < R²``; ``radius = 20``
 """
 from __future__ import annotations
 
