@@ -9,6 +9,7 @@ lifting of a whole measurement history.
 
 from __future__ import annotations
 
+import math
 import numbers
 from collections.abc import Callable
 
@@ -22,13 +23,16 @@ FloatArray = NDArray[np.float64]
 # The online estimator starts (or resumes) its rank-one recursion only once the weighted
 # data matrix has a condition number below this. The recursion works with the inverse Gram
 # matrix P, whose condition number is the square of the data's, so its rounding error is
-# about eps * cond**2 ~ 2e-8 relative at this limit (far less in practice); a worse
+# about eps * cond**2 ~ 2e-10 relative at this limit (far less in practice); a worse
 # conditioned fit is computed by the exact pseudoinverse instead.
-_MAX_RECURSIVE_COND = 1e4
-# A window downdate whose Sherman–Morrison denominator 1 - w x^T P x falls below this
-# removes almost all of the information in some direction: the Gram matrix is close to
-# singular, so the fit is recomputed from the pairs held in the window instead.
-_MIN_DOWNDATE_DENOMINATOR = 1e-3
+_MAX_RECURSIVE_COND = 1e3
+# A window downdate with Sherman–Morrison denominator 1 - w x^T P x (in (0, 1]) amplifies
+# the rounding errors already in P and K by up to its inverse; updates (denominator >= 1)
+# do not. Once the product of these factors since the last exact fit exceeds this bound,
+# the fit is recomputed from the window's pairs. For a window much longer than n the
+# factors are about 1 / (1 - n / window), so this happens every ~2.3 window / n pairs at a
+# cost O(window n^2): O(n^3) amortised per pair, whatever the history length.
+_MAX_DOWNDATE_GROWTH = 10.0
 
 
 def delay_embed(history: ArrayLike, delays: int) -> FloatArray:
@@ -69,11 +73,6 @@ def delay_embed(history: ArrayLike, delays: int) -> FloatArray:
         )
     if not np.isfinite(samples).all():
         raise ValueError("history must contain only finite values")
-    return _embed(samples, delays)
-
-
-def _embed(samples: FloatArray, delays: int) -> FloatArray:
-    """`delay_embed` without argument checks (the estimator's inner loop calls it)."""
     m = samples.shape[0]
     return np.hstack([samples[delays - k : m - k] for k in range(delays + 1)])
 
@@ -98,19 +97,24 @@ class StreamingEDMD:
     0``, so rank-deficient data still get the minimum-norm fit, and as the pseudoinverse
     of the data augmented with ``sqrt(ridge) I`` otherwise. The defaults give the paper's
     Algorithm 1: ``K = Y X^+`` and the prediction ``K psi_m``, of which the first ``d``
-    entries (the measurement block) are returned.
+    entries (the measurement block) are returned. Singular values of the (weighted) data
+    below ``rcond`` times the largest count as zero: a stream that is rank-deficient in
+    exact arithmetic (a follower moving at constant velocity, say) carries rounding noise of
+    ~1e-15 relative in the missing directions, and the bare pseudoinverse (numpy's default
+    cut-off ~4e-16) would amplify that noise into the prediction.
 
     ``online=False`` refits ``K`` from the stored history at each prediction (cost
     ``O(m n^2)``). ``online=True`` updates ``K`` and ``P = (X W X^T + ridge I)^{-1}`` by
-    recursive least squares at each `observe` (Sherman–Morrison rank-one steps, ``O(n^2)``
-    per pair whatever the history length; ``O(n^3)`` when forgetting and ridge are
-    combined): the new pair is added, and with a window the pair that leaves it is removed
-    by a rank-one downdate. While ``X W X^T + ridge I`` is singular or badly conditioned
-    (too few independent pairs, e.g. at the start), the online estimator computes the same
-    pseudoinverse fit as the batch one from a bounded summary of the data (the window's
-    pairs, or a ``(2n, 2n)`` triangular factor of all pairs) and starts the recursion from
-    the exact inverse once the data are well conditioned. From then on both agree to
-    rounding error.
+    recursive least squares at each `observe`: Sherman–Morrison rank-one steps, ``O(n^2)``
+    per pair whatever the history length (``O(n^3)`` when forgetting and ridge are
+    combined). The new pair is added and, with a window, the pair leaving it is removed by
+    a rank-one downdate; the window's fit is recomputed exactly from its pairs whenever the
+    downdates' error amplification reaches a bound (amortised ``O(n^3)``). While ``X W X^T
+    + ridge I`` is singular or badly conditioned (too few independent pairs, e.g. at the
+    start), the online estimator computes the same pseudoinverse fit as the batch one from
+    a bounded summary of the data (the window's pairs, or a ``(2n, 2n)`` triangular factor
+    of all pairs) and starts the recursion from the exact inverse once the data are well
+    conditioned. From then on the two agree to rounding error.
 
     Parameters
     ----------
@@ -127,6 +131,8 @@ class StreamingEDMD:
         Use only the ``window >= 1`` newest pairs.
     ridge : float, default 0.0
         Tikhonov regularisation ``>= 0``.
+    rcond : float, default 1e-10
+        Relative cut-off for small singular values in the pseudoinverse, in ``[0, 1)``.
 
     Attributes
     ----------
@@ -185,6 +191,7 @@ class StreamingEDMD:
         forget: float = 1.0,
         window: int | None = None,
         ridge: float = 0.0,
+        rcond: float = 1e-10,
     ) -> None:
         self.online = _check_bool("online", online)
         self.delays = _check_count("delays", delays, minimum=0)
@@ -192,21 +199,24 @@ class StreamingEDMD:
         self.forget = _check_real("forget", forget, "(0, 1]", lambda v: 0.0 < v <= 1.0)
         self.window = None if window is None else _check_count("window", window, minimum=1)
         self.ridge = _check_real("ridge", ridge, "[0, inf)", lambda v: 0.0 <= v < np.inf)
+        self.rcond = _check_real("rcond", rcond, "[0, 1)", lambda v: 0.0 <= v < 1.0)
         self.reset()
 
     def reset(self) -> None:
         """Forget all data and the fit; keep the settings."""
         self._dim: int | None = None
-        self._recent: FloatArray | None = None  # delay line (D + 1, d), oldest first
+        # Delay line [z_m, ..., z_{m-D}(, 1)]: the lifted newest sample once D + 1
+        # measurements have been observed.
+        self._line: FloatArray | None = None
         self._n_observed = 0
         self._n_pairs_seen = 0
-        self._psi_last: FloatArray | None = None
         # Lifted samples, oldest first: all of them in batch mode, the window + 1 newest
         # when there is a window; none for the online estimator without a window.
         self._history: FloatArray | None = None
         self._history_len = 0
         self._K: FloatArray | None = None  # batch: cache cleared by observe
         self._P: FloatArray | None = None  # online: inverse regularised Gram matrix
+        self._downdate_growth = 1.0  # online, window: error amplification since a refit
         # Online without a window, before the recursion starts: R with R^T R equal to the
         # weighted sum of [x; y][x; y]^T, i.e. the pairs up to an orthogonal transform.
         self._sqrt_data: FloatArray | None = None
@@ -268,16 +278,16 @@ class StreamingEDMD:
             If `z` is not a finite 1-D array of the established length.
         """
         z = self._check_measurement(z)
-        if self._recent is None:
+        if self._line is None:
             self._dim = z.size
-            self._recent = np.zeros((self.delays + 1, z.size))
-        self._recent[:-1] = self._recent[1:]
-        self._recent[-1] = z
+            self._line = np.zeros(z.size * (self.delays + 1) + int(self.affine))
+            if self.affine:
+                self._line[-1] = 1.0
+        x = self._line if self._n_observed > self.delays else None
+        psi = self._line = self._lift(z)
         self._n_observed += 1
         if self._n_observed <= self.delays:
             return  # still filling the delay line: no lifted sample yet
-        psi = self._lift(self._recent)
-        x, self._psi_last = self._psi_last, psi
         leaving = self._leaving_pair() if self.online and x is not None else None
         if not self.online or self.window is not None:
             self._push_history(psi)  # the online estimator without a window keeps none
@@ -317,11 +327,7 @@ class StreamingEDMD:
             If `z` is not a finite 1-D array of the observed length.
         """
         K = self._fitted_K()
-        if z is None:
-            psi = self._psi_last
-        else:
-            z = self._check_measurement(z)
-            psi = self._lift(np.vstack([self._recent[1:], z]))
+        psi = self._line if z is None else self._lift(self._check_measurement(z))
         return K[: self._dim] @ psi
 
     # ------------------------------------------------------------------ internals
@@ -337,14 +343,17 @@ class StreamingEDMD:
             raise ValueError(
                 f"z must have length {self._dim} (fixed by the first observe), got {arr.size}"
             )
-        if not np.isfinite(arr).all():
+        if not all(map(math.isfinite, arr.tolist())):  # the fastest check for short z
             raise ValueError(f"z must be finite, got {arr}")
         return arr
 
-    def _lift(self, recent: FloatArray) -> FloatArray:
-        """Lifted vector ``(n,)`` of the newest row of a ``(D + 1, d)`` delay line."""
-        psi = _embed(recent, self.delays)[0]
-        return np.append(psi, 1.0) if self.affine else psi
+    def _lift(self, z: FloatArray) -> FloatArray:
+        """The delay line ``(n,)`` with `z` pushed in as the newest measurement (a copy)."""
+        d = self._dim
+        psi = self._line.copy()
+        psi[d : d * (self.delays + 1)] = self._line[: d * self.delays]
+        psi[:d] = z
+        return psi
 
     def _fitted_K(self) -> FloatArray:
         if self._n_pairs_seen == 0:
@@ -367,7 +376,7 @@ class StreamingEDMD:
                 self._history = grown
             else:  # keep the `window` newest samples; with psi they span the window
                 keep = self._history[self._history_len - self.window : self._history_len]
-                self._history[: self.window] = keep.copy()
+                self._history[: self.window] = keep
                 self._history_len = self.window
         self._history[self._history_len] = psi
         self._history_len += 1
@@ -393,8 +402,9 @@ class StreamingEDMD:
             stacked = row
         else:
             stacked = np.vstack([np.sqrt(self.forget) * self._sqrt_data, row])
-        # Orthogonal row transforms leave X^T X-type products and the pseudoinverse fit
-        # unchanged, so at most 2n rows ever need to be kept.
+        # With stacked = Q R (Q orthonormal columns), R keeps stacked^T stacked, and the fit
+        # Y W^{1/2} (X W^{1/2})^+ = R_y^T (R_x^T)^+, R_x, R_y the first and last n columns
+        # of R: at most 2n rows ever need to be kept.
         if stacked.shape[0] > stacked.shape[1]:
             stacked = np.linalg.qr(stacked, mode="r")
         self._sqrt_data = stacked
@@ -420,7 +430,8 @@ class StreamingEDMD:
             n = x.shape[0]
             x = np.hstack([x, np.sqrt(self.ridge) * np.eye(n)])
             y = np.hstack([y, np.zeros((n, n))])
-        self._K = y @ np.linalg.pinv(x)
+        self._K = y @ np.linalg.pinv(x, rcond=self.rcond)
+        self._downdate_growth = 1.0
         if self.online:
             self._P = _inverse_gram(x)
             if self._P is not None:
@@ -442,30 +453,38 @@ class StreamingEDMD:
                 # C' = lam C, K' = C' P' = K (I - beta P'). lam I + beta P has eigenvalues
                 # in [lam, 1] because P <= I / ridge, so the solve is well conditioned.
                 n = self._P.shape[0]
-                self._P = np.linalg.solve(lam * np.eye(n) + beta * self._P, self._P)
+                self._P = _symmetric_part(
+                    np.linalg.solve(lam * np.eye(n) + beta * self._P, self._P)
+                )
                 self._K -= beta * (self._K @ self._P)
         self._rank_one(x, y, 1.0)
         if leaving is not None and not self._rank_one(*leaving, -(lam**self.window)):
             self._refit()
-            return
-        # Rounding in the outer-product updates makes P drift from symmetry; an asymmetric
-        # P feeds asymmetric errors into later gains and the drift grows until P may lose
-        # positive definiteness. Its symmetric part is the nearest symmetric matrix.
-        self._P = 0.5 * (self._P + self._P.T)
 
     def _rank_one(self, x: FloatArray, y: FloatArray, weight: float) -> bool:
-        """Add ``weight * (x, y)`` to the fit (a downdate if negative).
+        """Add the pair ``(x, y)`` with `weight` to the fit (remove it if negative).
 
-        Returns False, leaving the fit unchanged, if the Sherman–Morrison denominator shows
-        that the update would leave the Gram matrix (nearly) singular.
+        Returns False, leaving the fit unchanged, if a removal would make the Gram matrix
+        (nearly) singular or push the accumulated error amplification past its bound.
         """
-        Px = self._P @ x
-        denominator = 1.0 + weight * (x @ Px)
-        if denominator < _MIN_DOWNDATE_DENOMINATOR:
-            return False
-        gain = (weight / denominator) * Px
-        self._K += np.outer(y - self._K @ x, gain)
-        self._P -= np.outer(gain, Px)
+        Px = self._P.dot(x)
+        denominator = 1.0 + weight * x.dot(Px)
+        if weight < 0.0:
+            if denominator <= 0.0:
+                return False
+            self._downdate_growth /= denominator
+            if self._downdate_growth > _MAX_DOWNDATE_GROWTH:
+                return False
+        coefficient = weight / denominator
+        self._K += (y - self._K.dot(x))[:, np.newaxis] * (coefficient * Px)
+        # P <- P - coefficient Px Px^T, applied as -+ u u^T with u = sqrt(|coefficient|) Px:
+        # u_i u_j and u_j u_i are the same floating-point product, so P stays exactly
+        # symmetric (see _symmetric_part for why that matters).
+        u = math.sqrt(abs(coefficient)) * Px
+        if coefficient > 0.0:
+            self._P -= u[:, np.newaxis] * u
+        else:
+            self._P += u[:, np.newaxis] * u
         return True
 
 
@@ -477,7 +496,18 @@ def _inverse_gram(x: FloatArray) -> FloatArray | None:
     u, s, _ = np.linalg.svd(x, full_matrices=False)
     if not s[-1] > s[0] / _MAX_RECURSIVE_COND:
         return None
-    return (u / s**2) @ u.T
+    return _symmetric_part((u / s**2) @ u.T)
+
+
+def _symmetric_part(P: FloatArray) -> FloatArray:
+    """``(P + P^T) / 2``, the nearest symmetric matrix to ``P``.
+
+    The recursion needs ``P`` exactly symmetric: rounding errors that make it asymmetric
+    feed asymmetric errors into every later gain, the asymmetry grows, and ``P`` can lose
+    positive definiteness. Steps that are not symmetric by construction (a matrix product
+    or a solve) are therefore followed by this.
+    """
+    return 0.5 * (P + P.T)
 
 
 def _check_bool(name: str, value: object) -> bool:
@@ -494,9 +524,7 @@ def _check_count(name: str, value: object, minimum: int) -> int:
     return int(value)
 
 
-def _check_real(
-    name: str, value: object, interval: str, inside: Callable[[float], bool]
-) -> float:
+def _check_real(name: str, value: object, interval: str, inside: Callable[[float], bool]) -> float:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise ValueError(f"{name} must be a real number in {interval}, got {value!r}")
     if not inside(float(value)):  # NaN fails every comparison

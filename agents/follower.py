@@ -8,12 +8,14 @@ observation and the rod.
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import numpy as np
 import zenoh
 
 from agents.cli import parser, run_cli
-from agents.link import AgentLink
+from agents import checkpoint
+from agents.link import QUERY_TIMEOUT_S, AgentLink, RunFinished, TickMissed
 from agents.policies import NotReady, Policy, make_policy
 from protocol.config import AgentSettings
 from protocol.messages import ActRequest, Observation
@@ -40,20 +42,41 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
                        prediction=prediction, lost=lost)
 
 
-def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int) -> None:
-    """Lockstep follower loop; returns by raising RunFinished when the world is done."""
+def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
+                 state_dir: str | Path | None = None) -> None:
+    """Lockstep/realtime follower loop; returns by raising RunFinished when the world is done.
+
+    With ``state_dir`` the policy is checkpointed after every tick and restored at start, so
+    a follower killed and restarted with the same id continues with its whole history; ticks
+    it missed meanwhile are bridged by the policy's own predictions (``Policy.skip``).
+    """
     if not 1 <= agent_id <= settings.followers:
         raise ValueError(f"--id must be in 1..{settings.followers} for this run, got {agent_id}")
-    policy = make_policy(settings)
+    saved = checkpoint.load(state_dir, settings.run_id, agent_id) if state_dir else None
+    policy = saved.policy if saved else make_policy(settings)
+    last = saved.tick if saved else -1
     link = AgentLink(session, settings.run_id, agent_id, agent_id - 1,
-                     query_timeout=settings.agent_timeout)
+                     query_timeout=max(settings.agent_timeout, QUERY_TIMEOUT_S))
     try:
-        tick, timeout = -1, settings.start_timeout
+        tick, timeout = last, settings.start_timeout
         while True:
             tick = link.wait_step(tick, timeout)
-            timeout = settings.agent_timeout * (settings.followers + 2)
-            link.publish_obs(follower_tick(link, policy, settings, tick))
+            timeout = settings.step_timeout
+            for _ in range(tick - last - 1):
+                policy.skip()
+            last = tick
+            try:
+                obs = follower_tick(link, policy, settings, tick)
+            except TickMissed:
+                continue
+            if state_dir:
+                checkpoint.save(state_dir, checkpoint.Checkpoint(settings.run_id, agent_id, tick, policy))
+            link.publish_obs(obs)
             link.publish_rod(tick, settings.spacing, settings.side)
+    except RunFinished:
+        if state_dir:
+            checkpoint.remove(state_dir, agent_id)
+        raise
     finally:
         link.close()
 
@@ -61,8 +84,12 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int)
 def main(argv: list[str] | None = None) -> int:
     p = parser("Follower agent of a column-formation run.")
     p.add_argument("--id", type=int, required=True, help="follower id K (1 = behind the leader)")
+    p.add_argument("--state-dir", help="where to keep this follower's checkpoint "
+                                        "(default: <config dir>/state; 'none' disables)")
     args = p.parse_args(argv)
-    return run_cli(args, lambda session, settings: run_follower(session, settings, args.id))
+    state = args.state_dir or str(Path(args.config).resolve().parent / "state")
+    state = None if state == "none" else state
+    return run_cli(args, lambda session, settings: run_follower(session, settings, args.id, state))
 
 
 if __name__ == "__main__":

@@ -6,21 +6,24 @@ import sys
 import zenoh
 
 from agents.cli import parser, run_cli
-from agents.link import AgentLink
+from agents.link import QUERY_TIMEOUT_S, AgentLink, TickMissed
 from protocol.config import AgentSettings
 from protocol.messages import ActRequest
 
 
 def run_leader(session: zenoh.Session, settings: AgentSettings) -> None:
     """Lockstep leader loop; returns by raising RunFinished when the world is done."""
-    link = AgentLink(session, settings.run_id, 0, None, query_timeout=settings.agent_timeout)
+    link = AgentLink(session, settings.run_id, 0, None, query_timeout=max(settings.agent_timeout, QUERY_TIMEOUT_S))
     try:
         tick, timeout = -1, settings.start_timeout
         while True:
             tick = link.wait_step(tick, timeout)
-            timeout = settings.agent_timeout * (settings.followers + 2)
+            timeout = settings.step_timeout
             t = tick * settings.comm_period
-            link.act(ActRequest(tick=tick, action="drive", t=t))
+            try:
+                link.act(ActRequest(tick=tick, action="drive", t=t))
+            except TickMissed:  # realtime: too late for this tick; the world keeps the pose
+                continue
             link.publish_rod(tick, settings.spacing, settings.side)
     finally:
         link.close()

@@ -15,11 +15,13 @@ import zenoh
 
 from protocol import keys
 from protocol.messages import (
-    ActRequest, ActResult, Done, ErrorReply, Message, Observation, ProtocolError, Rod, Sensing,
-    SenseRequest, TickStart, decode, encode,
+    ActRequest, ActResult, Done, ErrorReply, Message, Missed, Observation, ProtocolError, Rod,
+    Sensing, SenseRequest, TickStart, decode, encode,
 )
 
 log = logging.getLogger(__name__)
+
+QUERY_TIMEOUT_S = 10.0  # the least time an agent waits for the world's reply to a query
 
 
 class AgentAbort(RuntimeError):
@@ -28,6 +30,10 @@ class AgentAbort(RuntimeError):
 
 class RunFinished(AgentAbort):
     """``world/done`` arrived: a normal end."""
+
+
+class TickMissed(RuntimeError):
+    """The world marked this agent as having missed the current tick; go on with the next."""
 
 
 class AgentLink:
@@ -57,9 +63,12 @@ class AgentLink:
         self._declared = []
         if self._id_in_use():
             raise AgentAbort(f"agent id {agent_id} is already live in run {run_id}: refusing to start")
+        self.follow = follow
         source = keys.tick(run_id) if follow is None else keys.rod(run_id, follow)
         kind = TickStart if follow is None else Rod
         self._declared.append(session.declare_subscriber(source, lambda s: self._on_step(s, kind)))
+        if follow is not None:  # a leader that missed its tick counts as settled where it stands
+            self._declared.append(session.declare_subscriber(keys.missed(run_id), self._on_missed))
         self._declared.append(session.declare_subscriber(keys.done(run_id), self._on_done))
         self._declared.append(session.liveliness().declare_subscriber(
             keys.alive(run_id, "world"), self._on_world_liveliness, history=True))
@@ -93,9 +102,21 @@ class AgentLink:
         except ProtocolError as exc:
             log.warning("agent %d: dropped bad sample on %s: %s", self.agent_id, sample.key_expr, exc)
             return
+        self._advance(msg.tick)
+
+    def _on_missed(self, sample: zenoh.Sample) -> None:
+        try:
+            msg = decode(sample.payload.to_bytes(), Missed)
+        except ProtocolError as exc:
+            log.warning("agent %d: dropped bad missed sample: %s", self.agent_id, exc)
+            return
+        if msg.agent == self.follow:
+            self._advance(msg.tick)
+
+    def _advance(self, tick: int) -> None:
         with self._cond:
-            if msg.tick > self._latest:
-                self._latest = msg.tick
+            if tick > self._latest:
+                self._latest = tick
                 self._cond.notify_all()
 
     def _on_done(self, sample: zenoh.Sample) -> None:
@@ -144,9 +165,12 @@ class AgentLink:
         for reply in replies:
             if reply.ok is None:
                 try:
-                    problem = decode(reply.err.payload.to_bytes(), ErrorReply).error
-                except ProtocolError as exc:
-                    problem = f"(unreadable error reply: {exc})"
+                    error = decode(reply.err.payload.to_bytes(), ErrorReply)
+                    problem, code = error.error, error.code
+                except ProtocolError:  # not the world's: zenoh's own (e.g. a query timeout)
+                    problem, code = reply.err.payload.to_bytes()[:200].decode(errors="replace"), "bad-request"
+                if code == "missed":
+                    raise TickMissed(problem)
                 raise AgentAbort(f"the world refused {request.TYPE} at tick {request.tick}: {problem}")
             return decode(reply.ok.payload.to_bytes(), expected)
         raise AgentAbort(f"no reply from the world on {key} within {self.query_timeout} s")

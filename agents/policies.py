@@ -69,6 +69,9 @@ class Policy:
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
         raise NotImplementedError
 
+    def skip(self) -> None:
+        """A tick went by without this follower (it missed it or was restarting)."""
+
 
 class Stay(Policy):
     """No estimation: wait where the last tick ended (the paper's "without EDMD")."""
@@ -100,7 +103,9 @@ class Persist(Policy):
         return Proposal(polar(pre.r, pre.theta) - polar(*self.last), self.last)
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
-        self.last = (settled.r, self.unwrap(settled.theta))
+        rel = (settled.r, self.unwrap(settled.theta))
+        if target is not None or self.last is None:  # lost: keep believing the last one
+            self.last = rel
         return self.last
 
 
@@ -136,6 +141,7 @@ class EDMDPolicy(Policy):
         self.last_rel: tuple[float, float] | None = None
         self.last_velocity: np.ndarray | None = None
         self.pending_c: tuple[float, float] | None = None
+        self.predicted: np.ndarray | None = None
 
     # lifted vectors -----------------------------------------------------------------------
     def _gps_vector(self, s: Sensing) -> np.ndarray:
@@ -147,7 +153,7 @@ class EDMDPolicy(Policy):
 
     def _current_velocity(self) -> np.ndarray:
         """Dictionary c's stand-in for the not-yet-measured current velocity."""
-        if self.velocity_edmd is not None and self.velocity_edmd.n_observed >= 2:
+        if self.velocity_edmd is not None and self.velocity_edmd.n_pairs >= 1:
             return self.velocity_edmd.predict()
         if self.last_velocity is None:
             raise NotReady("dictionary c needs a measured velocity")
@@ -163,7 +169,7 @@ class EDMDPolicy(Policy):
                 z = self.edmd.predict()
                 return Proposal(z[:2] - np.asarray(pre.gps[:2]), tuple(z))
             if d == "b" and self.cartesian:
-                z = self.edmd.predict()
+                z = self.predicted = self.edmd.predict()
                 return Proposal(polar(pre.r, pre.theta) - z, tuple(z))
             if d == "b":
                 z = self.edmd.predict()
@@ -173,11 +179,21 @@ class EDMDPolicy(Policy):
                 z = self.edmd.predict(np.r_[self.last_rel, self._current_velocity()])
         except RuntimeError as exc:  # too little history yet
             raise NotReady(str(exc)) from None
+        self.predicted = z
         return Proposal(polar(pre.r, pre.theta) - polar(z[0], z[1]), tuple(z))
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        """Append the settled measurement; when the rod was lost (``target`` None) the
+        relative-position dictionaries append their own prediction instead (multi-step)."""
         d = self.dictionary
-        rel = (settled.r, self.unwrap(settled.theta))
+        predicted, self.predicted = self.predicted, None
+        if target is None and predicted is not None and d in "bc":
+            r, theta = predicted[0], predicted[1]
+            if self.cartesian:
+                r, theta = math.hypot(predicted[0], predicted[1]), math.atan2(predicted[1], predicted[0])
+            rel = (float(r), self.unwrap(float(theta)))
+        else:
+            rel = (settled.r, self.unwrap(settled.theta))
         velocity = None if settled.velocity is None else np.asarray(settled.velocity)
         if d == "a":
             if velocity is not None:
@@ -198,6 +214,16 @@ class EDMDPolicy(Policy):
             if self.velocity_edmd is not None:
                 self.velocity_edmd.observe(velocity)
         return tuple(float(x) for x in measurement)
+
+    def skip(self) -> None:
+        """Bridge a missed tick with the model's own prediction (multi-step), where the
+        lifted vector is a state of the formation; drop half-built dictionary-c samples."""
+        self.predicted, self.pending_c = None, None
+        if self.dictionary in "bdefg" and self.edmd.n_pairs >= 1:
+            z = self.edmd.predict()
+            self.edmd.observe(z)
+            if self.dictionary == "b" and not self.cartesian:
+                self.unwrap(float(z[1]))
 
     def _record_c(self, rel, velocity, settled: Sensing) -> tuple[float, ...]:
         if self.velocity == "oracle":
@@ -229,7 +255,9 @@ class LeaderInputEDMD(Policy):
     def __init__(self, **estimator) -> None:
         self.edmd = StreamingEDMD(**estimator)
         self.unwrap = Unwrapper()
-        self.last_xy: np.ndarray | None = None
+        self.last_xy: np.ndarray | None = None  # lifted: measured, or predicted when lost
+        self.last_seen: np.ndarray | None = None  # measured, for the leader's displacement
+        self.predicted: np.ndarray | None = None
         self.completed = True
 
     def propose(self, pre: Sensing) -> Proposal:
@@ -237,18 +265,25 @@ class LeaderInputEDMD(Policy):
             raise NotReady("edmd-bu needs one settled measurement")
         here = polar(pre.r, pre.theta)
         if not self.completed:
-            self.edmd.observe(np.r_[self.last_xy, here - self.last_xy])
+            self.edmd.observe(np.r_[self.last_xy, here - self.last_seen])
             self.completed = True
         try:
             z = self.edmd.predict()
         except RuntimeError as exc:
             raise NotReady(str(exc)) from None
+        self.predicted = z[:2]
         return Proposal(here - z[:2], tuple(z[:2]))
 
+    def skip(self) -> None:
+        """The leader's displacement over a missed tick is unknown: restart the sample chain."""
+        self.last_xy, self.last_seen, self.predicted, self.completed = None, None, None, True
+
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
-        rel = (settled.r, self.unwrap(settled.theta))
-        self.last_xy, self.completed = polar(*rel), False
-        return rel
+        self.last_seen = polar(settled.r, settled.theta)
+        lost = target is None and self.predicted is not None
+        self.last_xy = self.predicted if lost else self.last_seen
+        self.predicted, self.completed = None, False
+        return tuple(float(x) for x in self.last_xy)
 
 
 class Auto(Policy):
@@ -314,6 +349,11 @@ class Auto(Policy):
         self.proposals = []
         measured = [cand.record(settled, target) for cand in self.candidates]
         return measured[0]
+
+    def skip(self) -> None:
+        self.proposals = []
+        for cand in self.candidates:
+            cand.skip()
 
 
 def auto_candidates(settings: AgentSettings) -> list[Policy]:

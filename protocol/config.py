@@ -149,8 +149,18 @@ class AgentSettings:
     ridge: float
     gps: bool
     mode: str
+    time_scale: float
     agent_timeout: float
     start_timeout: float
+
+    @property
+    def step_timeout(self) -> float:
+        """How long an agent waits for its next step before concluding the run is stuck:
+        the whole chain's time budget, and in realtime at least two wall-clock ticks."""
+        budget = self.agent_timeout * (self.followers + 2)
+        if self.mode == "realtime":
+            budget = max(budget, 2 * self.comm_period * self.time_scale)
+        return max(budget, 10.0)
 
     @classmethod
     def from_config(cls, config: RunConfig) -> AgentSettings:

@@ -34,6 +34,11 @@ def tick(run_id: str) -> str:
     return f"{_root(run_id)}/world/tick"
 
 
+def missed(run_id: str) -> str:
+    """World publishes: an agent did not settle in time (realtime) or vanished at tick j."""
+    return f"{_root(run_id)}/world/missed"
+
+
 def done(run_id: str) -> str:
     """World publishes: the run finished."""
     return f"{_root(run_id)}/world/done"

@@ -128,6 +128,7 @@ _KINDS = {
     "vec?": _optional(_vector(None)),
     "phase": _choice("pre", "moved", "settled"),
     "action": _choice("drive", "move", "snap"),
+    "error-code": _choice("bad-request", "missed", "ended"),
 }
 
 
@@ -235,6 +236,15 @@ class Observation(Message):
 
 
 @dataclass(frozen=True)
+class Missed(Message):
+    """``world/missed``: agent ``agent`` did not settle at ``tick``; it keeps its pose, and the
+    agent behind it goes on from where it stands."""
+
+    TYPE: ClassVar[str] = "missed"
+    agent: int = _kind("count", 0)
+
+
+@dataclass(frozen=True)
 class Done(Message):
     """``world/done``: the run ended; ``results`` is the results folder."""
 
@@ -246,17 +256,19 @@ class Done(Message):
 
 @dataclass(frozen=True)
 class ErrorReply(Message):
-    """Error reply of a queryable: ``error`` names the problem."""
+    """Error reply of a queryable: ``error`` names the problem; ``code`` classifies it
+    (``bad-request``, ``missed``: the agent missed this tick, ``ended``: the run is over)."""
 
     TYPE: ClassVar[str] = "error"
     error: str = _kind("text", "")
+    code: str = _kind("error-code", "bad-request")
 
 
 _KINDS["finite?"] = _optional(_finite)
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE: cls
-    for cls in (TickStart, SenseRequest, Sensing, ActRequest, ActResult, Rod, Observation, Done,
-                ErrorReply)
+    for cls in (TickStart, SenseRequest, Sensing, ActRequest, ActResult, Rod, Observation, Missed,
+                Done, ErrorReply)
 }
 
 
@@ -339,7 +351,7 @@ def _validate(cls: type[Message], body: dict[str, Any]) -> dict[str, Any]:
     return values
 
 
-def error_payload(tick: int, problem: str) -> bytes:
+def error_payload(tick: int, problem: str, code: str = "bad-request") -> bytes:
     """An encoded :class:`ErrorReply` (tick clamped into range so it always encodes)."""
     tick = tick if isinstance(tick, int) and 0 <= tick <= MAX_TICK else 0
-    return encode(ErrorReply(tick=tick, error=problem[:MAX_TEXT]))
+    return encode(ErrorReply(tick=tick, error=problem[:MAX_TEXT], code=code))

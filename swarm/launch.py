@@ -138,7 +138,10 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
     endpoint = free_tcp_endpoint()
     agents = _ThreadAgents(config, endpoint) if in_process else _ProcessAgents(config, out_dir, endpoint)
     try:
-        return run_world(config, zenoh_config("router", listen=[endpoint]), out_dir,
-                         on_tick=on_tick, on_ready=agents.start)
-    finally:
-        agents.stop()
+        summary = run_world(config, zenoh_config("router", listen=[endpoint]), out_dir,
+                            on_tick=on_tick, on_ready=agents.start)
+    except BaseException:  # Ctrl-C or a failure: end every agent now
+        agents.stop(timeout=1.0)
+        raise
+    agents.stop()
+    return summary

@@ -9,7 +9,7 @@ import pytest
 from protocol import keys
 from protocol.config import RunConfig, config_from_dict, dump_config, load_agent_settings, load_config
 from protocol.messages import (
-    MESSAGE_TYPES, ActRequest, ActResult, Done, ErrorReply, Observation, ProtocolError, Rod,
+    MESSAGE_TYPES, ActRequest, ActResult, Done, ErrorReply, Missed, Observation, ProtocolError, Rod,
     SenseRequest, Sensing, TickStart, decode, encode,
 )
 from protocol.session import free_tcp_endpoint, zenoh_config
@@ -25,7 +25,8 @@ SAMPLES = [
     Rod(tick=7, length=3.57, side=-1),
     Observation(tick=7, estimator="edmd-b", measurement=(3.5, 0.1), prediction=None, lost=True),
     Done(tick=39, results="runs/x", complete=True, reason=""),
-    ErrorReply(tick=0, error="bad"),
+    ErrorReply(tick=0, error="bad", code="missed"),
+    Missed(tick=3, agent=2),
 ]
 
 

@@ -28,19 +28,24 @@ def default_out(config: RunConfig) -> Path:
 
 def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
               on_tick: Callable[[int], None] | None = None,
-              on_ready: Callable[[WorldService], None] | None = None) -> dict:
+              on_ready: Callable[[WorldService], None] | None = None,
+              resume: bool = False, crash_after_tick: int | None = None) -> dict:
     """Run one world on a new session built from ``conf``; return the summary.
 
     Writes ``config.toml`` (resolved) before the first tick. ``on_ready`` gets the service once
     its queryables and token are declared (launchers start agents then, and may ``abort`` it).
+    ``resume`` continues the run in ``out_dir`` from its last complete tick;
+    ``crash_after_tick`` kills the process abruptly after that tick (fault injection).
     """
     config = resolve(config)
     surface = make_surface(config.surface, config.surface_params)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    dump_config(config, out_dir / "config.toml")
+    if not resume:
+        dump_config(config, out_dir / "config.toml")
     with zenoh.open(conf) as session:
-        service = WorldService(session, config, surface, out_dir, on_tick=on_tick)
+        service = WorldService(session, config, surface, out_dir, on_tick=on_tick, resume=resume,
+                               crash_after_tick=crash_after_tick)
         try:
             if on_ready is not None:
                 on_ready(service)
@@ -51,7 +56,10 @@ def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description="The world process: hidden surface, sensing, motion, results.")
-    p.add_argument("--config", required=True, help="run configuration TOML")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--config", help="run configuration TOML")
+    source.add_argument("--resume", metavar="RUN_DIR",
+                        help="continue the run in RUN_DIR from its last complete tick")
     group = p.add_mutually_exclusive_group()
     group.add_argument("--listen", action="append", metavar="ENDPOINT",
                        help="act as embedded Zenoh router listening here (default tcp/127.0.0.1:7447)")
@@ -61,17 +69,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--user"), p.add_argument("--password")
     p.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE")
     p.add_argument("--log-level", default="WARNING")
+    p.add_argument("--crash-after-tick", type=int, help=argparse.SUPPRESS)  # fault injection
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
     try:
-        config = load_config(args.config)
+        config = load_config(Path(args.resume) / "config.toml" if args.resume else args.config)
         if args.connect:
             conf = zenoh_config("client", connect=args.connect, user=args.user,
                                 password=args.password, extra=args.cfg)
         else:
             conf = zenoh_config("router", listen=args.listen or ["tcp/127.0.0.1:7447"],
                                 user=args.user, password=args.password, extra=args.cfg)
-        summary = run_world(config, conf, args.out or default_out(config))
+        out = args.resume or args.out or default_out(config)
+        summary = run_world(config, conf, out, resume=bool(args.resume),
+                            crash_after_tick=args.crash_after_tick)
     except (ValueError, RuntimeError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

@@ -123,6 +123,13 @@ def _rms(values) -> float | None:
     return math.sqrt(math.fsum(values) / len(values)) if values else None
 
 
+def read_observations(path: str | Path) -> list[dict]:
+    """Read an ``observations.csv`` back (tick and agent as int, the rest as written)."""
+    with open(path, newline="", encoding="utf-8") as fh:
+        return [{**row, "tick": int(row["tick"]), "agent": int(row["agent"])}
+                for row in csv.DictReader(fh)]
+
+
 def read_ticks(path: str | Path) -> list[dict]:
     """Read a ``ticks.csv`` back (numbers as float/int, empty cells as None)."""
     with open(path, newline="", encoding="utf-8") as fh:

@@ -6,7 +6,9 @@
 """
 from __future__ import annotations
 
+import json
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -17,16 +19,18 @@ import zenoh
 from protocol import keys
 from protocol.config import RunConfig
 from protocol.messages import (
-    ActRequest, ActResult, Done, Observation, ProtocolError, Rod, SenseRequest, TickStart,
+    ActRequest, ActResult, Done, Missed, Observation, ProtocolError, Rod, SenseRequest, TickStart,
     decode, encode, error_payload,
 )
-from world.results import RunRecorder
-from world.sim import RequestError, RunEnded, WorldSim
+from protocol.config import write_atomic
+from world.results import RunRecorder, read_observations, read_ticks
+from world.sim import RequestError, RunEnded, TickMissed, WorldSim
 from world.surfaces import Surface
 
 log = logging.getLogger(__name__)
 
-WRITE_EVERY_S = 1.0
+STATE_FILE = "world_state.json"
+CRASH_EXIT = 70
 
 
 class WorldService:
@@ -47,13 +51,19 @@ class WorldService:
     """
 
     def __init__(self, session: zenoh.Session, config: RunConfig, surface: Surface,
-                 out_dir: str | Path, on_tick: Callable[[int], None] | None = None) -> None:
+                 out_dir: str | Path, on_tick: Callable[[int], None] | None = None,
+                 resume: bool = False, crash_after_tick: int | None = None) -> None:
         self.session, self.config = session, config
         self.sim = WorldSim(config, surface)
         self.recorder = RunRecorder(out_dir, config)
+        if resume:
+            self._resume()
         self.on_tick = on_tick
+        self.crash_after_tick = crash_after_tick
         self._cond = threading.Condition()
         self._rods: set[int] = set()
+        self._settled_at: dict[int, float] = {}
+        self._tick_started = 0.0
         self._alive: set[int] = set()
         self._ended: str | None = None
         self._rejected = 0
@@ -67,9 +77,28 @@ class WorldService:
                                                     history=True),
         ]
         self._tick_pub = session.declare_publisher(keys.tick(run))
+        self._missed_pub = session.declare_publisher(keys.missed(run))
         self._done_pub = session.declare_publisher(keys.done(run))
         self._token = session.liveliness().declare_token(keys.alive(run, "world"))
-        self._declared += [self._tick_pub, self._done_pub, self._token]
+        self._declared += [self._tick_pub, self._missed_pub, self._done_pub, self._token]
+
+    def _resume(self) -> None:
+        """Continue from the results folder's checkpoint (the last complete tick)."""
+        out = self.recorder.out_dir
+        try:
+            state = json.loads((out / STATE_FILE).read_text())
+            rows = read_ticks(out / "ticks.csv")
+        except (OSError, ValueError, KeyError) as exc:
+            raise ValueError(f"cannot resume from {out}: {exc}") from None
+        self.sim.restore(state)
+        done = self.sim.tick + 1
+        self.recorder.rows = [r for r in rows if r["tick"] < done]
+        self.recorder.observations = [o for o in read_observations(out / "observations.csv")
+                                      if o["tick"] < done]
+        self.recorder.missed = {int(k): v for k, v in state.get("missed_counts", {}).items()}
+        if self.recorder.ticks_done != done:
+            raise ValueError(f"cannot resume from {out}: ticks.csv has {self.recorder.ticks_done} "
+                             f"complete ticks but the checkpoint {done}")
 
     def close(self) -> None:
         for handle in reversed(self._declared):
@@ -87,20 +116,22 @@ class WorldService:
     # --- queryables ----------------------------------------------------------------------------
 
     def _answer(self, query: zenoh.Query, handle: Callable[[int, bytes], bytes]) -> None:
-        tick = -1
+        code = "bad-request"
         try:
             agent = keys.agent_from_key(str(query.key_expr))
             payload = query.payload.to_bytes() if query.payload is not None else b""
             query.reply(query.key_expr, handle(agent, payload))
             return
+        except TickMissed as exc:
+            problem, code = str(exc), "missed"
         except (ProtocolError, RequestError, ValueError) as exc:
             problem = str(exc)
         except RunEnded as exc:
             self.abort(str(exc))
-            problem = f"run ended: {exc}"
+            problem, code = f"run ended: {exc}", "ended"
         self._rejected += 1
         log.info("world: refused %s: %s", query.key_expr, problem)
-        query.reply_err(error_payload(tick, problem))
+        query.reply_err(error_payload(self.sim.tick, problem, code))
 
     def _on_sense(self, query: zenoh.Query) -> None:
         def handle(agent: int, payload: bytes) -> bytes:
@@ -171,6 +202,9 @@ class WorldService:
                 self._alive.add(agent)
             else:
                 self._alive.discard(agent)
+                if (0 <= self.sim.tick and agent < self.sim.n_agents and agent not in self._rods
+                        and self.sim.tick < self.config.ticks):
+                    self._mark_missed(agent, "its process vanished")
             self._cond.notify_all()
 
     # --- the run -------------------------------------------------------------------------------
@@ -196,66 +230,123 @@ class WorldService:
                     raise RuntimeError(f"agents {missing} did not come up within {timeout:.0f} s")
                 self._cond.wait(left)
 
+    def _mark_missed(self, agent: int, why: str) -> None:
+        """(Lock held.) ``agent`` did not settle this tick: it keeps its pose; tell the chain."""
+        log.warning("world: agent %d missed tick %d: %s", agent, self.sim.tick, why)
+        self.sim.mark_missed(agent)
+        self._rods.add(agent)
+        self._settled_at[agent] = time.monotonic()
+        self._missed_pub.put(encode(Missed(tick=self.sim.tick, agent=agent)))
+        self._cond.notify_all()
+
+    def _first_pending(self) -> int | None:
+        pending = set(range(self.sim.n_agents)) - self._rods
+        return min(pending) if pending else None
+
+    def _wait_rejoin(self, tick: int) -> str | None:
+        """(Lock held.) Before a tick, every agent must be live (a restarted one rejoins here)."""
+        deadline = time.monotonic() + self.config.agent_timeout
+        while self._ended is None:
+            gone = set(range(self.sim.n_agents)) - self._alive
+            if not gone:
+                return None
+            left = deadline - time.monotonic()
+            if left <= 0:
+                names = ", ".join(map(str, sorted(gone)))
+                return (f"agent(s) {names} gone before tick {tick} and not back within "
+                        f"{self.config.agent_timeout:g} s")
+            self._cond.wait(left)
+        return self._ended
+
     def _run_tick(self, tick: int) -> str | None:
-        """Run one lockstep tick; return why the run must end, or None."""
+        """Run one tick (lockstep or realtime); return why the run must end, or None."""
+        realtime = self.config.mode == "realtime"
         with self._cond:
+            if not realtime:
+                reason = self._wait_rejoin(tick)
+                if reason is not None:
+                    return reason
             self.sim.start_tick(tick)
             self._rods.clear()
+            self._settled_at = {}
+            self._tick_started = time.monotonic()
         self._tick_pub.put(encode(TickStart(tick=tick, t=self.sim.time_of(tick))))
         limit = self.config.agent_timeout
         with self._cond:
-            seen, deadline = 0, time.monotonic() + limit
-            while len(self._rods) < self.sim.n_agents and self._ended is None:
-                if len(self._rods) > seen:  # progress: restart the per-agent clock
-                    seen, deadline = len(self._rods), time.monotonic() + limit
+            while (waiting := self._first_pending()) is not None and self._ended is None:
+                since = self._settled_at.get(waiting - 1, self._tick_started)
+                since = max((self._settled_at.get(k, since) for k in self._rods), default=since)
+                deadline = since + limit
+                if realtime:
+                    deadline = min(deadline, self._tick_started + self.period)
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    waiting = min(set(range(self.sim.n_agents)) - self._rods)
+                    if realtime:
+                        self._mark_missed(waiting, "did not settle in time")
+                        continue
                     gone = "" if waiting in self._alive else " (it is no longer live)"
                     return f"agent {waiting} did not settle at tick {tick} within {limit:g} s{gone}"
                 self._cond.wait(left)
             if self._ended is not None:
                 return self._ended
             self.recorder.add_tick(self.sim.finish_tick())
+            if realtime:  # pace by the wall clock
+                next_start = self._tick_started + self.period
+                while self._ended is None and (left := next_start - time.monotonic()) > 0:
+                    self._cond.wait(left)
         return None
+
+    @property
+    def period(self) -> float:
+        """Wall-clock seconds per tick in realtime mode."""
+        return self.config.comm_period * self.config.time_scale
 
     def run(self) -> dict:
         """Wait for the agents, run every tick, write the results; return the summary.
 
-        The run ends early (result written with ``complete: false``) when an agent stops
-        settling or the swarm leaves the surface's domain.
+        Results and the world's checkpoint are rewritten after every tick, so a crashed world
+        continues with ``python -m world --resume RUN_DIR``. The run ends early (result
+        written with ``complete: false``) when an agent stops settling (lockstep), does not
+        come back after vanishing, or the swarm leaves the surface's domain.
         """
         started = time.monotonic()
         self.wait_for_agents(self.config.start_timeout)
-        reason, last_write = "", time.monotonic()
+        reason = ""
         try:
             for tick in range(self.recorder.ticks_done, self.config.ticks):
                 ended = self._run_tick(tick)
                 if ended is not None:
                     reason = ended
                     break
+                with self._cond:
+                    self._checkpoint(complete=False, reason="running",
+                                     wall_time=time.monotonic() - started)
+                if self.crash_after_tick is not None and tick >= self.crash_after_tick:
+                    os._exit(CRASH_EXIT)  # fault injection for tests: no clean-up at all
                 if self.on_tick is not None:
                     self.on_tick(tick)
-                if time.monotonic() - last_write > WRITE_EVERY_S:
-                    self.recorder.write(complete=False, reason="running",
-                                        wall_time=time.monotonic() - started)
-                    last_write = time.monotonic()
         except BaseException:
-            self.recorder.write(complete=False, reason="interrupted",
-                                wall_time=time.monotonic() - started)
+            with self._cond:
+                self.recorder.write(complete=False, reason="interrupted",
+                                    wall_time=time.monotonic() - started)
             raise
         complete = not reason
         if reason:
             log.error("world: run ended early: %s", reason)
         with self._cond:
-            self.recorder.write(complete=complete, reason=reason,
-                                wall_time=time.monotonic() - started)
+            self._checkpoint(complete=complete, reason=reason, wall_time=time.monotonic() - started)
         self._done_pub.put(encode(Done(tick=max(self.recorder.ticks_done - 1, 0),
                                        results=str(self.recorder.out_dir), complete=complete,
                                        reason=reason)))
         self._wait_agents_gone(timeout=5.0)
         return self.recorder.summary(complete=complete, reason=reason,
                                      wall_time=time.monotonic() - started)
+
+    def _checkpoint(self, **status) -> None:
+        """(Lock held.) Results so far and the world's state after the last complete tick."""
+        self.recorder.write(**status)
+        state = {**self.sim.state(), "missed_counts": self.recorder.missed}
+        write_atomic(self.recorder.out_dir / STATE_FILE, json.dumps(state))
 
     def _wait_agents_gone(self, timeout: float) -> None:
         """Give agents time to see ``world/done`` and leave before the session closes."""

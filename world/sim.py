@@ -26,6 +26,10 @@ class RequestError(ValueError):
     """An agent's request that the world refuses; the message names the problem."""
 
 
+class TickMissed(RequestError):
+    """A request from an agent that already missed the current tick (realtime mode)."""
+
+
 class RunEnded(RuntimeError):
     """A condition that ends the run early (the result is written, marked incomplete)."""
 
@@ -147,15 +151,42 @@ class WorldSim:
                 del state.settled[old]
         return rows
 
+    def state(self) -> dict:
+        """JSON-ready state after the current (complete) tick, for :meth:`restore`."""
+        return {
+            "tick": self.tick,
+            "leader_velocity": self.leader_velocity.tolist(),
+            "leader_time": self.leader_time,
+            "agents": [
+                {"pos": a.pos.tolist(), "heading": a.heading.tolist(),
+                 "settled": {str(t): p.tolist() for t, p in a.settled.items()}}
+                for a in self.agents
+            ],
+        }
+
+    def restore(self, state: dict) -> None:
+        """Continue from a :meth:`state` snapshot (floats round-trip exactly through JSON)."""
+        if len(state["agents"]) != self.n_agents:
+            raise ValueError(f"checkpoint has {len(state['agents'])} agents, config {self.n_agents}")
+        self.tick = int(state["tick"])
+        self.leader_velocity = np.array(state["leader_velocity"], dtype=float)
+        self.leader_time = float(state["leader_time"])
+        for agent, saved in zip(self.agents, state["agents"]):
+            agent.pos = np.array(saved["pos"], dtype=float)
+            agent.heading = np.array(saved["heading"], dtype=float)
+            agent.settled = {int(t): np.array(p, dtype=float) for t, p in saved["settled"].items()}
+
     # --- requests ------------------------------------------------------------------------------
 
     def _check_request(self, agent: int, tick: int) -> None:
         if not 0 <= agent < self.n_agents:
             raise RequestError(f"unknown agent id {agent} (this run has agents 0..{self.n_agents - 1})")
+        if tick < self.tick:
+            raise TickMissed(f"tick {tick} is over: the world is at tick {self.tick}")
         if tick != self.tick:
             raise RequestError(f"request for tick {tick}, but the world is at tick {self.tick}")
         if self.agents[agent].missed:
-            raise RequestError(f"agent {agent} missed tick {tick}; wait for the next tick")
+            raise TickMissed(f"agent {agent} missed tick {tick}; wait for the next tick")
 
     def _check_follower_turn(self, agent: int, *, settled_ok: bool = False) -> None:
         if agent == 0:

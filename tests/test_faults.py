@@ -1,0 +1,200 @@
+"""Faults: realtime misses, a killed follower rejoining from its checkpoint, duplicate ids,
+a vanishing world, ``--resume``, Ctrl-C. Every process is ended and every wait bounded."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from protocol.config import RunConfig, dump_config
+from protocol.session import free_tcp_endpoint
+from swarm.launch import agent_commands, launch
+from world.results import read_observations, read_ticks
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Procs:
+    """Start processes; on exit kill whatever is still running."""
+
+    def __init__(self) -> None:
+        self.procs: list[subprocess.Popen] = []
+
+    def start(self, cmd: list[str], **kwargs) -> subprocess.Popen:
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True, **kwargs)
+        self.procs.append(proc)
+        return proc
+
+    def close(self) -> None:
+        for proc in self.procs:
+            if proc.poll() is None:
+                proc.kill()
+            proc.communicate(timeout=10)
+
+
+@pytest.fixture
+def procs():
+    p = Procs()
+    yield p
+    p.close()
+
+
+def _world_cmd(config: Path, endpoint: str, out: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "world", "--config", str(config), "--listen", endpoint,
+            "--out", str(out), *extra]
+
+
+def _wait_for(predicate, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def _ticks_done(out: Path) -> int:
+    try:
+        return json.loads((out / "summary.json").read_text())["ticks_completed"]
+    except (OSError, ValueError, KeyError):
+        return 0
+
+
+def test_realtime_without_pressure_matches_lockstep(tmp_path):
+    cfg = dict(run_id="rt", followers=2, ticks=12)
+    lock = launch(RunConfig(**cfg), tmp_path / "lock", in_process=True)
+    real = launch(RunConfig(mode="realtime", time_scale=0.1, **cfg), tmp_path / "real",
+                  in_process=True)
+    assert real["complete"]
+    assert all(f["missed_ticks"] == 0 for f in real["followers"].values())
+    assert (tmp_path / "lock" / "ticks.csv").read_text() == (tmp_path / "real" / "ticks.csv").read_text()
+    assert lock["followers"] == real["followers"]
+
+
+def test_realtime_misses_are_recorded_and_the_chain_goes_on(tmp_path):
+    """An agent timeout far below one tick's work: agents miss ticks, the run still ends."""
+    summary = launch(RunConfig(run_id="rtmiss", followers=2, ticks=10, mode="realtime",
+                               time_scale=0.05, agent_timeout=0.0005), tmp_path / "o",
+                     in_process=True)
+    assert summary["complete"] and summary["ticks_completed"] == 10
+    missed = [f["missed_ticks"] for f in summary["followers"].values()]
+    assert sum(missed) > 0
+    rows = read_ticks(tmp_path / "o" / "ticks.csv")
+    assert len(rows) == 3 * 10  # every agent has a row for every tick, missed or not
+
+
+def test_killed_follower_rejoins_from_its_checkpoint(tmp_path, procs):
+    """Lockstep: SIGKILL follower 1, restart it; the world waits for it, it rejoins at the
+    next tick with its estimator history (its first prediction after the restart exists,
+    which from scratch it could not: EDMD needs two samples)."""
+    cfg = RunConfig(run_id="kill", followers=2, ticks=400, agent_timeout=20.0)
+    out, endpoint = tmp_path / "run", free_tcp_endpoint()
+    out.mkdir()
+    dump_config(cfg, out / "config.toml")
+    world = procs.start(_world_cmd(out / "config.toml", endpoint, out))
+    agents = [procs.start(cmd) for cmd in agent_commands(out / "config.toml", endpoint, 2)]
+    _wait_for(lambda: _ticks_done(out) >= 20, 60, "tick 20")
+    agents[1].send_signal(signal.SIGKILL)  # follower 1
+    agents[1].wait(timeout=10)
+    killed_at = _ticks_done(out)
+    assert killed_at < cfg.ticks - 50, "the run went too fast to test a restart"
+    agents.append(procs.start(agent_commands(out / "config.toml", endpoint, 2)[1]))
+    assert world.wait(timeout=120) == 0, world.stderr.read()
+    for proc in (agents[0], agents[2], agents[3]):
+        assert proc.wait(timeout=30) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["complete"]
+    assert summary["followers"]["1"]["missed_ticks"] <= 1  # the world waited for the rejoin
+    obs = [o for o in read_observations(out / "observations.csv") if o["agent"] == 1]
+    ticks = [o["tick"] for o in obs]
+    resumed = [o for o in obs if o["tick"] > killed_at + 1]
+    assert resumed and resumed[0]["prediction"], "no prediction right after the restart"
+    assert len(set(ticks)) >= cfg.ticks - 2  # it took part in (almost) every tick
+    assert not (out / "state" / "agent-1.ckpt").exists()  # removed once the run finished
+
+
+def test_second_process_with_a_live_id_refuses(tmp_path, procs):
+    cfg = RunConfig(run_id="dup", followers=1, start_timeout=5.0)
+    out, endpoint = tmp_path / "run", free_tcp_endpoint()
+    out.mkdir()
+    dump_config(cfg, out / "config.toml")
+    world = procs.start(_world_cmd(out / "config.toml", endpoint, out))
+    first = procs.start(agent_commands(out / "config.toml", endpoint, 1)[1])
+    time.sleep(1.5)  # the first follower is up and holds its token
+    second = subprocess.run(agent_commands(out / "config.toml", endpoint, 1)[1], cwd=ROOT,
+                            capture_output=True, text=True, timeout=30)
+    assert second.returncode == 1
+    assert "agent id 1 is already live" in second.stderr
+    for proc in (world, first):
+        proc.kill()
+
+
+def test_agents_exit_when_the_world_vanishes_and_resume_continues(tmp_path, procs):
+    """World killed after tick 9: agents exit with a clear error; ``--resume`` plus restarted
+    agents finish the run with exactly the numbers of an uninterrupted one."""
+    cfg = RunConfig(run_id="resume", surface="wavy", followers=2, ticks=20, agent_timeout=10.0)
+    reference = tmp_path / "ref"
+    launch(cfg, reference, in_process=False)
+    out, endpoint = tmp_path / "run", free_tcp_endpoint()
+    out.mkdir()
+    dump_config(cfg, out / "config.toml")
+    world = procs.start(_world_cmd(out / "config.toml", endpoint, out, "--crash-after-tick", "9"))
+    agents = [procs.start(cmd) for cmd in agent_commands(out / "config.toml", endpoint, 2)]
+    assert world.wait(timeout=60) == 70
+    for proc in agents:
+        assert proc.wait(timeout=30) == 1
+        assert "the world process disappeared" in proc.stderr.read()
+    assert json.loads((out / "summary.json").read_text())["ticks_completed"] == 10
+    endpoint = free_tcp_endpoint()
+    world = procs.start([sys.executable, "-m", "world", "--resume", str(out), "--listen", endpoint])
+    agents = [procs.start(cmd) for cmd in agent_commands(out / "config.toml", endpoint, 2)]
+    assert world.wait(timeout=60) == 0, world.stderr.read()
+    for proc in agents:
+        assert proc.wait(timeout=30) == 0
+    assert (out / "ticks.csv").read_text() == (reference / "ticks.csv").read_text()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["complete"]
+    assert summary["followers"] == json.loads((reference / "summary.json").read_text())["followers"]
+
+
+@pytest.mark.skipif(os.name != "posix", reason="signals")
+def test_ctrl_c_stops_everything_and_leaves_a_partial_result(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "swarm", "run", "--followers", "2",
+                             "--mode", "realtime", "--time-scale", "1.0", "--out", str(out)],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for(lambda: _ticks_done(out) >= 2, 60, "two ticks")
+        children = _children(proc.pid)
+        assert len(children) == 3
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=20) == 130
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.communicate(timeout=10)
+    _wait_for(lambda: not any(_alive(pid) for pid in children), 10, "agent processes to end")
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["complete"] is False and summary["ticks_completed"] >= 2
+    assert read_ticks(out / "ticks.csv")  # readable
+
+
+def _children(pid: int) -> list[int]:
+    out = subprocess.run(["ps", "-o", "pid=", "--ppid", str(pid)], capture_output=True, text=True)
+    return [int(x) for x in out.stdout.split()]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    stat = Path(f"/proc/{pid}/stat")
+    return not (stat.exists() and stat.read_text().split()[2] == "Z")
