@@ -321,10 +321,11 @@ def decode(
             f"unsupported schema version {version!r} (this build speaks {SCHEMA_VERSION})"
         )
     allowed = expected if isinstance(expected, tuple) else (expected,)
-    cls = MESSAGE_TYPES.get(body.get("type"))  # type: ignore[arg-type]
+    tag = body.get("type")
+    cls = MESSAGE_TYPES.get(tag) if isinstance(tag, str) else None
     if cls not in allowed:
         names = ", ".join(repr(c.TYPE) for c in allowed)
-        raise ProtocolError(f"message type {body.get('type')!r} not accepted here (want {names})")
+        raise ProtocolError(f"message type {str(tag)[:40]!r} not accepted here (want {names})")
     values = _validate(cls, body)
     if min_tick is not None and values["tick"] < min_tick:
         raise ProtocolError(f"tick {values['tick']} is older than tick {min_tick} already seen")

@@ -125,8 +125,10 @@ def new_run_id() -> str:
 
 
 def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
-           on_tick: Callable[[int], None] | None = None) -> dict:
+           on_tick: Callable[[int], None] | None = None, endpoint: str | None = None) -> dict:
     """Run ``config`` end to end; return the summary (also in ``out_dir/summary.json``).
+
+    The world listens on ``endpoint`` (default: a free loopback port).
 
     Raises RuntimeError if the agents do not come up. Ctrl-C stops every agent and leaves a
     partial result marked incomplete.
@@ -135,7 +137,7 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     dump_config(config, out_dir / "config.toml")
-    endpoint = free_tcp_endpoint()
+    endpoint = endpoint or free_tcp_endpoint()
     agents = _ThreadAgents(config, endpoint) if in_process else _ProcessAgents(config, out_dir, endpoint)
     try:
         summary = run_world(config, zenoh_config("router", listen=[endpoint]), out_dir,

@@ -249,13 +249,13 @@ class WorldSim:
         self._check_request(agent, tick)
         self._check_follower_turn(agent)
         state, cfg = self.agents[agent], self.config
+        step = np.asarray(offset, dtype=float)
+        if step.shape != (2,) or not np.all(np.isfinite(step)) or _norm(step) > MAX_OFFSET:
+            raise RequestError(f"move offset must be two finite numbers of size <= {MAX_OFFSET:g}")
         if tick < cfg.init_ticks:
             raise RequestError(f"tick {tick} is an initial tick: followers only snap")
         if state.acted:
             raise RequestError(f"agent {agent} already moved at tick {tick}")
-        step = np.asarray(offset, dtype=float)
-        if step.shape != (2,) or not np.all(np.isfinite(step)) or _norm(step) > MAX_OFFSET:
-            raise RequestError(f"move offset must be two finite numbers of size <= {MAX_OFFSET:g}")
         step = step + gaussian(cfg.seed, agent, tick, "move", "act", cfg.noise_move, 2)
         self._relocate(agent, state.pos + step)
         state.estimate = state.pos.copy()

@@ -1,0 +1,168 @@
+"""Bad input never crashes a process nor changes a run: codec fuzzing, error replies that name
+the problem, and a live flood of malformed queries and garbage samples during a run."""
+from __future__ import annotations
+
+import math
+import threading
+
+import msgpack
+import pytest
+import zenoh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from protocol import keys
+from protocol.config import RunConfig
+from protocol.messages import (
+    MESSAGE_TYPES, ActRequest, ErrorReply, ProtocolError, SenseRequest, decode, encode,
+)
+from protocol.session import free_tcp_endpoint, zenoh_config
+from swarm.launch import launch
+from world.main import resolve
+from world.service import WorldService
+from world.surfaces import make_surface
+
+ALL_TYPES = tuple(MESSAGE_TYPES.values())
+scalars = st.one_of(st.none(), st.booleans(), st.integers(-2**63, 2**64 - 1), st.floats(),
+                    st.text(max_size=20), st.binary(max_size=20))
+values = st.recursive(scalars, lambda inner: st.one_of(
+    st.lists(inner, max_size=5), st.dictionaries(st.text(max_size=8), inner, max_size=5)),
+    max_leaves=20)
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.binary(max_size=200))
+def test_fuzz_random_bytes(data):
+    try:
+        decode(data, ALL_TYPES)
+    except ProtocolError:
+        pass
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.dictionaries(st.sampled_from(["v", "type", "tick", "r", "theta", "rod", "phase",
+                                        "action", "offset", "t", "length", "side", "error",
+                                        "code", "agent", "x"]), values, max_size=8),
+       st.sampled_from(list(MESSAGE_TYPES)))
+def test_fuzz_structured_maps(body, type_name):
+    """Plausible-looking maps: either a valid message that re-encodes identically, or a
+    ProtocolError; nothing else ever escapes."""
+    body = {"v": 1, "type": type_name, **body}
+    try:
+        msg = decode(msgpack.packb(body, use_bin_type=True), ALL_TYPES)
+    except ProtocolError:
+        return
+    assert decode(encode(msg), type(msg)) == msg
+
+
+@pytest.fixture
+def world():
+    """A world service on an embedded router at tick 0 (leader settled), and a client."""
+    config = resolve(RunConfig(run_id="bad", followers=2))
+    endpoint = free_tcp_endpoint()
+    with zenoh.open(zenoh_config("router", listen=[endpoint])) as wsession, \
+            zenoh.open(zenoh_config("client", connect=[endpoint])) as client:
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            service = WorldService(wsession, config, make_surface(config.surface), tmp)
+            service.sim.start_tick(0)
+            service.sim.drive(0, 0, 0.0)
+            yield service, client
+            service.close()
+
+
+def _ask(client, key, payload) -> str:
+    replies = list(client.get(key, payload=payload, timeout=5.0))
+    assert len(replies) == 1
+    assert replies[0].ok is None, "a malformed request was answered as if valid"
+    return decode(replies[0].err.payload.to_bytes(), ErrorReply).error
+
+
+def _raw(**body):
+    return msgpack.packb(body, use_bin_type=True)
+
+
+GOOD_SENSE = {"v": 1, "type": "sense", "tick": 0, "phase": "pre"}
+GOOD_MOVE = {"v": 1, "type": "act", "tick": 0, "action": "move", "t": None, "offset": [0.1, 0.0]}
+
+
+@pytest.mark.parametrize("key_agent, payload, fragment", [
+    (1, b"", "not valid msgpack"),
+    (1, msgpack.packb([1, 2]), "must be a msgpack map"),
+    (1, _raw(**{**GOOD_SENSE, "v": 7}), "unsupported schema version 7"),
+    (1, _raw(**{**GOOD_SENSE, "type": "act"}), "message type 'act' not accepted"),
+    (1, _raw(**{**GOOD_SENSE, "phase": "never"}), "'phase' must be one of"),
+    (1, _raw(**{**GOOD_SENSE, "tick": 5}), "request for tick 5, but the world is at tick 0"),
+    (1, _raw(**{**GOOD_SENSE, "tick": -3}), "'tick' must be in"),
+    (99, _raw(**GOOD_SENSE), "unknown agent id 99"),
+    (0, _raw(**GOOD_SENSE), "agent 0 is the leader"),
+    (2, _raw(**GOOD_SENSE), "agent 1 has not settled at tick 0"),
+])
+def test_sense_errors_name_the_problem(world, key_agent, payload, fragment):
+    _, client = world
+    assert fragment in _ask(client, keys.sense("bad", key_agent), payload)
+
+
+@pytest.mark.parametrize("key_agent, body, fragment", [
+    (1, {**GOOD_MOVE, "offset": [math.nan, 0.0]}, "'offset[0]' must be finite"),
+    (1, {**GOOD_MOVE, "offset": [1e9, 0.0]}, "move offset must be two finite numbers of size"),
+    (1, {**GOOD_MOVE, "offset": [1.0]}, "'offset' must have length 2"),
+    (1, GOOD_MOVE, "tick 0 is an initial tick"),
+    (1, {**GOOD_MOVE, "action": "teleport"}, "'action' must be one of"),
+    (1, {**GOOD_MOVE, "action": "drive", "t": 0.0}, "only the leader (agent 0) may drive"),
+    (0, {**GOOD_MOVE, "action": "drive", "t": 0.0}, "the leader already drove"),
+    (0, GOOD_MOVE, "agent 0 is the leader"),
+    (7, GOOD_MOVE, "unknown agent id 7"),
+])
+def test_act_errors_name_the_problem(world, key_agent, body, fragment):
+    _, client = world
+    assert fragment in _ask(client, keys.act("bad", key_agent), _raw(**body))
+
+
+def test_non_numeric_id_in_key(world):
+    _, client = world
+    assert "names no agent id" in _ask(client, "swarm/bad/world/sense/abc", _raw(**GOOD_SENSE))
+
+
+def _attack(endpoint: str, run_id: str, stop: threading.Event, counts: dict) -> None:
+    """Fire malformed queries and garbage samples until ``stop``."""
+    bad_queries = [
+        (keys.sense(run_id, 1), b"\xff\x00garbage"),
+        (keys.sense(run_id, 42), encode(SenseRequest(tick=0, phase="pre"))),
+        (keys.act(run_id, 2), _raw(**{**GOOD_MOVE, "offset": [math.inf, 1.0]})),
+        (keys.act(run_id, 1), _raw(**{**GOOD_MOVE, "v": 99})),
+        (keys.act(run_id, 0), encode(ActRequest(tick=10**6, action="drive", t=1.0))),
+        (keys.sense(run_id, 3), _raw(**{**GOOD_SENSE, "phase": 3})),
+    ]
+    garbage = [(keys.rod(run_id, 1), b"\x00\x01"), (keys.obs(run_id, 2), _raw(v=1, type="obs")),
+               (keys.rod(run_id, 9), _raw(v=1, type="rod", tick=0, length=-1.0, side=1))]
+    with zenoh.open(zenoh_config("client", connect=[endpoint])) as session:
+        i = 0
+        while not stop.is_set() and i < 5000:
+            key, payload = bad_queries[i % len(bad_queries)]
+            for reply in session.get(key, payload=payload, timeout=2.0):
+                counts["errors" if reply.ok is None else "answered"] += 1
+            gkey, gpayload = garbage[i % len(garbage)]
+            session.put(gkey, gpayload)
+            counts["garbage"] += 1
+            i += 1
+
+
+def test_flood_of_malformed_queries_leaves_the_numbers_unchanged(tmp_path):
+    cfg = RunConfig(run_id="flood", surface="wavy", followers=2, ticks=40)
+    clean = launch(cfg, tmp_path / "clean", in_process=True)
+    endpoint = free_tcp_endpoint()
+    stop, counts = threading.Event(), {"errors": 0, "answered": 0, "garbage": 0}
+    attacker = threading.Thread(target=_attack, args=(endpoint, cfg.run_id, stop, counts))
+    attacker.start()
+    try:
+        attacked = launch(cfg, tmp_path / "attacked", in_process=True, endpoint=endpoint)
+    finally:
+        stop.set()
+        attacker.join(timeout=30)
+    assert not attacker.is_alive()
+    assert counts["errors"] >= 200 and counts["answered"] == 0, counts
+    assert attacked["complete"]
+    assert (tmp_path / "attacked" / "ticks.csv").read_text() == (tmp_path / "clean" / "ticks.csv").read_text()
+    assert attacked["followers"] == clean["followers"]
