@@ -29,7 +29,10 @@ def _numbers(run_dir: Path) -> tuple[str, dict]:
 
 @pytest.fixture(scope="module")
 def chain_config() -> RunConfig:
-    return RunConfig(run_id="e2e", surface="wavy", followers=2, ticks=14, agent_timeout=20.0)
+    """Two followers with every kind of noise and an estimator that uses velocities."""
+    return RunConfig(run_id="e2e", surface="wavy", followers=2, ticks=14, agent_timeout=20.0,
+                     dictionary="c", velocity="estimated", noise_range=0.01,
+                     noise_bearing=0.005, noise_velocity=0.02, noise_move=0.01, seed=11)
 
 
 @pytest.fixture(scope="module")
@@ -80,6 +83,15 @@ def test_processes_match_in_process(tmp_path, in_process_run, chain_config):
     summary = launch(chain_config, tmp_path / "procs", in_process=False)
     assert summary["complete"]
     assert _numbers(tmp_path / "procs") == _numbers(out)
+
+
+def test_in_memory_layout_matches(tmp_path, in_process_run, chain_config):
+    """``swarm.local`` (no network; used for estimator studies) gives the same numbers."""
+    from swarm.local import run_local
+
+    out, _ = in_process_run
+    run_local(chain_config, tmp_path / "local")
+    assert _numbers(tmp_path / "local") == _numbers(out)
 
 
 def test_hand_assembled_run_matches(tmp_path, in_process_run):
