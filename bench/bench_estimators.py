@@ -15,7 +15,7 @@ least disturbed by other load.
 
 Run from the repository root::
 
-    python -m bench.bench_estimators [--steps 300] [--rounds 7] [--seed 0]
+    python bench/bench_estimators.py [--steps 300] [--rounds 7] [--seed 0]
 """
 
 from __future__ import annotations
@@ -24,12 +24,16 @@ import argparse
 import copy
 import gc
 import importlib
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
-from agents.estimators import StreamingEDMD, delay_embed
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from agents.estimators import StreamingEDMD, delay_embed  # noqa: E402
 
 HISTORY_LENGTHS = (200, 2_000, 20_000)
 CASES = {"lifted dim 2": {"delays": 0}, "lifted dim 6 (delays=2)": {"delays": 2}}
