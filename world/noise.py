@@ -11,6 +11,12 @@ CHANNELS = {"range": 1, "bearing": 2, "velocity": 3, "move": 4}
 PHASES = {"pre": 0, "moved": 1, "settled": 2, "act": 3}
 
 
+def gaussian_scalar(seed: int, agent: int, tick: int, channel: str, phase: str,
+                    sigma: float) -> float:
+    """One draw of :func:`gaussian` as a float (0.0 without touching a generator if sigma is 0)."""
+    return 0.0 if sigma == 0 else float(gaussian(seed, agent, tick, channel, phase, sigma)[0])
+
+
 def gaussian(
     seed: int, agent: int, tick: int, channel: str, phase: str, sigma: float, size: int = 1
 ) -> np.ndarray:

@@ -16,7 +16,7 @@ import numpy as np
 from protocol.config import RunConfig
 from protocol.messages import Sensing
 from world import geometry
-from world.noise import gaussian
+from world.noise import gaussian, gaussian_scalar
 from world.surfaces import Surface, surface_leader_start
 
 MAX_OFFSET = 1e6
@@ -224,10 +224,11 @@ class WorldSim:
         self._check_follower_turn(agent, settled_ok=phase == "settled")
         cfg, state = self.config, self.agents[agent]
         leader = self.agents[agent - 1]
-        rel = leader.pos - state.pos
-        r = math.hypot(rel[0], rel[1]) + gaussian(cfg.seed, agent, tick, "range", phase, cfg.noise_range)[0]
-        theta = math.atan2(rel[1], rel[0]) + gaussian(
-            cfg.seed, agent, tick, "bearing", phase, cfg.noise_bearing)[0]
+        (lx, ly), (fx, fy) = leader.pos.tolist(), state.pos.tolist()
+        r = math.hypot(lx - fx, ly - fy) + gaussian_scalar(
+            cfg.seed, agent, tick, "range", phase, cfg.noise_range)
+        theta = math.atan2(ly - fy, lx - fx) + gaussian_scalar(
+            cfg.seed, agent, tick, "bearing", phase, cfg.noise_bearing)
         theta = math.atan2(math.sin(theta), math.cos(theta))
         end = self._leader_rod(agent)[0]
         offset = end - state.pos
