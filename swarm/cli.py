@@ -128,6 +128,48 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0 if summary["complete"] else 1
 
 
+def cmd_experiment(args: argparse.Namespace) -> int:
+    """``experiment paper``: the paper's Section 4 grid, tables, figures and report."""
+    from swarm.experiment import FULL, QUICK, run_paper_experiment
+
+    if args.workers is not None and args.workers < 1:
+        print(f"error: --workers must be at least 1, got {args.workers}", file=sys.stderr)
+        return 2
+    try:
+        result = run_paper_experiment(args.out, QUICK if args.quick else FULL,
+                                      workers=args.workers)
+    except KeyboardInterrupt:
+        print(f"interrupted: finished runs are in {Path(args.out) / 'runs'}", file=sys.stderr)
+        return 130
+    for path in result["tables"].values():
+        print(f"table: {path}")
+    for path in result["figures"].values():
+        print(f"figure: {path}")
+    print(f"report: {result['report']}")
+    for name, reason in result["figure_problems"].items():
+        print(f"figure {name} not drawn: {reason}", file=sys.stderr)
+    for outcome in result["failed"]:
+        print(f"FAILED {outcome.run.folder}: {outcome.error}", file=sys.stderr)
+    timing = result["timing"]
+    print(f"wall time {timing['total']:.1f} s (runs {timing['runs']:.1f} s, "
+          f"figures {timing['figures']:.1f} s)")
+    return 1 if result["failed"] else 0
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    """``plot RUN_DIR``: draw one run's figures into RUN_DIR/figures."""
+    from swarm.plots import plot_run
+
+    try:
+        paths = plot_run(args.run_dir)
+    except (ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    for path in paths:
+        print(f"figure: {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m swarm",
                                 description="Column formation on an unknown surface over Zenoh.")
@@ -142,6 +184,18 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", help="results folder (default runs/<run_id>)")
     run.add_argument("--plot", action="store_true", help="draw the run's figures at the end")
     run.set_defaults(func=cmd_run, in_process=False)
+    experiment = sub.add_parser("experiment", help="regenerate the paper's tables, figures and report")
+    experiment.add_argument("name", choices=("paper",), help="which experiment")
+    experiment.add_argument("--out", default="runs/experiment-paper",
+                            help="output folder D: D/runs, D/tables, D/figures, D/report.md")
+    experiment.add_argument("--quick", action="store_true",
+                            help="reduced grid (one surface, 10 ticks) to check the pipeline")
+    experiment.add_argument("--workers", type=int, default=None,
+                            help="runs in parallel (default min(2, CPU count))")
+    experiment.set_defaults(func=cmd_experiment)
+    plot = sub.add_parser("plot", help="draw one run's figures into RUN_DIR/figures")
+    plot.add_argument("run_dir", metavar="RUN_DIR", help="a results folder of `swarm run`")
+    plot.set_defaults(func=cmd_plot)
     return p
 
 

@@ -1,0 +1,429 @@
+"""Figures (PNG) of one run (:func:`plot_run`) and of the paper experiment's tables.
+
+Figures use matplotlib's object API on an Agg canvas: no pyplot, no display, no global
+backend switch. Every PNG is written atomically (temporary file, then rename), like the rest
+of a results folder. Lengths are in the surface's length units, times in its time units
+(the leader's speed is about one length unit per time unit).
+
+Table figures take the rows of a table as read back by :func:`swarm.experiment.read_table`
+(dicts; missing numbers are NaN), so they draw exactly what the tables hold.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from collections.abc import Callable, Sequence
+from functools import wraps
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.ticker import NullLocator
+
+from protocol.config import RunConfig, load_config
+from world.results import read_ticks
+from world.surfaces import make_surface
+
+DPI = 110
+STYLE = {"font.size": 12, "axes.titlesize": 13, "axes.labelsize": 12, "legend.fontsize": 11,
+         "xtick.labelsize": 11, "ytick.labelsize": 11, "axes.grid": True, "grid.alpha": 0.3}
+PANEL_WIDTH = 4.3  # inches per surface panel; three panels stay readable at README width
+IDEAL_COLOR, ESTIMATE_COLOR = "tab:red", "tab:blue"
+SURFACE_TITLES = {"elliptic": "elliptic, type I", "hyperbolic": "hyperbolic, type II",
+                  "wavy": "wavy, type III"}
+# estimator -> (colour, marker); the paper draws "without estimation" red and EDMD blue.
+ESTIMATOR_STYLE = {"stay": ("tab:red", "o"), "persist": ("tab:gray", "s"),
+                   "edmd-b": ("tab:blue", "^"), "auto": ("tab:green", "D")}
+DICTIONARY_LABELS = {"a": "a\nv", "b": "b\n(r, θ)", "c": "c\n(r, θ, v)", "d": "d\nxy",
+                     "e": "e\nxyz", "f": "f\nxy, leader xy", "g": "g\nxyz, leader xyz"}
+# variant -> (face colour, hatch); the paper: no hatch, white lines, white crosses.
+VARIANT_STYLE = {"b": ("tab:blue", ""), "c-lagged": ("tab:blue", "//"),
+                 "c-estimated": ("tab:blue", "xx"), "persist": ("tab:gray", ""),
+                 "stay": ("tab:red", "")}
+PAPER_COMM_PERIOD = RunConfig().comm_period  # the paper's T_c, the run default
+RANGE_LABEL = "mean required sensing range"
+LENGTH = "(length units)"
+
+
+def _styled(func: Callable) -> Callable:
+    """Draw under the module's rcParams (font sizes, grid) without changing the caller's."""
+
+    @wraps(func)
+    def wrapper(*args, **kwargs):
+        with matplotlib.rc_context(STYLE):
+            return func(*args, **kwargs)
+
+    return wrapper
+
+
+def _log_y(ax) -> bool:
+    """Log-scale the y axis if it holds positive data; return whether it did (panels of
+    failed runs hold only NaN and stay linear instead of failing to draw)."""
+    high = ax.dataLim.intervaly[1]
+    if np.isfinite(high) and high > 0:
+        ax.set_yscale("log")
+        return True
+    return False
+
+
+def _figure(width: float, height: float) -> Figure:
+    fig = Figure(figsize=(width, height), dpi=DPI, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig: Figure, path: str | Path) -> Path:
+    """Write ``fig`` as PNG through a temporary file in the same folder and a rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        fig.savefig(tmp, format="png")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+# --- one run -----------------------------------------------------------------------------------
+
+def leader_relative(rows: list[dict], follower: int) -> dict[str, np.ndarray]:
+    """Relative position of follower ``follower``'s leader (agent ``follower - 1``) per tick.
+
+    Seen from the ideal position (what the follower measures once it has snapped) and from the
+    estimated position (what its estimate predicted it would measure), in the local frame of
+    SPEC §5.
+
+    Parameters
+    ----------
+    rows : list of dict
+        ``ticks.csv`` rows (:func:`world.results.read_ticks`).
+    follower : int
+        Follower id k >= 1.
+
+    Returns
+    -------
+    dict of str to ndarray, each of shape (n,)
+        ``tick``; ``r_ideal``, ``theta_ideal`` (leader minus ideal position: length, bearing in
+        radians, unwrapped); ``r_est``, ``theta_est`` (leader minus estimate, bearing on the
+        ideal's branch; NaN before estimation starts).
+    """
+    if follower < 1:
+        raise ValueError(f"follower must be >= 1, got {follower}")
+    leader = {r["tick"]: (r["pos_x"], r["pos_y"]) for r in rows if r["agent"] == follower - 1}
+    mine = sorted((r for r in rows if r["agent"] == follower and r["tick"] in leader),
+                  key=lambda r: r["tick"])
+    if not mine:
+        raise ValueError(f"ticks hold no row of follower {follower} with its leader")
+    nan = math.nan
+    ticks = np.array([r["tick"] for r in mine])
+    lead = np.array([leader[r["tick"]] for r in mine])
+    ideal = np.array([(r["ideal_x"], r["ideal_y"]) for r in mine])
+    est = np.array([(r["est_x"] if r["est_x"] is not None else nan,
+                     r["est_y"] if r["est_y"] is not None else nan) for r in mine])
+    to_ideal, to_est = lead - ideal, lead - est
+    theta_ideal = np.unwrap(np.arctan2(to_ideal[:, 1], to_ideal[:, 0]))
+    theta_est = np.arctan2(to_est[:, 1], to_est[:, 0])
+    theta_est = theta_ideal + np.remainder(theta_est - theta_ideal + np.pi, 2 * np.pi) - np.pi
+    return {"tick": ticks, "r_ideal": np.hypot(*to_ideal.T), "theta_ideal": theta_ideal,
+            "r_est": np.hypot(*to_est.T), "theta_est": theta_est}
+
+
+def _box(points: np.ndarray, margin: float, aspect: float) -> tuple[np.ndarray, np.ndarray]:
+    """Corners (2,), (2,) of the bounding box of ``points`` (m, 2) grown by ``margin``, then
+    widened in x or y to the width/height ratio ``aspect``."""
+    low, high = np.nanmin(points, axis=0) - margin, np.nanmax(points, axis=0) + margin
+    centre, size = (low + high) / 2, high - low
+    size = np.maximum(size, [size[1] * aspect, size[0] / aspect])
+    return centre - size / 2, centre + size / 2
+
+
+def _surface_contours(ax, surface, low: np.ndarray, high: np.ndarray):
+    """Contour lines of ``surface`` over the box ``low``..``high`` (NaN outside its domain)."""
+    xs, ys = np.linspace(low[0], high[0], 160), np.linspace(low[1], high[1], 100)
+    contains = getattr(surface, "contains", None)
+    z = np.full((ys.size, xs.size), np.nan)
+    for i, y in enumerate(ys):
+        for j, x in enumerate(xs):
+            p = np.array([x, y])
+            if contains is None or contains(p):
+                z[i, j] = surface.height(p)
+    return ax.contour(xs, ys, z, levels=14, cmap="viridis", linewidths=0.8, alpha=0.8)
+
+
+@_styled
+def plot_effectiveness(run_dir: str | Path, path: str | Path,
+                       followers: Sequence[int] | None = None, title: str | None = None) -> Path:
+    """The paper's effectiveness figure for one run.
+
+    Top: the leader's path and every follower's ideal (red) and estimated (blue) positions
+    over the surface's contour lines. Below, one column per follower in ``followers``
+    (default the first three): distance and bearing of its leader seen from the ideal position
+    (red) and from the estimate (blue), per tick.
+    """
+    run_dir = Path(run_dir)
+    rows = read_ticks(run_dir / "ticks.csv")
+    config = load_config(run_dir / "config.toml")
+    followers = list(followers or range(1, min(config.followers, 3) + 1))
+    width = 13.0
+    fig = _figure(width, 10.0)
+    grid = fig.add_gridspec(3, len(followers), height_ratios=(1.6, 1, 1))
+    ax = fig.add_subplot(grid[0, :])
+    positions = np.array([(r[f"{c}_x"], r[f"{c}_y"]) for r in rows for c in ("pos", "ideal")
+                          if r.get(f"{c}_x") is not None])
+    low, high = _box(positions, margin=config.spacing, aspect=3.3)
+    contours = _surface_contours(ax, make_surface(config.surface, config.surface_params), low, high)
+    fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {LENGTH}")
+    lead = sorted((r for r in rows if r["agent"] == 0), key=lambda r: r["tick"])
+    ax.plot([r["pos_x"] for r in lead], [r["pos_y"] for r in lead], "k.-", lw=1, ms=4,
+            label="leader")
+    ax.plot(lead[0]["pos_x"], lead[0]["pos_y"], "ks", mfc="none", ms=10, label="leader at tick 0")
+    for k in range(1, config.followers + 1):
+        mine = sorted((r for r in rows if r["agent"] == k), key=lambda r: r["tick"])
+        ax.plot([r["ideal_x"] for r in mine], [r["ideal_y"] for r in mine], "o-",
+                color=IDEAL_COLOR, lw=0.6, ms=3.5, label="ideal" if k == 1 else None)
+        est = [r for r in mine if r["est_x"] is not None]
+        ax.plot([r["est_x"] for r in est], [r["est_y"] for r in est], "x", color=ESTIMATE_COLOR,
+                ms=5, mew=1.2, label="estimated" if k == 1 else None)
+    ax.set(xlim=(low[0], high[0]), ylim=(low[1], high[1]), aspect="equal",
+           xlabel=f"x {LENGTH}", ylabel=f"y {LENGTH}",
+           title=f"leader and {config.followers} follower(s) over the contour lines, "
+                 f"estimator {_estimator_label(config)}")
+    ax.legend(loc="best", framealpha=0.9)
+    for col, k in enumerate(followers):
+        rel = leader_relative(rows, k)
+        for row, (ideal, est, label, scale) in enumerate((
+                ("r_ideal", "r_est", f"distance {LENGTH}", 1.0),
+                ("theta_ideal", "theta_est", "bearing (deg)", 180 / math.pi)), start=1):
+            sub = fig.add_subplot(grid[row, col])
+            sub.plot(rel["tick"], rel[ideal] * scale, "o-", color=IDEAL_COLOR, ms=3, lw=1,
+                     label="ideal (measured)")
+            sub.plot(rel["tick"], rel[est] * scale, "x--", color=ESTIMATE_COLOR, ms=4, lw=1,
+                     label="estimated (predicted)")
+            sub.axvline(config.init_ticks - 0.5, color="0.5", ls=":", lw=1,
+                        label="estimation starts")
+            sub.ticklabel_format(axis="y", useOffset=False)
+            sub.set(title=f"follower {k}: leader's {label.split()[0]}")
+            if col == 0:
+                sub.set_ylabel(label)
+            if row == 2:
+                sub.set_xlabel("tick j (t = j·T_c)")
+            if row == 1 and col == 0:
+                sub.legend(loc="best", framealpha=0.9, fontsize=9)
+    fig.suptitle(title or f"{config.surface}: trajectory estimation, T_c = {config.comm_period:g}")
+    return _save(fig, path)
+
+
+@_styled
+def plot_required_range(run_dir: str | Path, path: str | Path) -> Path:
+    """Required sensing range of one run: per-follower means against the two baselines
+    (bars, from ``summary.json``) and per tick (lines, from ``ticks.csv``)."""
+    run_dir = Path(run_dir)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    rows = read_ticks(run_dir / "ticks.csv")
+    config = load_config(run_dir / "config.toml")
+    fig = _figure(12.0, 4.6)
+    bars, lines = fig.subplots(1, 2, width_ratios=(1, 1.4))
+    followers = sorted(summary["followers"], key=int)
+    x = np.arange(len(followers))
+    series = ((f"{_estimator_label(config)} (this run)", "mean_required_range", ESTIMATE_COLOR),
+              ("stay (counterfactual)", "mean_stay_range", ESTIMATOR_STYLE["stay"][0]),
+              ("persist (counterfactual)", "mean_persist_range", ESTIMATOR_STYLE["persist"][0]))
+    for i, (label, key, color) in enumerate(series):
+        values = [_nan(summary["followers"][k][key]) for k in followers]
+        bars.bar(x + (i - 1) * 0.27, values, 0.27, color=color, label=label)
+    bars.set_xticks(x, [f"follower {k}" for k in followers])
+    if _log_y(bars):
+        bars.set_ylim(top=bars.get_ylim()[1] * 30)  # room for the legend above the bars
+    bars.set(ylabel=f"{RANGE_LABEL} {LENGTH}", title="mean over estimated ticks")
+    bars.legend(loc="upper center", ncol=1, framealpha=0.9)
+    for k in followers:
+        mine = sorted((r for r in rows if r["agent"] == int(k) and r["required_range"] is not None),
+                      key=lambda r: r["tick"])
+        line, = lines.plot([r["tick"] for r in mine], [r["required_range"] for r in mine], ".-",
+                           label=f"follower {k}")
+        lines.plot([r["tick"] for r in mine], [r["persist_range"] for r in mine], ":",
+                   color=line.get_color(), label=f"follower {k}, persist")
+    _log_y(lines)
+    lines.set(xlabel="tick j", ylabel=f"required sensing range {LENGTH}",
+              title="per tick (dotted: persist counterfactual)")
+    lines.legend(loc="best", ncol=2, fontsize=8.5, framealpha=0.9)
+    fig.suptitle(f"{config.surface}, T_c = {config.comm_period:g}: "
+                 "distance from the estimate to the ideal position")
+    return _save(fig, path)
+
+
+def plot_run(run_dir: str | Path) -> list[Path]:
+    """Draw one run's figures into ``run_dir/figures``; return their paths.
+
+    Raises ValueError if ``run_dir`` is not a results folder.
+    """
+    run_dir = Path(run_dir)
+    missing = [n for n in ("config.toml", "ticks.csv", "summary.json") if not (run_dir / n).is_file()]
+    if missing:
+        raise ValueError(f"run_dir {run_dir} is not a results folder (missing {', '.join(missing)})")
+    out = run_dir / "figures"
+    return [plot_effectiveness(run_dir, out / "effectiveness.png"),
+            plot_required_range(run_dir, out / "required_range.png")]
+
+
+def _estimator_label(config) -> str:
+    if config.estimator != "edmd":
+        return config.estimator
+    label = f"edmd-{config.dictionary}"
+    return label + (f"-{config.velocity}" if config.dictionary == "c" else "")
+
+
+def _nan(value) -> float:
+    return math.nan if value is None else float(value)
+
+
+# --- experiment tables -------------------------------------------------------------------------
+
+def _surfaces(rows: list[dict]) -> list[str]:
+    return list(dict.fromkeys(r["surface"] for r in rows))
+
+
+def _panels(fig: Figure, n: int, **kwargs) -> list:
+    axes = fig.subplots(1, n, squeeze=False, **kwargs)[0]
+    return list(axes)
+
+
+def _label_bars(ax, bars, values: Sequence[float]) -> None:
+    ax.bar_label(bars, labels=["" if math.isnan(v) else f"{v:.2g}" for v in values],
+                 fontsize=10, padding=1)
+
+
+@_styled
+def plot_sensing_range(rows: list[dict], path: str | Path) -> Path:
+    """Bars of the mean required sensing range per follower and estimator, one panel per
+    surface (the paper's Fig. "averaged follower required sensing range"), log scale."""
+    surfaces = _surfaces(rows)
+    fig = _figure(PANEL_WIDTH * len(surfaces) + 0.6, 4.8)
+    estimators = list(dict.fromkeys(r["estimator"] for r in rows))
+    for ax, surface in zip(_panels(fig, len(surfaces), sharey=True), surfaces):
+        mine = [r for r in rows if r["surface"] == surface]
+        followers = sorted({r["follower"] for r in mine})
+        width = 0.8 / len(estimators)
+        for i, est in enumerate(estimators):
+            values = [next((r["mean_required_range"] for r in mine
+                            if r["follower"] == k and r["estimator"] == est), math.nan)
+                      for k in followers]
+            x = np.arange(len(followers)) + (i - (len(estimators) - 1) / 2) * width
+            ax.bar(x, values, width, color=ESTIMATOR_STYLE.get(est, ("k",))[0],
+                   label=est if surface == surfaces[0] else None)
+        ax.set_xticks(np.arange(len(followers)), [f"F{k}" for k in followers])
+        ax.set_xlabel("follower")
+        _log_y(ax)
+        ax.set_title(SURFACE_TITLES.get(surface, surface))
+    fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
+    fig.legend(loc="outside lower center", ncol=len(estimators))
+    return _save(fig, path)
+
+
+@_styled
+def plot_dictionaries(rows: list[dict], surface: str, path: str | Path) -> Path:
+    """RMSE per dictionary on one surface: (a) local measurements a–c, (b) absolute positions
+    d–g (the paper's two panels), with the ``stay`` and ``persist`` baselines as lines."""
+    mine = {r["dictionary"]: r for r in rows if r["surface"] == surface}
+    fig = _figure(11.0, 4.8)
+    panels = _panels(fig, 2, sharey=True, width_ratios=(3, 4))
+    for ax, (title, names, color) in zip(panels, (
+            ("(a) local measurements", "abc", "tab:blue"),
+            ("(b) absolute position (GPS)", "defg", "tab:orange"))):
+        names = [n for n in names if n in mine]
+        values = [mine[n]["rmse"] for n in names]
+        drawn = ax.bar(range(len(names)), values, 0.6, color=color)
+        _label_bars(ax, drawn, values)
+        ax.set_xticks(range(len(names)), [DICTIONARY_LABELS[n] for n in names])
+        for base, style in (("persist", "--"), ("stay", ":")):
+            if base in mine and not math.isnan(mine[base]["rmse"]):
+                ax.axhline(mine[base]["rmse"], color=ESTIMATOR_STYLE[base][0], ls=style, lw=1.5,
+                           label=f"{base}: {mine[base]['rmse']:.2g}")
+        ax.set(title=title, xlabel="dictionary (lifted measurements)")
+        _log_y(ax)
+        ax.margins(x=0.08)
+    panels[0].set_ylabel(f"RMSE of the estimate {LENGTH}")
+    if panels[0].get_legend_handles_labels()[0]:
+        panels[0].legend(loc="best", framealpha=0.9)
+    fig.suptitle(f"{SURFACE_TITLES.get(surface, surface)}: dictionaries for data-streaming EDMD "
+                 "(idealised: oracle velocity for c)")
+    return _save(fig, path)
+
+
+@_styled
+def plot_practical(rows: list[dict], path: str | Path) -> Path:
+    """RMSE of the practical variants per velocity-noise level, one panel per surface
+    (the paper's Fig. "comparison of RMSE … all types of manifold"), mean ± s.d. over seeds.
+
+    ``stay`` is far above the rest and is given in the panel title instead of drawn; the
+    dotted line is the floor σ_move·√2 that actuation noise alone puts on the RMSE.
+    """
+    surfaces = _surfaces(rows)
+    variants = [v for v in dict.fromkeys(r["variant"] for r in rows) if v != "stay"]
+    noises = sorted({r["noise_velocity"] for r in rows})
+    fig = _figure(PANEL_WIDTH * len(surfaces) + 0.6, 5.0)
+    width = 0.8 / len(variants)
+    move = rows[0]["noise_move"] if rows else math.nan
+    for ax, surface in zip(_panels(fig, len(surfaces)), surfaces):
+        def cell(variant: str, noise: float) -> dict | None:
+            return next((r for r in rows if r["surface"] == surface and r["variant"] == variant
+                         and r["noise_velocity"] == noise), None)
+
+        for i, variant in enumerate(variants):
+            cells = [cell(variant, nv) for nv in noises]
+            values = [c["rmse"] if c else math.nan for c in cells]
+            spread = [0.0 if c is None or math.isnan(c["rmse_std"]) else c["rmse_std"] for c in cells]
+            color, hatch = VARIANT_STYLE.get(variant, ("k", ""))
+            x = np.arange(len(noises)) + (i - (len(variants) - 1) / 2) * width
+            ax.bar(x, values, width, yerr=spread, color=color, hatch=hatch, edgecolor="white",
+                   lw=0.5, error_kw={"lw": 0.9, "capsize": 2},
+                   label=variant if surface == surfaces[0] else None)
+        if move > 0:
+            ax.axhline(move * math.sqrt(2), color="k", ls=":", lw=1.2,
+                       label="actuation floor σ_move·√2" if surface == surfaces[0] else None)
+        stay = [c["rmse"] for nv in noises if (c := cell("stay", nv)) is not None]
+        title = SURFACE_TITLES.get(surface, surface)
+        ax.set_xticks(np.arange(len(noises)), [f"{nv:g}" for nv in noises])
+        ax.set(title=title + (f"\n(stay, not drawn: {np.mean(stay):.2g})" if stay else ""),
+               xlabel="velocity noise σ_v (length/time)")
+        ax.set_ylim(bottom=0)
+    fig.axes[0].set_ylabel(f"RMSE of the estimate {LENGTH}")
+    seeds = max((r["seeds"] for r in rows), default=0)
+    fig.suptitle(f"Practical case: actuation noise σ_move = {move:g} per move; "
+                 f"mean ± s.d. over {seeds} seed(s)")
+    fig.legend(loc="outside lower center", ncol=len(variants) + 1)
+    return _save(fig, path)
+
+
+@_styled
+def plot_comm_period(rows: list[dict], path: str | Path) -> Path:
+    """Mean required sensing range against the comm period T_c (log–log), one panel per
+    surface, one curve per estimator."""
+    surfaces = _surfaces(rows)
+    estimators = list(dict.fromkeys(r["estimator"] for r in rows))
+    periods = sorted({r["comm_period"] for r in rows})
+    fig = _figure(PANEL_WIDTH * len(surfaces) + 0.6, 4.8)
+    for ax, surface in zip(_panels(fig, len(surfaces), sharey=True), surfaces):
+        for est in estimators:
+            mine = sorted(((r["comm_period"], r["mean_required_range"]) for r in rows
+                           if r["surface"] == surface and r["estimator"] == est))
+            color, marker = ESTIMATOR_STYLE.get(est, ("k", "."))
+            ax.plot(*zip(*mine), marker=marker, color=color, ms=5,
+                    label=est if surface == surfaces[0] else None)
+        ax.set_xscale("log", base=2)
+        _log_y(ax)
+        ax.axvline(PAPER_COMM_PERIOD, color="0.4", ls=":", lw=1,
+                   label="paper's T_c" if surface == surfaces[0] else None)
+        ax.set_xticks(periods, [f"{p:g}" for p in periods], rotation=45)
+        ax.xaxis.set_minor_locator(NullLocator())
+        ax.set(title=SURFACE_TITLES.get(surface, surface), xlabel="comm period T_c (time units)")
+    fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
+    fig.legend(loc="outside lower center", ncol=len(estimators) + 1)
+    return _save(fig, path)
