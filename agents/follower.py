@@ -7,18 +7,21 @@ observation and the rod.
 """
 from __future__ import annotations
 
+import logging
 import sys
 from pathlib import Path
 
 import numpy as np
 import zenoh
 
-from agents.cli import parser, run_cli
 from agents import checkpoint
+from agents.cli import parser, run_cli
 from agents.link import QUERY_TIMEOUT_S, AgentLink, RunFinished, TickMissed
 from agents.policies import NotReady, Policy, make_policy
 from protocol.config import AgentSettings
 from protocol.messages import ActRequest, Observation
+
+log = logging.getLogger(__name__)
 
 
 def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick: int) -> Observation:
@@ -70,7 +73,13 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
             except TickMissed:
                 continue
             if state_dir:
-                checkpoint.save(state_dir, checkpoint.Checkpoint(settings.run_id, agent_id, tick, policy))
+                try:
+                    checkpoint.save(state_dir, checkpoint.Checkpoint(settings.run_id, agent_id,
+                                                                     tick, policy))
+                except OSError as exc:  # a run must not die for its safety net
+                    log.error("follower %d: cannot write its checkpoint (%s); going on without",
+                              agent_id, exc)
+                    state_dir = None
             link.publish_obs(obs)
             link.publish_rod(tick, settings.spacing, settings.side)
     except RunFinished:

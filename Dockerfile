@@ -1,0 +1,26 @@
+# One image for every Python service of docker-compose.yml: `python -m world`,
+# `python -m agents.leader`, `python -m agents.follower --id K`.
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1
+
+WORKDIR /src
+COPY pyproject.toml README.md ./
+COPY protocol/ protocol/
+COPY world/ world/
+COPY agents/ agents/
+COPY swarm/ swarm/
+RUN pip install . && rm -rf /src
+
+# Non-root. /results is created here, owned by the user, so that a named volume mounted there
+# starts with that ownership. numba caches compiled kernels under the user's home.
+RUN useradd --create-home --uid 10001 swarm \
+    && mkdir /results && chown swarm:swarm /results
+USER swarm
+WORKDIR /home/swarm
+ENV NUMBA_CACHE_DIR=/home/swarm/.cache/numba
+
+CMD ["python", "-m", "swarm", "--help"]
