@@ -72,11 +72,17 @@ def alive(run_id: str, who: int | str) -> str:
     return f"{_root(run_id)}/alive/{chunk}"
 
 
-def agent_from_key(key: str) -> int:
+def agent_from_key(key: str, last: bool = False) -> int:
     """Extract the agent id from a ``.../agent/<id>/...`` or ``.../world/<op>/<id>`` key.
 
+    ``last=True``: the id is the key's last chunk (queryable keys; the fast path).
     Raises ValueError (message names the key) if there is none.
     """
+    if last:
+        chunk = key.rpartition("/")[2]
+        if chunk.isdigit() and len(chunk) < 7:
+            return int(chunk)
+        raise ValueError(f"key {key!r} names no agent id")
     parts = str(key).split("/")
     for marker, offset in (("agent", 1), ("sense", 1), ("act", 1)):
         if marker in parts:

@@ -37,6 +37,8 @@ class ProtocolError(ValueError):
 
 
 def _finite(name: str, value: Any) -> float:
+    if type(value) is float and math.isfinite(value):  # the common case, checked first
+        return value
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ProtocolError(f"field {name!r} must be a number, got {type(value).__name__}")
     value = float(value)
@@ -88,13 +90,10 @@ def _vector(length: int | None):
             raise ProtocolError(f"field {name!r} must have length {length}, got {len(value)}")
         if len(value) > MAX_VECTOR:
             raise ProtocolError(f"field {name!r} is longer than {MAX_VECTOR}")
-        try:  # fast path: plain finite floats
-            out = tuple(float(x) for x in value if type(x) is float)
-            if len(out) == len(value) and all(map(math.isfinite, out)):
-                return out
-        except (TypeError, ValueError):
-            pass
-        return tuple(_finite(f"{name}[{i}]", x) for i, x in enumerate(value))
+        for x in value:  # fast path: plain finite floats
+            if type(x) is not float or not math.isfinite(x):
+                return tuple(_finite(f"{name}[{i}]", x) for i, x in enumerate(value))
+        return tuple(value)
 
     return check
 
@@ -275,15 +274,20 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
 # --- codec -------------------------------------------------------------------------------------
 
 
-def encode(msg: Message) -> bytes:
-    """Serialise ``msg`` to msgpack, validating it first (a bad message is never sent)."""
+def encode(msg: Message, *, check: bool = True) -> bytes:
+    """Serialise ``msg`` to msgpack, validating it first (a bad message is never sent).
+
+    ``check=False`` skips that sender-side check, for hot paths whose receiver decodes with
+    full validation anyway (the world's sensing replies).
+    """
     if not isinstance(msg, Message) or type(msg) not in MESSAGE_TYPES.values():
         raise ProtocolError(f"cannot encode {type(msg).__name__}: not a protocol message")
     body: dict[str, Any] = {"v": SCHEMA_VERSION, "type": msg.TYPE}
     for name, _ in _spec(type(msg))[0]:
         value = getattr(msg, name)
         body[name] = list(value) if isinstance(value, tuple) else value
-    _validate(type(msg), body)
+    if check:
+        _validate(type(msg), body)
     return msgpack.packb(body, use_bin_type=True)
 
 

@@ -304,6 +304,8 @@ class WorldSim:
         if last not in settled or last - 1 not in settled:
             return None
         v = (settled[last] - settled[last - 1]) / self.config.comm_period
+        if self.config.noise_velocity == 0:
+            return v
         return v + gaussian(self.config.seed, agent, tick, "velocity", phase,
                             self.config.noise_velocity, 2)
 
