@@ -157,3 +157,14 @@ def test_agents_never_import_world():
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
                           timeout=60)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_leaving_the_domain_ends_the_run_cleanly(tmp_path):
+    """A leader driving off a hemisphere: partial result marked incomplete, clear reason."""
+    summary = launch(RunConfig(run_id="rim", surface="hemisphere", followers=1, ticks=40),
+                     tmp_path / "rim", in_process=True)
+    assert summary["complete"] is False
+    assert "domain" in summary["reason"]
+    on_disk = json.loads((tmp_path / "rim" / "summary.json").read_text())
+    assert on_disk["complete"] is False and 4 < on_disk["ticks_completed"] < 40
+    assert len(read_ticks(tmp_path / "rim" / "ticks.csv")) == 2 * on_disk["ticks_completed"]

@@ -461,7 +461,7 @@ def _column(surface: Surface, leader: np.ndarray, heading: np.ndarray, n_followe
 
 def ideal_formation(surface: Surface, leader_start: ArrayLike | None, n_followers: int,
                     spacing: float, comm_period: float, n_ticks: int,
-                    side: int = 1) -> np.ndarray:
+                    side: int = 1, *, until_domain_exit: bool = False) -> np.ndarray:
     """Ideal xy positions of the leader and its followers at ticks ``0 … n_ticks−1``.
 
     The leader follows the geodesic from ``leader_start``; at each tick ``t_j = j·comm_period``
@@ -483,6 +483,9 @@ def ideal_formation(surface: Surface, leader_start: ArrayLike | None, n_follower
     n_ticks : int
         ``>= 1``.
     side : {1, -1}
+    until_domain_exit : bool
+        If the formation leaves the surface's domain, fill that tick and all later ones with
+        NaN instead of raising :class:`SurfaceDomainError`.
 
     Returns
     -------
@@ -502,10 +505,15 @@ def ideal_formation(surface: Surface, leader_start: ArrayLike | None, n_follower
     rod_side = _side(side)
     if followers and not np.any(start[2:]):
         raise ValueError("leader_start must have a nonzero velocity when there are followers")
-    formation = np.empty((followers + 1, ticks, 2))
+    formation = np.full((followers + 1, ticks, 2), np.nan)
     position, velocity = start[:2], start[2:]
     for j in range(ticks):
-        if j:
-            position, velocity = integrate_geodesic(surface, position, velocity, period)
-        formation[:, j] = _column(surface, position, velocity, followers, d, rod_side)
+        try:
+            if j:
+                position, velocity = integrate_geodesic(surface, position, velocity, period)
+            formation[:, j] = _column(surface, position, velocity, followers, d, rod_side)
+        except SurfaceDomainError:
+            if not until_domain_exit:
+                raise
+            break
     return formation

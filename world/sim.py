@@ -79,8 +79,11 @@ class WorldSim:
         n = config.followers
         start = np.asarray(config.leader_start, dtype=float)
         # One tick past the end so the oracle velocity exists at the last tick.
+        # NaN from where the ideal formation would leave the surface's domain (the run then
+        # ends there too, when the agents get to it).
         self.ideal = geometry.ideal_formation(
-            surface, start, n, config.spacing, config.comm_period, config.ticks + 1, self.side
+            surface, start, n, config.spacing, config.comm_period, config.ticks + 1, self.side,
+            until_domain_exit=True,
         )
         self.agents = [AgentState(pos=start[:2].copy(), heading=start[2:].copy())]
         for _ in range(n):
@@ -140,7 +143,7 @@ class WorldSim:
                     estimator=cfg.estimator, ideal_x=ideal[0], ideal_y=ideal[1],
                     stay_range=_dist(prev, ideal), persist_range=_dist(persist, ideal),
                     lost=int(state.lost), missed=int(state.missed),
-                    formation_error=_dist(pos, self.ideal[k, j]),
+                    formation_error=_finite_or_none(_dist(pos, self.ideal[k, j])),
                 )
                 if state.estimate is not None:
                     row.update(est_x=state.estimate[0], est_y=state.estimate[1],
@@ -237,6 +240,7 @@ class WorldSim:
         oracle = None
         if cfg.velocity == "oracle" and self.is_settled(agent):
             oracle = (self.ideal[agent, tick + 1] - state.pos) / cfg.comm_period
+            oracle = oracle if np.all(np.isfinite(oracle)) else None
         gps = leader_gps = None
         if cfg.gps:
             gps, leader_gps = self._gps(state.pos), self._gps(leader.pos)
@@ -319,6 +323,10 @@ def _norm(v: np.ndarray) -> float:
 
 def _dist(a: np.ndarray, b: np.ndarray) -> float:
     return _norm(np.asarray(a) - np.asarray(b))
+
+
+def _finite_or_none(x: float) -> float | None:
+    return x if math.isfinite(x) else None
 
 
 def _tup(v: np.ndarray | None) -> tuple[float, float] | None:
