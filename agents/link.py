@@ -96,21 +96,22 @@ class AgentLink:
         replies = self.session.liveliness().get(keys.alive(self.run_id, self.agent_id), timeout=0.5)
         return any(reply.ok is not None for reply in replies)
 
-    def _on_step(self, sample: zenoh.Sample, kind: type[Message]) -> None:
+    def _decode(self, sample: zenoh.Sample, kind: type[Message]) -> Message | None:
+        """The sample's message, or None (logged and dropped) if it is malformed."""
         try:
-            msg = decode(sample.payload.to_bytes(), kind)
+            return decode(sample.payload.to_bytes(), kind)
         except ProtocolError as exc:
             log.warning("agent %d: dropped bad sample on %s: %s", self.agent_id, sample.key_expr, exc)
-            return
-        self._advance(msg.tick)
+            return None
+
+    def _on_step(self, sample: zenoh.Sample, kind: type[Message]) -> None:
+        msg = self._decode(sample, kind)
+        if msg is not None:
+            self._advance(msg.tick)
 
     def _on_missed(self, sample: zenoh.Sample) -> None:
-        try:
-            msg = decode(sample.payload.to_bytes(), Missed)
-        except ProtocolError as exc:
-            log.warning("agent %d: dropped bad missed sample: %s", self.agent_id, exc)
-            return
-        if msg.agent == self.follow:
+        msg = self._decode(sample, Missed)
+        if msg is not None and msg.agent == self.follow:
             self._advance(msg.tick)
 
     def _advance(self, tick: int) -> None:
@@ -120,14 +121,11 @@ class AgentLink:
                 self._cond.notify_all()
 
     def _on_done(self, sample: zenoh.Sample) -> None:
-        try:
-            msg = decode(sample.payload.to_bytes(), Done)
-        except ProtocolError as exc:
-            log.warning("agent %d: dropped bad done sample: %s", self.agent_id, exc)
-            return
-        with self._cond:
-            self._done = msg
-            self._cond.notify_all()
+        msg = self._decode(sample, Done)
+        if msg is not None:
+            with self._cond:
+                self._done = msg
+                self._cond.notify_all()
 
     def _on_world_liveliness(self, sample: zenoh.Sample) -> None:
         with self._cond:
