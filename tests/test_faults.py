@@ -12,8 +12,11 @@ from pathlib import Path
 
 import pytest
 
+import zenoh
+
+from protocol import keys
 from protocol.config import RunConfig, dump_config
-from protocol.session import free_tcp_endpoint
+from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.launch import agent_commands, launch
 from world.results import read_observations, read_ticks
 
@@ -70,7 +73,7 @@ def _ticks_done(out: Path) -> int:
 def test_realtime_without_pressure_matches_lockstep(tmp_path):
     cfg = dict(run_id="rt", followers=2, ticks=12)
     lock = launch(RunConfig(**cfg), tmp_path / "lock", in_process=True)
-    real = launch(RunConfig(mode="realtime", time_scale=0.1, **cfg), tmp_path / "real",
+    real = launch(RunConfig(mode="realtime", time_scale=0.3, **cfg), tmp_path / "real",
                   in_process=True)
     assert real["complete"]
     assert all(f["missed_ticks"] == 0 for f in real["followers"].values())
@@ -127,7 +130,12 @@ def test_second_process_with_a_live_id_refuses(tmp_path, procs):
     dump_config(cfg, out / "config.toml")
     world = procs.start(_world_cmd(out / "config.toml", endpoint, out))
     first = procs.start(agent_commands(out / "config.toml", endpoint, 1)[1])
-    time.sleep(1.5)  # the first follower is up and holds its token
+    with zenoh.open(zenoh_config("client", connect=[endpoint])) as session:
+        def first_is_live() -> bool:
+            replies = session.liveliness().get(keys.alive("dup", 1), timeout=1.0)
+            return any(r.ok is not None for r in replies)
+
+        _wait_for(first_is_live, 60, "the first follower's liveliness token")
     second = subprocess.run(agent_commands(out / "config.toml", endpoint, 1)[1], cwd=ROOT,
                             capture_output=True, text=True, timeout=30)
     assert second.returncode == 1
