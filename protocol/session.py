@@ -28,7 +28,8 @@ def zenoh_config(
     mode : {"peer", "client", "router"}
         Zenoh mode; the world acting as embedded router uses ``"router"``.
     listen, connect : sequence of str
-        Endpoints such as ``"tcp/127.0.0.1:7447"``.
+        Endpoints such as ``"tcp/127.0.0.1:7447"``. A peer given no listen endpoint listens
+        on a free loopback port only (Zenoh's own default is every interface).
     multicast_scouting : bool
         Off by default: every process finds the others through explicit endpoints only.
     user, password : str, optional
@@ -51,6 +52,8 @@ def zenoh_config(
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
     conf.insert_json5("scouting/gossip/enabled", "true")
+    if mode == "peer" and not listen:
+        listen = ["tcp/127.0.0.1:0"]
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:

@@ -103,7 +103,7 @@ class _ThreadAgents:
 
     def _agent(self, k: int, body: Callable[[zenoh.Session], None], service: WorldService) -> None:
         try:
-            with zenoh.open(zenoh_config("client", connect=[self.endpoint])) as session:
+            with zenoh.open(zenoh_config("peer", connect=[self.endpoint])) as session:
                 body(session)
         except RunFinished:
             return
