@@ -233,9 +233,9 @@ class WorldSim:
         theta = math.atan2(ly - fy, lx - fx) + gaussian_scalar(
             cfg.seed, agent, tick, "bearing", phase, cfg.noise_bearing)
         theta = math.atan2(math.sin(theta), math.cos(theta))
-        end = self._leader_rod(agent)[0]
-        offset = end - state.pos
-        visible = tick < cfg.init_ticks or _norm(offset) <= cfg.sensing_range
+        ex, ey = self._leader_rod(agent)[0].tolist()
+        offset = (ex - fx, ey - fy)
+        visible = tick < cfg.init_ticks or math.hypot(*offset) <= cfg.sensing_range
         velocity = self._odometry(agent, tick, phase)
         oracle = None
         if cfg.velocity == "oracle" and self.is_settled(agent):
@@ -245,8 +245,8 @@ class WorldSim:
         if cfg.gps:
             gps, leader_gps = self._gps(state.pos), self._gps(leader.pos)
         return Sensing(
-            tick=tick, r=r, theta=theta, rod=_tup(offset) if visible else None,
-            velocity=_tup(velocity), oracle_velocity=_tup(oracle), gps=gps, leader_gps=leader_gps,
+            tick=tick, r=r, theta=theta, rod=offset if visible else None,
+            velocity=velocity, oracle_velocity=_tup(oracle), gps=gps, leader_gps=leader_gps,
         )
 
     def move(self, agent: int, tick: int, offset: tuple[float, float]) -> None:
@@ -302,16 +302,16 @@ class WorldSim:
             raise RunEnded(f"agent {agent} would leave the surface's domain at {pos.tolist()}")
         self.agents[agent].pos = np.asarray(pos, dtype=float).copy()
 
-    def _odometry(self, agent: int, tick: int, phase: str) -> np.ndarray | None:
+    def _odometry(self, agent: int, tick: int, phase: str) -> tuple[float, float] | None:
         settled = self.agents[agent].settled
         last = tick if tick in settled else tick - 1
         if last not in settled or last - 1 not in settled:
             return None
         v = (settled[last] - settled[last - 1]) / self.config.comm_period
-        if self.config.noise_velocity == 0:
-            return v
-        return v + gaussian(self.config.seed, agent, tick, "velocity", phase,
-                            self.config.noise_velocity, 2)
+        if self.config.noise_velocity != 0:
+            v = v + gaussian(self.config.seed, agent, tick, "velocity", phase,
+                             self.config.noise_velocity, 2)
+        return _tup(v)
 
     def _gps(self, pos: np.ndarray) -> tuple[float, float, float]:
         return float(pos[0]), float(pos[1]), float(self.surface.height(pos))
