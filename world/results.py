@@ -23,51 +23,81 @@ OBS_COLUMNS = ("tick", "agent", "estimator", "lost", "measurement", "prediction"
 
 
 class RunRecorder:
-    """Collects ground-truth rows and agents' observations and writes the results folder."""
+    """Collects ground-truth rows and agents' observations and writes the results folder.
+
+    Rows are formatted once, when they arrive, and per-follower metrics are kept as lists,
+    so rewriting the folder after every tick costs little more than copying the text.
+    """
 
     def __init__(self, out_dir: str | Path | None, config: RunConfig) -> None:
         self.out_dir = None if out_dir is None else Path(out_dir)
         self.config = config
-        self.rows: list[dict] = []
-        self.observations: list[dict] = []
-        self.missed: dict[int, int] = {}
+        self._clear()
         if self.out_dir is not None:
             self.out_dir.mkdir(parents=True, exist_ok=True)
 
-    @property
-    def ticks_done(self) -> int:
-        return 1 + max((r["tick"] for r in self.rows), default=-1)
+    def _clear(self) -> None:
+        self.rows: list[dict] = []
+        self.observations: list[dict] = []
+        self.missed: dict[int, int] = {}
+        self.ticks_done = 0
+        self._tick_lines: list[str] = []
+        self._obs_lines: list[str] = []
+        self._metrics = {k: {"required": [], "stay": [], "persist": [], "lost": 0}
+                         for k in range(1, self.config.followers + 1)}
 
     def add_tick(self, rows: list[dict]) -> None:
         """Append one tick's rows (from ``WorldSim.finish_tick``)."""
         for row in rows:
+            k = row["agent"]
             if row.get("missed"):
-                self.missed[row["agent"]] = self.missed.get(row["agent"], 0) + 1
+                self.missed[k] = self.missed.get(k, 0) + 1
+            if k in self._metrics:
+                m = self._metrics[k]
+                m["lost"] += row["lost"]
+                if row.get("required_range") is not None:
+                    m["required"].append(row["required_range"])
+                    m["stay"].append(row["stay_range"])
+                    m["persist"].append(row["persist_range"])
+            self.ticks_done = max(self.ticks_done, row["tick"] + 1)
+            self._tick_lines.append(_line(TICK_COLUMNS, row))
         self.rows.extend(rows)
 
     def add_observation(self, agent: int, msg) -> None:
         """Record an agent's published measurement and prediction (an ``Observation``)."""
-        self.observations.append({
+        self._add_observation_row({
             "tick": msg.tick, "agent": agent, "estimator": msg.estimator, "lost": int(msg.lost),
             "measurement": " ".join(map(repr, msg.measurement or ())),
             "prediction": " ".join(map(repr, msg.prediction or ())),
         })
 
+    def _add_observation_row(self, row: dict) -> None:
+        self.observations.append(row)
+        self._obs_lines.append(_line(OBS_COLUMNS, row))
+
+    def restore(self, rows: list[dict], observations: list[dict], missed: dict[int, int]) -> None:
+        """Start from rows and observations read back from a results folder (``--resume``)."""
+        self._clear()
+        for tick in sorted({r["tick"] for r in rows}):
+            self.add_tick([{k: v for k, v in r.items() if k != "missed"}
+                           for r in rows if r["tick"] == tick])
+        for row in observations:
+            self._add_observation_row(row)
+        self.missed = dict(missed)
+
     def summary(self, *, complete: bool, reason: str = "", wall_time: float = 0.0) -> dict:
         """The ``summary.json`` content (SPEC §7)."""
         cfg = self.config
         followers = {}
-        for k in range(1, cfg.followers + 1):
-            mine = [r for r in self.rows if r["agent"] == k]
-            est = [r for r in mine if r.get("required_range") is not None]
+        for k, m in self._metrics.items():
             followers[str(k)] = {
-                "mean_required_range": _mean(r["required_range"] for r in est),
-                "rmse": _rms(r["required_range"] for r in est),
-                "mean_stay_range": _mean(r["stay_range"] for r in est),
-                "mean_persist_range": _mean(r["persist_range"] for r in est),
-                "lost_ticks": sum(r["lost"] for r in mine),
+                "mean_required_range": _mean(m["required"]),
+                "rmse": _rms(m["required"]),
+                "mean_stay_range": _mean(m["stay"]),
+                "mean_persist_range": _mean(m["persist"]),
+                "lost_ticks": m["lost"],
                 "missed_ticks": self.missed.get(k, 0),
-                "estimated_ticks": len(est),
+                "estimated_ticks": len(m["required"]),
             }
         return {
             "followers": followers,
@@ -90,18 +120,21 @@ class RunRecorder:
         """Write ``ticks.csv``, ``observations.csv`` and ``summary.json`` atomically."""
         if self.out_dir is None:
             raise RuntimeError("this recorder has no results folder")
-        write_atomic(self.out_dir / "ticks.csv", _csv(TICK_COLUMNS, self.rows))
-        write_atomic(self.out_dir / "observations.csv", _csv(OBS_COLUMNS, self.observations))
+        write_atomic(self.out_dir / "ticks.csv", _header(TICK_COLUMNS) + "".join(self._tick_lines))
+        write_atomic(self.out_dir / "observations.csv",
+                     _header(OBS_COLUMNS) + "".join(self._obs_lines))
         summary = self.summary(complete=complete, reason=reason, wall_time=wall_time)
         write_atomic(self.out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
 
 
-def _csv(columns: tuple[str, ...], rows: list[dict]) -> str:
+def _header(columns: tuple[str, ...]) -> str:
+    return ",".join(columns) + "\n"
+
+
+def _line(columns: tuple[str, ...], row: dict) -> str:
+    """One CSV line (quoted where needed) of ``row``'s ``columns``."""
     buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(columns)
-    for row in rows:
-        writer.writerow([_cell(row.get(c)) for c in columns])
+    csv.writer(buf, lineterminator="\n").writerow([_cell(row.get(c)) for c in columns])
     return buf.getvalue()
 
 
@@ -113,14 +146,12 @@ def _cell(value) -> str:
     return str(value)
 
 
-def _mean(values) -> float | None:
-    values = [float(v) for v in values]
+def _mean(values: list[float]) -> float | None:
     return math.fsum(values) / len(values) if values else None
 
 
-def _rms(values) -> float | None:
-    values = [float(v) ** 2 for v in values]
-    return math.sqrt(math.fsum(values) / len(values)) if values else None
+def _rms(values: list[float]) -> float | None:
+    return math.sqrt(math.fsum(v * v for v in values) / len(values)) if values else None
 
 
 def read_observations(path: str | Path) -> list[dict]:

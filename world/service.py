@@ -92,10 +92,10 @@ class WorldService:
             raise ValueError(f"cannot resume from {out}: {exc}") from None
         self.sim.restore(state)
         done = self.sim.tick + 1
-        self.recorder.rows = [r for r in rows if r["tick"] < done]
-        self.recorder.observations = [o for o in read_observations(out / "observations.csv")
-                                      if o["tick"] < done]
-        self.recorder.missed = {int(k): v for k, v in state.get("missed_counts", {}).items()}
+        self.recorder.restore(
+            [r for r in rows if r["tick"] < done],
+            [o for o in read_observations(out / "observations.csv") if o["tick"] < done],
+            {int(k): v for k, v in state.get("missed_counts", {}).items()})
         if self.recorder.ticks_done != done:
             raise ValueError(f"cannot resume from {out}: ticks.csv has {self.recorder.ticks_done} "
                              f"complete ticks but the checkpoint {done}")
