@@ -100,8 +100,10 @@ GOOD_MOVE = {"v": 1, "type": "act", "tick": 0, "action": "move", "t": None, "off
     (2, _raw(**GOOD_SENSE), "agent 1 has not settled at tick 0"),
 ])
 def test_sense_errors_name_the_problem(world, key_agent, payload, fragment):
-    _, client = world
+    service, client = world
+    before = service.rejected
     assert fragment in _ask(client, keys.sense("bad", key_agent), payload)
+    assert service.rejected == before + 1
 
 
 @pytest.mark.parametrize("key_agent, body, fragment", [
@@ -118,6 +120,26 @@ def test_sense_errors_name_the_problem(world, key_agent, payload, fragment):
 def test_act_errors_name_the_problem(world, key_agent, body, fragment):
     _, client = world
     assert fragment in _ask(client, keys.act("bad", key_agent), _raw(**body))
+
+
+def test_garbage_samples_are_dropped(world, caplog):
+    """Garbage on agent keys is logged and dropped; the world keeps serving."""
+    import time
+
+    service, client = world
+    client.put(keys.rod("bad", 1), b"\x00garbage")
+    client.put(keys.obs("bad", 2), _raw(v=1, type="obs", tick=0))
+    client.put(keys.rod("bad", 1), _raw(v=1, type="rod", tick=0, length=3.57, side=1))
+    deadline = time.monotonic() + 10
+    while service.rejected < 3 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert service.rejected == 3
+    assert "dropped rod sample" in caplog.text and "dropped observation" in caplog.text
+    assert "published a rod without settling" in caplog.text
+    assert not service._rods
+    replies = list(client.get(keys.sense("bad", 1), payload=encode(SenseRequest(tick=0)),
+                              timeout=5.0))
+    assert replies and replies[0].ok is not None  # still serving
 
 
 def test_non_numeric_id_in_key(world):
