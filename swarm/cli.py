@@ -105,6 +105,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = Path(args.out) if args.out else Path("runs") / config.run_id
+    if (out / "summary.json").exists():
+        print(f"error: {out} already holds a run's results; choose another --out "
+              "(nothing was overwritten)", file=sys.stderr)
+        return 2
     bar = tqdm(total=config.ticks, desc=f"{config.surface} {config.estimator}", unit="tick",
                disable=None)
     try:

@@ -168,3 +168,28 @@ def test_leaving_the_domain_ends_the_run_cleanly(tmp_path):
     on_disk = json.loads((tmp_path / "rim" / "summary.json").read_text())
     assert on_disk["complete"] is False and 4 < on_disk["ticks_completed"] < 40
     assert len(read_ticks(tmp_path / "rim" / "ticks.csv")) == 2 * on_disk["ticks_completed"]
+
+
+def test_cli_repeats_a_run_from_its_config_and_never_overwrites(tmp_path, in_process_run):
+    from swarm.cli import main
+
+    out, _ = in_process_run
+    again = tmp_path / "again"
+    assert main(["run", "--config", str(out / "config.toml"), "--in-process",
+                 "--out", str(again)]) == 0
+    assert _numbers(again) == _numbers(out)
+    before = (again / "ticks.csv").read_text()
+    assert main(["run", "--config", str(out / "config.toml"), "--in-process",
+                 "--out", str(again)]) == 2
+    assert (again / "ticks.csv").read_text() == before
+
+
+def test_cli_rejects_bad_flags(capsys):
+    from swarm.cli import main
+
+    assert main(["run", "--followers", "0"]) == 2
+    assert "followers must be an integer" in capsys.readouterr().err
+    assert main(["run", "--leader-start", "1,2,x,4"]) == 2
+    assert "--leader-start must be X,Y,VX,VY" in capsys.readouterr().err
+    assert main(["run", "--surface", "nope"]) == 1
+    assert "nope" in capsys.readouterr().err
