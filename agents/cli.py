@@ -10,7 +10,7 @@ import zenoh
 
 from agents.link import AgentAbort, RunFinished
 from protocol.config import AgentSettings, load_agent_settings
-from protocol.session import zenoh_config
+from protocol.session import add_credential_flags, credentials, zenoh_config
 
 
 def parser(description: str) -> argparse.ArgumentParser:
@@ -20,10 +20,7 @@ def parser(description: str) -> argparse.ArgumentParser:
                    help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
     p.add_argument("--mode", choices=("peer", "client"), default="client")
-    p.add_argument("--user", help="Zenoh user name (router with authentication)")
-    p.add_argument("--password", help="Zenoh password")
-    p.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
-                   help="extra Zenoh configuration, inserted as JSON5")
+    add_credential_flags(p)
     p.add_argument("--log-level", default="WARNING")
     return p
 
@@ -33,8 +30,9 @@ def run_cli(args: argparse.Namespace, body: Callable[[zenoh.Session, AgentSettin
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
     try:
         settings = load_agent_settings(args.config)
-        conf = zenoh_config(args.mode, connect=args.connect, listen=args.listen, user=args.user,
-                            password=args.password, connect_timeout=settings.start_timeout,
+        user, password = credentials(args)
+        conf = zenoh_config(args.mode, connect=args.connect, listen=args.listen, user=user,
+                            password=password, connect_timeout=settings.start_timeout,
                             extra=args.cfg)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)

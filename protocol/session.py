@@ -1,9 +1,11 @@
 """The one helper that builds the ``zenoh.Config`` of every process (STYLE: zenoh examples)."""
 from __future__ import annotations
 
+import argparse
 import json
 import socket
 from collections.abc import Sequence
+from pathlib import Path
 
 import zenoh
 
@@ -84,3 +86,25 @@ def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
         sock.bind((host, 0))
         port = sock.getsockname()[1]
     return f"tcp/{host}:{port}"
+
+
+def add_credential_flags(parser: argparse.ArgumentParser) -> None:
+    """``--user`` with ``--password`` or ``--password-file``, and ``--cfg KEY:VALUE``."""
+    parser.add_argument("--user", help="Zenoh user name (router with authentication)")
+    secret = parser.add_mutually_exclusive_group()
+    secret.add_argument("--password", help="Zenoh password (visible in process listings)")
+    secret.add_argument("--password-file", metavar="FILE",
+                        help="read the Zenoh password from the first line of FILE")
+    parser.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
+                        help="extra Zenoh configuration, inserted as JSON5")
+
+
+def credentials(args: argparse.Namespace) -> tuple[str | None, str | None]:
+    """(user, password) from the flags of :func:`add_credential_flags` (ValueError if unreadable)."""
+    password = args.password
+    if args.password_file:
+        try:
+            password = Path(args.password_file).read_text(encoding="utf-8").splitlines()[0].strip()
+        except (OSError, IndexError) as exc:
+            raise ValueError(f"cannot read a password from {args.password_file}: {exc}") from None
+    return args.user, password

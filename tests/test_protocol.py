@@ -145,3 +145,20 @@ def test_config_round_trip_and_errors(tmp_path):
     (tmp_path / "bad.toml").write_text("followers = [")
     with pytest.raises(ValueError, match="not valid TOML"):
         load_config(tmp_path / "bad.toml")
+
+
+def test_credentials_from_flags_or_file(tmp_path):
+    import argparse
+
+    from protocol.session import add_credential_flags, credentials
+
+    p = argparse.ArgumentParser()
+    add_credential_flags(p)
+    assert credentials(p.parse_args(["--user", "u", "--password", "pw"])) == ("u", "pw")
+    (tmp_path / "secret").write_text("s3cret  \nignored\n")
+    args = p.parse_args(["--user", "u", "--password-file", str(tmp_path / "secret")])
+    assert credentials(args) == ("u", "s3cret")
+    with pytest.raises(ValueError, match="cannot read a password"):
+        credentials(p.parse_args(["--password-file", str(tmp_path / "missing")]))
+    with pytest.raises(SystemExit):  # both at once is refused by argparse
+        p.parse_args(["--password", "a", "--password-file", "b"])

@@ -10,7 +10,7 @@ from pathlib import Path
 import zenoh
 
 from protocol.config import RunConfig, dump_config, load_config
-from protocol.session import zenoh_config
+from protocol.session import add_credential_flags, credentials, zenoh_config
 from world.service import WorldService
 from world.sim import resolve_leader_start
 from world.surfaces import make_surface
@@ -66,20 +66,20 @@ def main(argv: list[str] | None = None) -> int:
     group.add_argument("--connect", action="append", metavar="ENDPOINT",
                        help="connect as a client to a Zenoh router (e.g. docker-compose's zenohd)")
     p.add_argument("--out", help="results folder (default runs/<run_id>)")
-    p.add_argument("--user"), p.add_argument("--password")
-    p.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE")
+    add_credential_flags(p)
     p.add_argument("--log-level", default="WARNING")
     p.add_argument("--crash-after-tick", type=int, help=argparse.SUPPRESS)  # fault injection
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
     try:
         config = load_config(Path(args.resume) / "config.toml" if args.resume else args.config)
+        user, password = credentials(args)
         if args.connect:
-            conf = zenoh_config("client", connect=args.connect, user=args.user,
-                                password=args.password, extra=args.cfg)
+            conf = zenoh_config("client", connect=args.connect, user=user, password=password,
+                                extra=args.cfg)
         else:
             conf = zenoh_config("router", listen=args.listen or ["tcp/127.0.0.1:7447"],
-                                user=args.user, password=args.password, extra=args.cfg)
+                                user=user, password=password, extra=args.cfg)
         out = args.resume or args.out or default_out(config)
         summary = run_world(config, conf, out, resume=bool(args.resume),
                             crash_after_tick=args.crash_after_tick)
