@@ -37,8 +37,8 @@ def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
     ``resume`` continues the run in ``out_dir`` from its last complete tick;
     ``crash_after_tick`` kills the process abruptly after that tick (fault injection).
     """
-    config = resolve(config)
     surface = make_surface(config.surface, config.surface_params)
+    config = config.replace(leader_start=resolve_leader_start(config, surface))
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if not resume:
