@@ -61,8 +61,8 @@ class WorldService:
         self.on_tick = on_tick
         self.crash_after_tick = crash_after_tick
         self._cond = threading.Condition()
-        self._rods: set[int] = set()
-        self._settled_at: dict[int, float] = {}
+        self._done: set[int] = set()  # agents through the current tick: settled or missed
+        self._settled_at: dict[int, float] = {}  # when each of them got through
         self._tick_started = 0.0
         self._alive: set[int] = set()
         self._ended: str | None = None
@@ -172,11 +172,11 @@ class WorldService:
                     raise ValueError(f"agent {agent} published a rod without settling")
                 if abs(msg.length - self.config.spacing) > 1e-12 or msg.side != self.config.side_sign:
                     raise ValueError(f"agent {agent}'s rod does not match the run's length/side")
-                self._rods.add(agent)
+                self._done.add(agent)
+                self._settled_at[agent] = time.monotonic()
                 self._cond.notify_all()
         except (ProtocolError, ValueError) as exc:
-            self._rejected += 1
-            log.warning("world: dropped rod sample on %s: %s", sample.key_expr, exc)
+            self._drop("rod sample", sample, exc)
 
     def _on_obs(self, sample: zenoh.Sample) -> None:
         try:
@@ -187,8 +187,12 @@ class WorldService:
             with self._cond:
                 self.recorder.add_observation(agent, msg)
         except (ProtocolError, ValueError) as exc:
-            self._rejected += 1
-            log.warning("world: dropped observation on %s: %s", sample.key_expr, exc)
+            self._drop("observation", sample, exc)
+
+    def _drop(self, what: str, sample: zenoh.Sample, exc: Exception) -> None:
+        """Count, log and otherwise ignore a malformed or out-of-turn sample."""
+        self._rejected += 1
+        log.warning("world: dropped %s on %s: %s", what, sample.key_expr, exc)
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -203,8 +207,7 @@ class WorldService:
                 self._alive.add(agent)
             else:
                 self._alive.discard(agent)
-                if (0 <= self.sim.tick and agent < self.sim.n_agents and agent not in self._rods
-                        and self.sim.tick < self.config.ticks):
+                if 0 <= self.sim.tick and agent < self.sim.n_agents and agent not in self._done:
                     self._mark_missed(agent, "its process vanished")
             self._cond.notify_all()
 
@@ -235,13 +238,13 @@ class WorldService:
         """(Lock held.) ``agent`` did not settle this tick: it keeps its pose; tell the chain."""
         log.warning("world: agent %d missed tick %d: %s", agent, self.sim.tick, why)
         self.sim.mark_missed(agent)
-        self._rods.add(agent)
+        self._done.add(agent)
         self._settled_at[agent] = time.monotonic()
         self._missed_pub.put(encode(Missed(tick=self.sim.tick, agent=agent)))
         self._cond.notify_all()
 
     def _first_pending(self) -> int | None:
-        pending = set(range(self.sim.n_agents)) - self._rods
+        pending = set(range(self.sim.n_agents)) - self._done
         return min(pending) if pending else None
 
     def _wait_rejoin(self, tick: int) -> str | None:
@@ -268,16 +271,15 @@ class WorldService:
                 if reason is not None:
                     return reason
             self.sim.start_tick(tick)
-            self._rods.clear()
+            self._done.clear()
             self._settled_at = {}
             self._tick_started = time.monotonic()
         self._tick_pub.put(encode(TickStart(tick=tick, t=self.sim.time_of(tick))))
         limit = self.config.agent_timeout
         with self._cond:
             while (waiting := self._first_pending()) is not None and self._ended is None:
-                since = self._settled_at.get(waiting - 1, self._tick_started)
-                since = max((self._settled_at.get(k, since) for k in self._rods), default=since)
-                deadline = since + limit
+                # the clock restarts whenever some agent gets through the tick
+                deadline = max(self._settled_at.values(), default=self._tick_started) + limit
                 if realtime:
                     deadline = min(deadline, self._tick_started + self.period)
                 left = deadline - time.monotonic()
