@@ -171,9 +171,7 @@ class EDMDPolicy(Policy):
             if d == "b" and self.cartesian:
                 z = self.predicted = self.edmd.predict()
                 return Proposal(polar(pre.r, pre.theta) - z, tuple(z))
-            if d == "b":
-                z = self.edmd.predict()
-            elif self.velocity == "oracle":
+            if d == "b" or self.velocity == "oracle":  # the newest sample is complete
                 z = self.edmd.predict()
             else:
                 z = self.edmd.predict(np.r_[self.last_rel, self._current_velocity()])

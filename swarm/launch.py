@@ -19,9 +19,9 @@ import zenoh
 from agents.follower import run_follower
 from agents.leader import run_leader
 from agents.link import AgentAbort, RunFinished
-from protocol.config import AgentSettings, RunConfig, dump_config
+from protocol.config import AgentSettings, RunConfig
 from protocol.session import free_tcp_endpoint, zenoh_config
-from world.main import resolve, run_world
+from world.main import run_world
 from world.service import WorldService
 
 log = logging.getLogger(__name__)
@@ -133,10 +133,7 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
     Raises RuntimeError if the agents do not come up. Ctrl-C stops every agent and leaves a
     partial result marked incomplete.
     """
-    config = resolve(config)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    dump_config(config, out_dir / "config.toml")
+    out_dir = Path(out_dir)  # run_world resolves the config and writes config.toml first
     endpoint = endpoint or free_tcp_endpoint()
     agents = _ThreadAgents(config, endpoint) if in_process else _ProcessAgents(config, out_dir, endpoint)
     try:

@@ -15,10 +15,9 @@ from agents.follower import follower_tick
 from agents.policies import Policy, make_policy
 from protocol.config import AgentSettings, RunConfig
 from protocol.messages import ActRequest, ActResult, Message, Sensing, decode, encode
-from world.main import resolve
+from world.main import resolve_with_surface
 from world.results import RunRecorder
 from world.sim import WorldSim
-from world.surfaces import make_surface
 
 
 class LocalLink:
@@ -52,8 +51,8 @@ def run_local(config: RunConfig, out_dir: str | Path | None = None,
     ``policy_factory`` builds each follower's policy (default: the one the config names);
     estimator studies pass their own.
     """
-    config = resolve(config)
-    sim = WorldSim(config, make_surface(config.surface, config.surface_params))
+    config, surface = resolve_with_surface(config)
+    sim = WorldSim(config, surface)
     settings = AgentSettings.from_config(config)
     policies = [policy_factory(settings) for _ in range(config.followers)]
     links = [LocalLink(sim, k) for k in range(1, config.followers + 1)]

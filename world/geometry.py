@@ -448,15 +448,23 @@ def heading_at_rod_end(surface: Surface, end: ArrayLike, u: ArrayLike,
     return np.array(_heading_direction(fx, fy, tangent[0], tangent[1], _side(side)))
 
 
-def _column(surface: Surface, leader: np.ndarray, heading: np.ndarray, n_followers: int,
-            spacing: float, side: int) -> np.ndarray:
-    """Chained rod ends behind one leader pose, shape (n_followers + 1, 2)."""
-    column = np.empty((n_followers + 1, 2))
-    column[0] = leader
+def column(surface: Surface, leader: ArrayLike, heading: ArrayLike, n_followers: int,
+           spacing: float, side: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Chained rod ends behind one leader pose: the ideal column at one instant.
+
+    Returns
+    -------
+    positions, headings : ndarray, shape (n_followers + 1, 2)
+        Row 0 the leader's pose; row ``k`` the rod end of agent ``k−1`` and the heading of
+        :func:`heading_at_rod_end` there.
+    """
+    positions = np.empty((n_followers + 1, 2))
+    headings = np.empty((n_followers + 1, 2))
+    positions[0], headings[0] = leader, heading
     for k in range(1, n_followers + 1):
-        column[k], u = rod_end(surface, column[k - 1], heading, spacing, side)
-        heading = heading_at_rod_end(surface, column[k], u, side)
-    return column
+        positions[k], u = rod_end(surface, positions[k - 1], headings[k - 1], spacing, side)
+        headings[k] = heading_at_rod_end(surface, positions[k], u, side)
+    return positions, headings
 
 
 def ideal_formation(surface: Surface, leader_start: ArrayLike | None, n_followers: int,
@@ -511,7 +519,7 @@ def ideal_formation(surface: Surface, leader_start: ArrayLike | None, n_follower
         try:
             if j:
                 position, velocity = integrate_geodesic(surface, position, velocity, period)
-            formation[:, j] = _column(surface, position, velocity, followers, d, rod_side)
+            formation[:, j] = column(surface, position, velocity, followers, d, rod_side)[0]
         except SurfaceDomainError:
             if not until_domain_exit:
                 raise

@@ -13,13 +13,18 @@ from protocol.config import RunConfig, dump_config, load_config
 from protocol.session import add_credential_flags, credentials, zenoh_config
 from world.service import WorldService
 from world.sim import resolve_leader_start
-from world.surfaces import make_surface
+from world.surfaces import Surface, make_surface
+
+
+def resolve_with_surface(config: RunConfig) -> tuple[RunConfig, Surface]:
+    """Build the run's surface and fill in what the config leaves to it (the leader start)."""
+    surface = make_surface(config.surface, config.surface_params)
+    return config.replace(leader_start=resolve_leader_start(config, surface)), surface
 
 
 def resolve(config: RunConfig) -> RunConfig:
-    """Fill in what the config leaves to the surface (the leader start); validates the surface."""
-    surface = make_surface(config.surface, config.surface_params)
-    return config.replace(leader_start=resolve_leader_start(config, surface))
+    """The config with the leader start filled in (validates the surface)."""
+    return resolve_with_surface(config)[0]
 
 
 def default_out(config: RunConfig) -> Path:
@@ -37,8 +42,7 @@ def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
     ``resume`` continues the run in ``out_dir`` from its last complete tick;
     ``crash_after_tick`` kills the process abruptly after that tick (fault injection).
     """
-    surface = make_surface(config.surface, config.surface_params)
-    config = config.replace(leader_start=resolve_leader_start(config, surface))
+    config, surface = resolve_with_surface(config)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if not resume:

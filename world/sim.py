@@ -85,17 +85,13 @@ class WorldSim:
             surface, start, n, config.spacing, config.comm_period, config.ticks + 1, self.side,
             until_domain_exit=True,
         )
-        self.agents = [AgentState(pos=start[:2].copy(), heading=start[2:].copy())]
-        for _ in range(n):
-            prev = self.agents[-1]
-            end, u = geometry.rod_end(surface, prev.pos, prev.heading, config.spacing, self.side)
-            heading = geometry.heading_at_rod_end(surface, end, u, self.side)
-            self.agents.append(AgentState(pos=end, heading=heading))
+        positions, headings = geometry.column(surface, start[:2], start[2:], n, config.spacing,
+                                              self.side)
+        self.agents = [AgentState(pos=p.copy(), heading=h.copy()) for p, h in zip(positions, headings)]
         self.leader_velocity = start[2:].copy()
         self.leader_time = 0.0
         self.tick = -1
         self._rod_cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self._rows: dict[int, dict] = {}
 
     # --- ticks ---------------------------------------------------------------------------------
 
@@ -119,7 +115,8 @@ class WorldSim:
         return (self.tick if tick is None else tick) in self.agents[agent].settled
 
     def mark_missed(self, agent: int) -> None:
-        """Realtime mode: ``agent`` did not settle in time; it keeps its pose for this tick."""
+        """``agent`` did not settle this tick (too late in realtime mode, or its process
+        vanished): it keeps its pose, and its requests for this tick are refused."""
         state = self.agents[agent]
         state.missed = True
         state.settled[self.tick] = state.pos.copy()
@@ -235,7 +232,7 @@ class WorldSim:
         theta = math.atan2(math.sin(theta), math.cos(theta))
         ex, ey = self._leader_rod(agent)[0].tolist()
         offset = (ex - fx, ey - fy)
-        visible = tick < cfg.init_ticks or math.hypot(*offset) <= cfg.sensing_range
+        visible = self._sees_rod(tick, math.hypot(*offset))
         velocity = self._odometry(agent, tick, phase)
         oracle = None
         if cfg.velocity == "oracle" and self.is_settled(agent):
@@ -274,7 +271,7 @@ class WorldSim:
         if tick >= cfg.init_ticks and state.acted != "move":
             raise RequestError(f"agent {agent} must move to its estimate before snapping")
         end, u = self._leader_rod(agent)
-        seen = tick < cfg.init_ticks or _norm(end - state.pos) <= cfg.sensing_range
+        seen = self._sees_rod(tick, _norm(end - state.pos))
         if seen:
             self._relocate(agent, end)
             state.heading = geometry.heading_at_rod_end(self.surface, end, u, self.side)
@@ -295,6 +292,10 @@ class WorldSim:
             except geometry.SurfaceDomainError as exc:
                 raise RunEnded(f"agent {agent - 1}'s rod leaves the surface's domain: {exc}") from None
         return self._rod_cache[agent]
+
+    def _sees_rod(self, tick: int, distance: float) -> bool:
+        """Whether a rod end ``distance`` away is in sensing range (always, in initial ticks)."""
+        return tick < self.config.init_ticks or distance <= self.config.sensing_range
 
     def _relocate(self, agent: int, pos: np.ndarray) -> None:
         contains = getattr(self.surface, "contains", None)
