@@ -44,6 +44,15 @@ def done(run_id: str) -> str:
     return f"{_root(run_id)}/world/done"
 
 
+def view(run_id: str, what: str = "**") -> str:
+    """World publishes for observers only (live view, recorders): ``view/map`` (what to draw
+    the surface with) and ``view/tick`` (one tick's ground-truth rows, absolute coordinates).
+    Agents must never subscribe here (the generated access-control rules deny it)."""
+    if what != "**" and not re.fullmatch(r"[a-z]{1,16}", what):
+        raise ValueError(f"view key chunk must be 1-16 lowercase letters, got {what!r}")
+    return f"{_root(run_id)}/world/view/{what}"
+
+
 def sense(run_id: str, agent: int | str = "*") -> str:
     """World queryable answering agent ``agent``'s local measurements."""
     return f"{_root(run_id)}/world/sense/{_agent_chunk(agent)}"
