@@ -10,7 +10,7 @@ import zenoh
 
 from agents.link import AgentAbort, RunFinished
 from protocol.config import AgentSettings, load_agent_settings
-from protocol.session import add_credential_flags, credentials, zenoh_config
+from protocol.session import add_credential_flags, credentials, tls_options, zenoh_config
 
 
 def parser(description: str) -> argparse.ArgumentParser:
@@ -33,7 +33,7 @@ def run_cli(args: argparse.Namespace, body: Callable[[zenoh.Session, AgentSettin
         user, password = credentials(args)
         conf = zenoh_config(args.mode, connect=args.connect, listen=args.listen, user=user,
                             password=password, connect_timeout=settings.start_timeout,
-                            extra=args.cfg)
+                            extra=args.cfg, **tls_options(args))
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

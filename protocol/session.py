@@ -11,6 +11,26 @@ import zenoh
 
 MODES = ("peer", "client", "router")
 
+# Largest Zenoh message a link accepts, in bytes (`transport/link/rx/max_message_size`, Zenoh's
+# default 1 GiB). Every message of the protocol is far smaller (SPEC §8); a larger one is
+# dropped by the receiving link before anything decodes it.
+MAX_MESSAGE_SIZE = 1 << 20
+MAX_MESSAGE_SIZE_KEY = "transport/link/rx/max_message_size"
+TLS_KEY = "transport/link/tls"
+
+
+def tls_settings(ca: str | Path, cert: str | Path, key: str | Path) -> dict:
+    """The ``transport/link/tls`` section for mutual TLS: trust only ``ca``, present ``cert``.
+
+    Used by routers (listen side) and clients (connect side) alike: both verify the other end
+    against ``ca``, so a client without a certificate from the deployment's CA is refused.
+    """
+    cert, key = str(cert), str(key)
+    return {"root_ca_certificate": str(ca), "enable_mtls": True,
+            "listen_certificate": cert, "listen_private_key": key,
+            "connect_certificate": cert, "connect_private_key": key,
+            "verify_name_on_connect": True}
+
 
 def zenoh_config(
     mode: str = "peer",
@@ -21,6 +41,10 @@ def zenoh_config(
     user: str | None = None,
     password: str | None = None,
     connect_timeout: float = 30.0,
+    tls_ca: str | Path | None = None,
+    tls_cert: str | Path | None = None,
+    tls_key: str | Path | None = None,
+    max_message_size: int = MAX_MESSAGE_SIZE,
     extra: Sequence[str] = (),
 ) -> zenoh.Config:
     """Build a session configuration.
@@ -39,6 +63,11 @@ def zenoh_config(
     connect_timeout : float
         Seconds to keep retrying the connect endpoints at start-up (a process may start
         before the router it connects to); opening fails after that.
+    tls_ca, tls_cert, tls_key : path, optional
+        Mutual TLS (all three together): the CA certificate that signed the other end's, this
+        process's certificate and its private key (PEM). Needed for ``tls/`` endpoints.
+    max_message_size : int
+        Bytes; larger incoming messages are dropped by the link (:data:`MAX_MESSAGE_SIZE`).
     extra : sequence of str
         ``KEY:VALUE`` pairs inserted with ``insert_json5`` (``--cfg`` of the zenoh examples).
     """
@@ -50,6 +79,12 @@ def zenoh_config(
                 raise ValueError(f"{name} endpoint must look like 'tcp/HOST:PORT', got {endpoint!r}")
     if (user is None) != (password is None):
         raise ValueError("user and password must be given together")
+    tls = (tls_ca, tls_cert, tls_key)
+    if any(x is not None for x in tls) and any(x is None for x in tls):
+        raise ValueError("tls_ca, tls_cert and tls_key must be given together")
+    if isinstance(max_message_size, bool) or not isinstance(max_message_size, int) \
+            or max_message_size < 1024:
+        raise ValueError(f"max_message_size must be an integer >= 1024, got {max_message_size!r}")
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
@@ -72,6 +107,9 @@ def zenoh_config(
         conf.insert_json5(
             "transport/auth/usrpwd", json.dumps({"user": user, "password": password})
         )
+    if tls_ca is not None:
+        conf.insert_json5(TLS_KEY, json.dumps(tls_settings(tls_ca, tls_cert, tls_key)))
+    conf.insert_json5(MAX_MESSAGE_SIZE_KEY, str(max_message_size))
     for item in extra:
         key, sep, value = item.partition(":")
         if not sep or not key:
@@ -89,12 +127,17 @@ def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
 
 
 def add_credential_flags(parser: argparse.ArgumentParser) -> None:
-    """``--user`` with ``--password`` or ``--password-file``, and ``--cfg KEY:VALUE``."""
+    """``--user`` with ``--password`` or ``--password-file``; ``--tls-ca``, ``--tls-cert``,
+    ``--tls-key``; and ``--cfg KEY:VALUE``."""
     parser.add_argument("--user", help="Zenoh user name (router with authentication)")
     secret = parser.add_mutually_exclusive_group()
     secret.add_argument("--password", help="Zenoh password (visible in process listings)")
     secret.add_argument("--password-file", metavar="FILE",
                         help="read the Zenoh password from the first line of FILE")
+    parser.add_argument("--tls-ca", metavar="PEM",
+                        help="CA certificate trusted for tls/ endpoints (with --tls-cert, --tls-key)")
+    parser.add_argument("--tls-cert", metavar="PEM", help="this process's TLS certificate")
+    parser.add_argument("--tls-key", metavar="PEM", help="this process's TLS private key")
     parser.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
                         help="extra Zenoh configuration, inserted as JSON5")
 
@@ -108,3 +151,17 @@ def credentials(args: argparse.Namespace) -> tuple[str | None, str | None]:
         except (OSError, IndexError) as exc:
             raise ValueError(f"cannot read a password from {args.password_file}: {exc}") from None
     return args.user, password
+
+
+def tls_options(args: argparse.Namespace) -> dict[str, str | None]:
+    """``tls_ca``, ``tls_cert``, ``tls_key`` for :func:`zenoh_config` from the flags of
+    :func:`add_credential_flags` (ValueError unless all three or none are given, or if a file
+    is missing)."""
+    files = {"tls_ca": args.tls_ca, "tls_cert": args.tls_cert, "tls_key": args.tls_key}
+    given = [name for name, path in files.items() if path is not None]
+    if given and len(given) != len(files):
+        raise ValueError("--tls-ca, --tls-cert and --tls-key must be given together")
+    for name, path in files.items():
+        if path is not None and not Path(path).is_file():
+            raise ValueError(f"--{name.replace('_', '-')}: no such file {path}")
+    return files

@@ -174,6 +174,24 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_deploy(args: argparse.Namespace) -> int:
+    """``deploy``: write a locked-down docker-compose deployment of one run into ``--out``."""
+    from swarm.deploy import write_deployment
+    from swarm.launch import new_run_id
+
+    try:
+        config = RunConfig(run_id=args.run_id or new_run_id(), followers=args.followers,
+                           start_timeout=args.start_timeout, agent_timeout=args.agent_timeout)
+        written = write_deployment(args.out, config, force=args.force)
+    except (ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"deployment of run {config.run_id} ({config.followers} followers): "
+          f"{len(written)} files in {args.out}; secrets in {Path(args.out) / 'secrets'} "
+          "(keep them out of version control)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m swarm",
                                 description="Column formation on an unknown surface over Zenoh.")
@@ -200,6 +218,17 @@ def build_parser() -> argparse.ArgumentParser:
     plot = sub.add_parser("plot", help="draw one run's figures into RUN_DIR/figures")
     plot.add_argument("run_dir", metavar="RUN_DIR", help="a results folder of `swarm run`")
     plot.set_defaults(func=cmd_plot)
+    deploy = sub.add_parser("deploy", help="write a locked-down docker-compose deployment "
+                                           "(router rules, credentials, TLS, compose, run.toml)")
+    deploy.add_argument("--followers", type=int, required=True, help="number of followers N")
+    deploy.add_argument("--out", required=True, help="folder to write (deploy/README.md)")
+    deploy.add_argument("--run-id", help="the run id the router's rules admit (default: new)")
+    deploy.add_argument("--start-timeout", type=float, default=60.0,
+                        help="seconds the world waits for the agents (containers start slowly)")
+    deploy.add_argument("--agent-timeout", type=float, default=30.0)
+    deploy.add_argument("--force", action="store_true",
+                        help="replace the passwords and keys already in OUT/secrets")
+    deploy.set_defaults(func=cmd_deploy)
     return p
 
 

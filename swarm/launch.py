@@ -6,12 +6,15 @@ too. The world runs in the calling process (main thread); agents are either sepa
 """
 from __future__ import annotations
 
+import json
 import logging
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
@@ -21,6 +24,8 @@ from agents.leader import run_leader
 from agents.link import AgentAbort, RunFinished
 from protocol.config import AgentSettings, RunConfig
 from protocol.session import free_tcp_endpoint, zenoh_config
+from swarm.deploy import (OBSERVER, agent_user, private_dir, router_config, users,
+                          write_credentials, write_secret)
 from world.main import run_world
 from world.service import WorldService
 
@@ -29,27 +34,78 @@ log = logging.getLogger(__name__)
 POLL_S = 0.2
 
 
-def agent_commands(config_path: Path, endpoint: str, n_followers: int) -> list[list[str]]:
-    """The command lines of the leader and every follower for a hand-assembled run."""
-    base = ["--config", str(config_path), "--connect", endpoint]
-    cmds = [[sys.executable, "-m", "agents.leader", *base]]
-    cmds += [[sys.executable, "-m", "agents.follower", "--id", str(k), *base]
+def agent_commands(config_path: Path, endpoint: str, n_followers: int,
+                   credentials: RunCredentials | None = None) -> list[list[str]]:
+    """The command lines of the leader and every follower for a hand-assembled run (each
+    with its own user and password file when ``credentials`` are given)."""
+    def base(agent: int) -> list[str]:
+        flags = ["--config", str(config_path), "--connect", endpoint]
+        if credentials is not None:
+            flags += ["--user", agent_user(agent),
+                      "--password-file", str(credentials.password_file(agent_user(agent)))]
+        return flags
+
+    cmds = [[sys.executable, "-m", "agents.leader", *base(0)]]
+    cmds += [[sys.executable, "-m", "agents.follower", "--id", str(k), *base(k)]
              for k in range(1, n_followers + 1)]
     return cmds
+
+
+@dataclass(frozen=True)
+class RunCredentials:
+    """Random per-run credentials of ``swarm run``'s embedded router, in a private folder.
+
+    ``folder`` (mode 0700) holds ``credentials.txt`` (the router's dictionary) and one
+    ``<user>.password`` file per user (mode 0600): every agent, and ``observer`` for a viewer
+    that attaches to the run. No one gets the world's: the world is the router itself.
+    """
+
+    folder: Path
+    passwords: dict[str, str]
+
+    @classmethod
+    def create(cls, folder: Path, followers: int) -> RunCredentials:
+        private_dir(folder)
+        names = [user for user in users(followers) if user != "world"]
+        passwords = write_credentials(folder, names)
+        for user, password in passwords.items():
+            write_secret(folder / f"{user}.password", password + "\n")
+        return cls(folder, passwords)
+
+    @property
+    def dictionary(self) -> Path:
+        return self.folder / "credentials.txt"
+
+    def password_file(self, user: str) -> Path:
+        if user not in self.passwords:
+            raise ValueError(f"user must be one of {sorted(self.passwords)}, got {user!r}")
+        return self.folder / f"{user}.password"
+
+
+def embedded_router_config(config: RunConfig, endpoint: str,
+                           credentials: RunCredentials) -> zenoh.Config:
+    """The world's router configuration for ``swarm run``: listens on ``endpoint``, admits
+    only the run's users, with the access-control rules of a deployment (swarm/deploy.py)."""
+    return zenoh.Config.from_json5(json.dumps(router_config(
+        config.run_id, config.followers, listen=[endpoint],
+        dictionary_file=str(credentials.dictionary))))
 
 
 class _ProcessAgents:
     """Agents as child processes, logs under ``out/logs``; a watcher aborts the world on a crash."""
 
-    def __init__(self, config: RunConfig, out_dir: Path, endpoint: str) -> None:
+    def __init__(self, config: RunConfig, out_dir: Path, endpoint: str,
+                 credentials: RunCredentials) -> None:
         self.config, self.out_dir, self.endpoint = config, out_dir, endpoint
+        self.credentials = credentials
         self.procs: list[subprocess.Popen] = []
         self._stop = threading.Event()
 
     def start(self, service: WorldService) -> None:
         logs = self.out_dir / "logs"
         logs.mkdir(exist_ok=True)
-        cmds = agent_commands(self.out_dir / "config.toml", self.endpoint, self.config.followers)
+        cmds = agent_commands(self.out_dir / "config.toml", self.endpoint, self.config.followers,
+                              self.credentials)
         for k, cmd in enumerate(cmds):
             with open(logs / f"agent-{k}.log", "wb") as log_file:
                 self.procs.append(subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT,
@@ -84,9 +140,10 @@ class _ProcessAgents:
 class _ThreadAgents:
     """Agents as threads in this process, each with its own Zenoh session."""
 
-    def __init__(self, config: RunConfig, endpoint: str) -> None:
+    def __init__(self, config: RunConfig, endpoint: str, credentials: RunCredentials) -> None:
         self.settings = AgentSettings.from_config(config)
         self.endpoint = endpoint
+        self.credentials = credentials
         self.threads: list[threading.Thread] = []
         self.errors: list[str] = []
 
@@ -103,7 +160,9 @@ class _ThreadAgents:
 
     def _agent(self, k: int, body: Callable[[zenoh.Session], None], service: WorldService) -> None:
         try:
-            with zenoh.open(zenoh_config("peer", connect=[self.endpoint])) as session:
+            user = agent_user(k)
+            with zenoh.open(zenoh_config("client", connect=[self.endpoint], user=user,
+                                         password=self.credentials.passwords[user])) as session:
                 body(session)
         except RunFinished:
             return
@@ -125,20 +184,39 @@ def new_run_id() -> str:
 
 
 def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
-           on_tick: Callable[[int], None] | None = None, endpoint: str | None = None) -> dict:
+           on_tick: Callable[[int], None] | None = None, endpoint: str | None = None,
+           credentials_dir: str | Path | None = None) -> dict:
     """Run ``config`` end to end; return the summary (also in ``out_dir/summary.json``).
 
-    The world listens on ``endpoint`` (default: a free loopback port).
+    The world listens on ``endpoint`` (default: a free loopback port) as a router that admits
+    only this run's users, each with a random password (:class:`RunCredentials`), under the
+    access-control rules of a deployment. The credentials are written to ``credentials_dir``
+    (created, mode 0700; it must not exist), by default to a temporary folder removed at the
+    end.
 
     Raises RuntimeError if the agents do not come up. Ctrl-C stops every agent and leaves a
     partial result marked incomplete.
     """
     out_dir = Path(out_dir)  # run_world resolves the config and writes config.toml first
     endpoint = endpoint or free_tcp_endpoint()
-    agents = _ThreadAgents(config, endpoint) if in_process else _ProcessAgents(config, out_dir, endpoint)
+    if credentials_dir is not None:
+        return _launch(config, out_dir, in_process, on_tick, endpoint,
+                       RunCredentials.create(Path(credentials_dir), config.followers))
+    with tempfile.TemporaryDirectory(prefix="swarm-credentials-") as scratch:
+        return _launch(config, out_dir, in_process, on_tick, endpoint,
+                       RunCredentials.create(Path(scratch) / "run", config.followers))
+
+
+def _launch(config: RunConfig, out_dir: Path, in_process: bool,
+            on_tick: Callable[[int], None] | None, endpoint: str,
+            credentials: RunCredentials) -> dict:
+    agents = (_ThreadAgents(config, endpoint, credentials) if in_process
+              else _ProcessAgents(config, out_dir, endpoint, credentials))
+    log.info("run %s: credentials in %s (observer: %s)", config.run_id, credentials.folder,
+             credentials.password_file(OBSERVER))
     try:
-        summary = run_world(config, zenoh_config("router", listen=[endpoint]), out_dir,
-                            on_tick=on_tick, on_ready=agents.start)
+        summary = run_world(config, embedded_router_config(config, endpoint, credentials),
+                            out_dir, on_tick=on_tick, on_ready=agents.start)
     except BaseException:  # Ctrl-C or a failure: end every agent now
         agents.stop(timeout=1.0)
         raise

@@ -10,7 +10,7 @@ from pathlib import Path
 import zenoh
 
 from protocol.config import RunConfig, dump_config, load_config
-from protocol.session import add_credential_flags, credentials, zenoh_config
+from protocol.session import add_credential_flags, credentials, tls_options, zenoh_config
 from world.service import WorldService
 from world.sim import resolve_leader_start
 from world.surfaces import Surface, make_surface
@@ -80,10 +80,11 @@ def main(argv: list[str] | None = None) -> int:
         user, password = credentials(args)
         if args.connect:
             conf = zenoh_config("client", connect=args.connect, user=user, password=password,
-                                extra=args.cfg)
+                                extra=args.cfg, **tls_options(args))
         else:
             conf = zenoh_config("router", listen=args.listen or ["tcp/127.0.0.1:7447"],
-                                user=user, password=password, extra=args.cfg)
+                                user=user, password=password, extra=args.cfg,
+                                **tls_options(args))
         out = args.resume or args.out or default_out(config)
         summary = run_world(config, conf, out, resume=bool(args.resume),
                             crash_after_tick=args.crash_after_tick)
