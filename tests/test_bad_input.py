@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import threading
+from pathlib import Path
 
 import msgpack
 import pytest
@@ -147,19 +148,30 @@ def test_non_numeric_id_in_key(world):
     assert "names no agent id" in _ask(client, "swarm/bad/world/sense/abc", _raw(**GOOD_SENSE))
 
 
-def _attack(endpoint: str, run_id: str, stop: threading.Event, counts: dict) -> None:
-    """Fire malformed queries and garbage samples until ``stop``."""
+def _attack(endpoint: str, run_id: str, stop: threading.Event, counts: dict,
+            password_file: Path) -> None:
+    """Fire malformed queries and garbage samples until ``stop``, logged in as follower 1
+    (the embedded router admits only the run's users, and lets follower 1 query only its
+    own keys: tests/test_acl.py)."""
     bad_queries = [
         (keys.sense(run_id, 1), b"\xff\x00garbage"),
-        (keys.sense(run_id, 42), encode(SenseRequest(tick=0, phase="pre"))),
-        (keys.act(run_id, 2), _raw(**{**GOOD_MOVE, "offset": [math.inf, 1.0]})),
+        (keys.act(run_id, 1), _raw(**{**GOOD_MOVE, "offset": [math.inf, 1.0]})),
         (keys.act(run_id, 1), _raw(**{**GOOD_MOVE, "v": 99})),
-        (keys.act(run_id, 0), encode(ActRequest(tick=10**6, action="drive", t=1.0))),
-        (keys.sense(run_id, 3), _raw(**{**GOOD_SENSE, "phase": 3})),
+        (keys.act(run_id, 1), encode(ActRequest(tick=10**6, action="drive", t=1.0))),
+        (keys.sense(run_id, 1), _raw(**{**GOOD_SENSE, "phase": 3})),
     ]
     garbage = [(keys.rod(run_id, 1), b"\x00\x01"), (keys.obs(run_id, 2), _raw(v=1, type="obs")),
                (keys.rod(run_id, 9), _raw(v=1, type="rod", tick=0, length=-1.0, side=1))]
-    with zenoh.open(zenoh_config("client", connect=[endpoint])) as session:
+    while not password_file.exists() and not stop.wait(0.01):
+        pass
+    with zenoh.open(zenoh_config("client", connect=[endpoint], user="follower-1",
+                                 password=password_file.read_text().strip())) as session:
+        world_up = threading.Event()  # its queryables are declared before its token
+        watch = session.liveliness().declare_subscriber(keys.alive(run_id, "world"),
+                                                        lambda _: world_up.set(), history=True)
+        while not world_up.wait(0.05) and not stop.is_set():
+            pass
+        watch.undeclare()
         i = 0
         while not stop.is_set() and i < 5000:
             key, payload = bad_queries[i % len(bad_queries)]
@@ -176,10 +188,13 @@ def test_flood_of_malformed_queries_leaves_the_numbers_unchanged(tmp_path):
     clean = launch(cfg, tmp_path / "clean", in_process=True)
     endpoint = free_tcp_endpoint()
     stop, counts = threading.Event(), {"errors": 0, "answered": 0, "garbage": 0}
-    attacker = threading.Thread(target=_attack, args=(endpoint, cfg.run_id, stop, counts))
+    creds = tmp_path / "credentials"
+    attacker = threading.Thread(target=_attack, args=(endpoint, cfg.run_id, stop, counts,
+                                                      creds / "follower-1.password"))
     attacker.start()
     try:
-        attacked = launch(cfg, tmp_path / "attacked", in_process=True, endpoint=endpoint)
+        attacked = launch(cfg, tmp_path / "attacked", in_process=True, endpoint=endpoint,
+                          credentials_dir=creds)
     finally:
         stop.set()
         attacker.join(timeout=30)
