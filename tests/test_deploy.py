@@ -1,353 +1,176 @@
-"""The docker-compose deployment without Docker: the same router configuration, credentials and
-service commands run locally; the router's access control checked with real sessions; and
-what the world's sensing replies reveal (never absolute positions unless the run enables GPS).
+"""The docker-compose deployment that ``python -m swarm deploy`` writes, without Docker.
 
-The router is a Zenoh session opened in router mode from ``deploy/zenoh/router.json5`` (the
-file the compose ``zenoh`` service runs), with its listen endpoint moved to a free loopback
-port and its credentials path mapped through the compose volume that mounts it.
+The committed ``deploy/`` is that command's output (secrets aside: they are never committed);
+the compose services' commands run here against the generated router configuration, over
+mutual TLS. What the access-control rules allow and deny is in tests/test_acl.py. Last, what
+the world's sensing replies reveal (never absolute positions unless the run enables GPS).
 """
 from __future__ import annotations
 
 import dataclasses
 import json
 import math
+import stat
 import struct
 import subprocess
-import sys
-import threading
 import time
-from collections.abc import Callable
 from importlib.metadata import version
 from pathlib import Path
 
 import pytest
-import yaml
 import zenoh
+from cryptography import x509
+from cryptography.x509.oid import NameOID
 
-from protocol import keys
 from protocol.config import RunConfig, load_config
 from protocol.messages import Sensing, encode
-from protocol.session import free_tcp_endpoint, zenoh_config
+from protocol.session import MAX_MESSAGE_SIZE
+from swarm.deploy import SECRETS, generated_files, users
 from swarm.local import run_local
+from tests.deployment import ROUTER_IN_COMPOSE, Deployment, free_ports, generate
 from world.sim import WorldSim
 
 ROOT = Path(__file__).resolve().parents[1]
-COMPOSE = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
-SERVICES = COMPOSE["services"]
-ROUTER_IN_COMPOSE = "tcp/zenoh:7447"
-AGENTS = ("leader", "follower-1", "follower-2", "follower-3")
-RUN_ID = load_config(ROOT / "deploy" / "run.toml").run_id
-WAIT_S = 5.0  # upper bound of every wait for something that must happen
-ABSENT_S = 0.5  # how long a message that must not arrive is given to arrive anyway
-POLL_S = 0.05
-RUN_TIMEOUT_S = 60.0  # the whole compose run (about 3 s here)
+COMMITTED = ROOT / "deploy"
+CONFIG = load_config(COMMITTED / "run.toml")
+AGENTS = ("leader", *(f"follower-{k}" for k in range(1, CONFIG.followers + 1)))
+RUN_TIMEOUT_S = 60.0  # the whole compose run (about 4 s here)
 
 
-# --- compose services, mapped to this machine -------------------------------------------------
+@pytest.fixture(scope="module")
+def deployment(tmp_path_factory) -> Deployment:
+    """The committed deployment's run id and size, regenerated with fresh secrets."""
+    return generate(tmp_path_factory.mktemp("deploy") / "deploy", CONFIG.run_id, CONFIG.followers)
 
 
-def _mounts(service: str, volumes_dir: Path) -> dict[str, Path]:
-    """Container path -> local path of ``service``'s volumes; named volumes in ``volumes_dir``."""
-    mounts = {}
-    for spec in SERVICES[service].get("volumes", []):
-        source, target = spec.split(":")[:2]
-        mounts[target] = ROOT / source if source.startswith(".") else volumes_dir / source
-    return mounts
+# --- the committed deployment is the generator's output --------------------------------------------
 
 
-def _local_path(arg: str, mounts: dict[str, Path]) -> str:
-    """``arg`` with a container path replaced by the local path mounted there."""
-    for target, local in mounts.items():
-        if arg == target or arg.startswith(target + "/"):
-            return str(local / Path(arg).relative_to(target))
-    return arg
+def test_committed_deploy_is_the_generated_one(deployment):
+    """Every generated file but the secrets is committed byte for byte; nothing else is there
+    but the hand-written README, and no secret is tracked by git."""
+    generated = generated_files(CONFIG)
+    for rel, text in generated.items():
+        assert (COMMITTED / rel).read_text() == text, f"deploy/{rel} is stale: regenerate it"
+        assert (deployment.folder / rel).read_text() == text
+    tracked = subprocess.run(["git", "ls-files", "deploy"], cwd=ROOT, capture_output=True,
+                             text=True, check=True).stdout.split()
+    assert sorted(tracked) == sorted(["deploy/README.md", *(f"deploy/{rel}" for rel in generated)])
+    assert f"{SECRETS}/" in generated[".gitignore"].splitlines()
 
 
-def _local_command(service: str, endpoint: str, volumes_dir: Path) -> list[str]:
-    """The compose ``command`` of ``service``, runnable here."""
-    mounts = _mounts(service, volumes_dir)
-    program, *args = SERVICES[service]["command"]
-    if program != "python":
-        raise ValueError(f"service {service!r} does not run python: {program!r}")
-    return [sys.executable] + [endpoint if a == ROUTER_IN_COMPOSE else _local_path(a, mounts)
-                               for a in args]
+def test_generated_output_is_deterministic_but_secrets_are_not(deployment, tmp_path):
+    other = generate(tmp_path / "again", CONFIG.run_id, CONFIG.followers)
+    for rel in generated_files(CONFIG):
+        assert (other.folder / rel).read_bytes() == (deployment.folder / rel).read_bytes()
+    for user in users(CONFIG.followers):
+        assert other.password(user) != deployment.password(user)
+        assert other.secret(user, "key.pem").read_bytes() != deployment.secret(user, "key.pem").read_bytes()
 
 
-def _option(service: str, flag: str) -> str:
-    command = SERVICES[service]["command"]
-    return command[command.index(flag) + 1]
+def test_deploy_refuses_to_replace_secrets(deployment, capsys):
+    from swarm.cli import main
+
+    before = deployment.password("leader")
+    assert main(["deploy", "--followers", "3", "--out", str(deployment.folder)]) == 2
+    assert "refusing to replace" in capsys.readouterr().err
+    assert deployment.password("leader") == before
 
 
-def _router_config(endpoint: str) -> zenoh.Config:
-    """The compose router's configuration, listening on ``endpoint`` with local paths."""
-    mounts = _mounts("zenoh", Path("/nonexistent"))  # the router has no named volume
-    command = SERVICES["zenoh"]["command"]
-    path = _local_path(command[command.index("-c") + 1], mounts)
-    conf = zenoh.Config.from_json5(Path(path).read_text())
-    dictionary_key = "transport/auth/usrpwd/dictionary_file"
-    dictionary = json.loads(conf.get_json(dictionary_key))
-    conf.insert_json5(dictionary_key, json.dumps(_local_path(dictionary, mounts)))
-    conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    return conf
+def test_secrets_are_private_and_certificates_name_their_users(deployment):
+    secrets = deployment.folder / SECRETS
+    for path in [secrets, *secrets.rglob("*")]:
+        mode = stat.S_IMODE(path.stat().st_mode)
+        if path.is_dir():
+            assert mode == 0o700, path
+        elif path.name in ("password", "key.pem", "credentials.txt"):
+            assert mode == 0o600, path
+        else:  # certificates are public
+            assert path.name in ("ca.pem", "cert.pem"), path
+    assert not any("ca" in p.name and "key" in p.name for p in secrets.rglob("*"))
+    ca = x509.load_pem_x509_certificate(deployment.secret("zenoh", "ca.pem").read_bytes())
+    names = {}
+    for user in ("zenoh", *users(CONFIG.followers)):
+        cert = x509.load_pem_x509_certificate(deployment.secret(user, "cert.pem").read_bytes())
+        cert.verify_directly_issued_by(ca)
+        assert deployment.secret(user, "ca.pem").read_bytes() == deployment.secret(
+            "zenoh", "ca.pem").read_bytes()
+        names[user] = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value
+    assert names == {"zenoh": "router", **{u: u for u in users(CONFIG.followers)}}
+    router_cert = x509.load_pem_x509_certificate(deployment.secret("zenoh", "cert.pem").read_bytes())
+    alt = router_cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert "zenoh" in alt.get_values_for_type(x509.DNSName)  # the compose host name
 
 
-@pytest.fixture
-def router():
-    """A running router from the compose configuration; yields its loopback endpoint."""
-    endpoint = free_tcp_endpoint()
-    with zenoh.open(_router_config(endpoint)):
-        yield endpoint
-
-
-def _client(endpoint: str, service: str, password: str | None = None,
-            connect_timeout: float = WAIT_S) -> zenoh.Session:
-    """A client session with ``service``'s compose credentials (or another password)."""
-    return zenoh.open(zenoh_config(
-        "client", connect=[endpoint], user=_option(service, "--user"),
-        password=_option(service, "--password") if password is None else password,
-        connect_timeout=connect_timeout))
-
-
-# --- the deployment files agree with one another -----------------------------------------------
-
-
-def test_compose_matches_router_and_credentials():
-    dictionary = json.loads(_router_config("tcp/127.0.0.1:7447").get_json(
-        "transport/auth/usrpwd/dictionary_file"))
-    credentials = dict(line.split(":", 1) for line in Path(dictionary).read_text().splitlines())
-    assert Path(dictionary) == ROOT / "deploy" / "zenoh" / "credentials.txt"
-    assert set(credentials) == {"world", *AGENTS}
+def test_compose_matches_router_and_credentials(deployment):
+    router = deployment.router_config("tls/127.0.0.1:7447")
+    dictionary = Path(json.loads(router.get_json("transport/auth/usrpwd/dictionary_file")))
+    credentials = dict(line.split(":", 1) for line in dictionary.read_text().splitlines())
+    assert set(credentials) == set(users(CONFIG.followers))
+    assert json.loads(router.get_json("listen/endpoints")) == ["tls/127.0.0.1:7447"]
+    assert json.loads(router.get_json("transport/link/protocols")) == ["tls"]
+    assert json.loads(router.get_json("transport/link/rx/max_message_size")) == MAX_MESSAGE_SIZE
+    assert json.loads(router.get_json("access_control/default_permission")) == "deny"
+    services = deployment.services
+    assert set(services) == {"zenoh", "world", *AGENTS}
     for service in ("world", *AGENTS):
-        command = SERVICES[service]["command"]
-        assert command[command.index("--connect") + 1] == ROUTER_IN_COMPOSE
-        assert credentials[_option(service, "--user")] == _option(service, "--password")
-        assert _local_path(_option(service, "--config"), _mounts(service, Path())) == str(
-            ROOT / "deploy" / "run.toml")
+        mounts = deployment.mounts(service, Path("/volumes"))
+        local = {flag: deployment.local_path(deployment.option(service, flag), mounts)
+                 for flag in ("--config", "--password-file", "--tls-ca", "--tls-cert",
+                              "--tls-key")}
+        assert deployment.option(service, "--connect") == ROUTER_IN_COMPOSE
+        assert deployment.option(service, "--user") == service
+        assert local == {"--config": str(deployment.folder / "run.toml"),
+                         **{flag: str(deployment.secret(service, name)) for flag, name in (
+                             ("--password-file", "password"), ("--tls-ca", "ca.pem"),
+                             ("--tls-cert", "cert.pem"), ("--tls-key", "key.pem"))}}
+        assert credentials[service] == deployment.password(service)
+        # Each service sees its own secrets only; the world alone sees the results.
+        secret_mounts = [p for p in mounts.values() if SECRETS in p.parts]
+        assert secret_mounts == [deployment.folder / SECRETS / service]
+        assert (Path("/volumes/results") in mounts.values()) == (service == "world")
+    for k in range(1, CONFIG.followers + 1):
+        mounts = deployment.mounts(f"follower-{k}", Path("/volumes"))
+        state = deployment.option(f"follower-{k}", "--state-dir")
+        assert deployment.local_path(state, mounts) == f"/volumes/state-{k}"
+        assert deployment.option(f"follower-{k}", "--id") == str(k)
+    assert "--state-dir" not in services["leader"]["command"]
     for agent in AGENTS:
-        assert _option(agent, "--mode") == "client"
-    assert [_option(f"follower-{k}", "--id") for k in (1, 2, 3)] == ["1", "2", "3"]
-    assert load_config(ROOT / "deploy" / "run.toml").followers == 3
-    image_version = SERVICES["zenoh"]["image"].rpartition(":")[2]
+        assert deployment.option(agent, "--mode") == "client"
+    image_version = services["zenoh"]["image"].rpartition(":")[2]
     assert image_version.split(".")[:2] == version("eclipse-zenoh").split(".")[:2]
 
 
-def test_compose_services_complete_a_run(router, tmp_path):
-    """Every compose service's command, run here against the compose router config."""
+def test_compose_services_complete_a_run(deployment, tmp_path):
+    """Every compose service's command, run here against the generated router, over TLS."""
+    listen, connect = free_ports()
     procs, logs = {}, {}
-    try:
-        for service in ("world", *AGENTS):
-            logs[service] = tmp_path / f"{service}.log"
-            with logs[service].open("w") as log:
-                procs[service] = subprocess.Popen(
-                    _local_command(service, router, tmp_path), cwd=ROOT, stdout=log,
-                    stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + RUN_TIMEOUT_S
-        codes = {service: proc.wait(timeout=max(0.1, deadline - time.monotonic()))
-                 for service, proc in procs.items()}
-    finally:
-        for proc in procs.values():
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
+    with zenoh.open(deployment.router_config(listen)):
+        try:
+            for service in ("world", *AGENTS):
+                logs[service] = tmp_path / f"{service}.log"
+                with logs[service].open("w") as log:
+                    procs[service] = subprocess.Popen(
+                        deployment.local_command(service, connect, tmp_path), cwd=ROOT,
+                        stdout=log, stderr=subprocess.STDOUT)
+            deadline = time.monotonic() + RUN_TIMEOUT_S
+            codes = {service: proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+                     for service, proc in procs.items()}
+        finally:
+            for proc in procs.values():
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait()
     output = {service: log.read_text()[-2000:] for service, log in logs.items()}
     assert codes == dict.fromkeys(procs, 0), output
-    out = Path(_local_path(_option("world", "--out"), _mounts("world", tmp_path)))
+    out = Path(deployment.local_path(deployment.option("world", "--out"),
+                                     deployment.mounts("world", tmp_path)))
     summary = json.loads((out / "summary.json").read_text())
-    config = load_config(ROOT / "deploy" / "run.toml")
-    assert summary["complete"] and summary["ticks_completed"] == config.ticks
-    assert set(summary["followers"]) == {"1", "2", "3"}
+    assert summary["complete"] and summary["ticks_completed"] == CONFIG.ticks
+    assert set(summary["followers"]) == {str(k) for k in range(1, CONFIG.followers + 1)}
     for stats in summary["followers"].values():
-        assert stats["estimated_ticks"] == config.ticks - config.init_ticks
+        assert stats["estimated_ticks"] == CONFIG.ticks - CONFIG.init_ticks
         assert stats["missed_ticks"] == 0
-
-
-# --- access control ------------------------------------------------------------------------------
-
-
-class Inbox:
-    """What a subscriber or liveliness subscriber received: (key, payload) pairs, with waits."""
-
-    def __init__(self) -> None:
-        self._cond = threading.Condition()
-        self.items: list[tuple[str, bytes]] = []
-
-    def __call__(self, sample: zenoh.Sample) -> None:
-        with self._cond:
-            self.items.append((str(sample.key_expr), sample.payload.to_bytes()))
-            self._cond.notify_all()
-
-    def wait_for(self, item: tuple[str, bytes], timeout: float) -> bool:
-        with self._cond:
-            return self._cond.wait_for(lambda: item in self.items, timeout)
-
-    def keys(self) -> set[str]:
-        with self._cond:
-            return {key for key, _ in self.items}
-
-
-def _until(condition: Callable[[], bool], timeout: float = WAIT_S) -> bool:
-    """Poll ``condition`` until it holds (True) or ``timeout`` seconds pass (False)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(POLL_S)
-    return False
-
-
-def _delivered(send: Callable[[], None], inbox: Inbox, item: tuple[str, bytes]) -> bool:
-    """Send until ``item`` arrives (routes are declared asynchronously); False on timeout."""
-    def attempt() -> bool:
-        send()
-        return inbox.wait_for(item, 0.1)
-    return _until(attempt)
-
-
-def _undeclare(handles: list) -> None:
-    for handle in reversed(handles):
-        handle.undeclare()
-
-
-def _replies(session: zenoh.Session, key: str, timeout: float = 1.0) -> list[tuple[bool, bytes]]:
-    """Every reply to a query on ``key`` from every queryable (no consolidation): (ok, payload)."""
-    replies = session.get(key, target=zenoh.QueryTarget.ALL,
-                          consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout)
-    return [(True, r.ok.payload.to_bytes()) if r.ok is not None
-            else (False, r.err.payload.to_bytes()) for r in replies]
-
-
-def test_agent_cannot_publish_as_another_agent_or_as_the_world(router):
-    rod_1, rod_2 = keys.rod(RUN_ID, 1), keys.rod(RUN_ID, 2)
-    tick = keys.tick(RUN_ID)
-    with (_client(router, "world") as world, _client(router, "leader") as leader,
-          _client(router, "follower-1") as follower):
-        rods, ticks = Inbox(), Inbox()
-        handles = [world.declare_subscriber(keys.rod(RUN_ID), rods),
-                   leader.declare_subscriber(tick, ticks)]
-        # Positive controls: follower 1's own rod reaches the world, the world's tick the leader.
-        assert _delivered(lambda: follower.put(rod_1, b"own"), rods, (rod_1, b"own"))
-        assert _delivered(lambda: world.put(tick, b"world"), ticks, (tick, b"world"))
-        # Follower 1 as follower 2: sent before a legitimate sample on the same link, so it
-        # would have arrived first.
-        follower.put(rod_2, b"forged")
-        follower.put(rod_1, b"after")
-        assert rods.wait_for((rod_1, b"after"), WAIT_S)
-        assert rod_2 not in rods.keys()
-        # Follower 1 as the world: the leader never sees the forged tick.
-        follower.put(tick, b"forged")
-        world.put(tick, b"after")
-        assert ticks.wait_for((tick, b"after"), WAIT_S)
-        assert not ticks.wait_for((tick, b"forged"), ABSENT_S)
-        _undeclare(handles)
-
-
-def test_followers_hear_missed_ticks_only_from_the_world(router):
-    missed = keys.missed(RUN_ID)
-    with (_client(router, "world") as world, _client(router, "follower-1") as follower,
-          _client(router, "follower-2") as other):
-        inbox = Inbox()
-        handles = [other.declare_subscriber(missed, inbox)]
-        assert _delivered(lambda: world.put(missed, b"world"), inbox, (missed, b"world"))
-        follower.put(missed, b"forged")
-        world.put(missed, b"after")
-        assert inbox.wait_for((missed, b"after"), WAIT_S)
-        assert not inbox.wait_for((missed, b"forged"), ABSENT_S)
-        _undeclare(handles)
-
-
-def test_agent_queries_only_its_own_sensing_and_motion(router):
-    asked = []
-
-    def answer(query: zenoh.Query) -> None:
-        asked.append(str(query.key_expr))
-        if "/act/" in str(query.key_expr):
-            query.reply_err(b"refused")
-        else:
-            query.reply(query.key_expr, b"world")
-
-    with _client(router, "world") as world, _client(router, "follower-1") as follower:
-        handles = [world.declare_queryable(keys.sense(RUN_ID), answer),
-                   world.declare_queryable(keys.act(RUN_ID), answer)]
-        # Positive controls: its own sensing is answered, and an error reply comes through.
-        assert _until(lambda: _replies(follower, keys.sense(RUN_ID, 1)) == [(True, b"world")])
-        assert _replies(follower, keys.act(RUN_ID, 1)) == [(False, b"refused")]
-        for other in (0, 2):
-            assert _replies(follower, keys.sense(RUN_ID, other), ABSENT_S) == []
-            assert _replies(follower, keys.act(RUN_ID, other), ABSENT_S) == []
-        assert not any(key.endswith(("/0", "/2")) for key in asked)
-        _undeclare(handles)
-
-
-def test_agent_cannot_serve_world_queries_or_hold_another_token(router):
-    """Follower 1 can neither answer follower 2's sensing queries nor claim its liveliness."""
-    sense_2 = keys.sense(RUN_ID, 2)
-    with (_client(router, "world") as world, _client(router, "follower-1") as follower,
-          _client(router, "follower-2") as victim):
-        tokens = Inbox()
-        handles = [
-            world.declare_queryable(keys.sense(RUN_ID), lambda q: q.reply(q.key_expr, b"world")),
-            world.liveliness().declare_subscriber(keys.alive(RUN_ID, "*"), tokens, history=True),
-            follower.declare_queryable(sense_2, lambda q: q.reply(q.key_expr, b"forged")),
-            follower.liveliness().declare_token(keys.alive(RUN_ID, 2)),
-            # Declared last on the same link: once the world sees it, the router has handled
-            # the forged declarations above.
-            follower.liveliness().declare_token(keys.alive(RUN_ID, 1)),
-        ]
-        assert tokens.wait_for((keys.alive(RUN_ID, 1), b""), WAIT_S)
-        assert keys.alive(RUN_ID, 2) not in tokens.keys()
-        assert _until(lambda: (True, b"world") in _replies(victim, sense_2))
-        assert _replies(victim, sense_2) == [(True, b"world")]
-        _undeclare(handles)
-
-
-def _agent_id(service: str) -> int:
-    return 0 if service == "leader" else int(_option(service, "--id"))
-
-
-@pytest.mark.parametrize("service", AGENTS)
-def test_agent_sees_the_world_and_its_own_token(router, service):
-    """What liveliness an agent needs: the world's token, and its own (a second process with
-    the same id finds it and refuses to start)."""
-    own = keys.alive(RUN_ID, _agent_id(service))
-    with _client(router, "world") as world, _client(router, service) as agent:
-        world_seen = Inbox()
-        handles = [world.liveliness().declare_token(keys.alive(RUN_ID, "world")),
-                   agent.liveliness().declare_subscriber(keys.alive(RUN_ID, "world"), world_seen,
-                                                          history=True),
-                   agent.liveliness().declare_token(own)]
-        assert world_seen.wait_for((keys.alive(RUN_ID, "world"), b""), WAIT_S)
-        with _client(router, service) as twin:
-            assert _until(lambda: [str(r.ok.key_expr) for r in twin.liveliness().get(
-                own, timeout=1.0) if r.ok is not None] == [own])
-        _undeclare(handles)
-
-
-def test_follower_receives_only_its_leaders_rod(router):
-    rod_0 = keys.rod(RUN_ID, 0)
-    with (_client(router, "world") as world, _client(router, "leader") as leader,
-          _client(router, "follower-1") as follower, _client(router, "follower-2") as other):
-        tokens, own, foreign = Inbox(), Inbox(), Inbox()
-        handles = [world.liveliness().declare_subscriber(keys.alive(RUN_ID, "*"), tokens,
-                                                          history=True),
-                   other.declare_subscriber(rod_0, foreign),
-                   # Declared after the subscription: once the world sees the token, the
-                   # router has handled the subscription.
-                   other.liveliness().declare_token(keys.alive(RUN_ID, 2))]
-        assert tokens.wait_for((keys.alive(RUN_ID, 2), b""), WAIT_S)
-        handles.append(follower.declare_subscriber(rod_0, own))
-        assert _delivered(lambda: leader.put(rod_0, b"rod"), own, (rod_0, b"rod"))
-        assert not foreign.wait_for((rod_0, b"rod"), ABSENT_S)
-        _undeclare(handles)
-
-
-def test_wrong_credentials_are_refused(router):
-    with _client(router, "follower-1"):  # positive control: the right password opens
-        pass
-    for service, password in (("follower-1", "wrong"), ("world", _option("leader", "--password"))):
-        with pytest.raises(zenoh.ZError):
-            _client(router, service, password=password, connect_timeout=1.0).close()
-    with pytest.raises(zenoh.ZError):
-        zenoh.open(zenoh_config("client", connect=[router], connect_timeout=1.0)).close()
 
 
 # --- what sensing reveals ------------------------------------------------------------------------

@@ -1,0 +1,354 @@
+"""Attacks on a generated deployment (``python -m swarm deploy``, N = 5 followers), with real
+router sessions: the router runs the generated ``router.json5`` over mutual TLS, each client
+logs in with the generated files of the user it claims to be.
+
+Each refusal has a positive control (the same action by the user allowed to do it succeeds), and
+a forbidden message is sent before a legitimate one on the same link, so it would have arrived
+first.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from protocol import keys
+from protocol.config import load_config
+from protocol.session import zenoh_config
+from swarm.deploy import agent_user
+from tests.deployment import (
+    ABSENT_S, WAIT_S, Deployment, Inbox, delivered, free_ports, generate, replies, undeclare,
+    until,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+RUN, OTHER_RUN = "run-a", "run-b"
+N = 5
+RUN_TIMEOUT_S = 90.0  # a whole run, 7 processes (about 6 s here)
+
+
+@pytest.fixture(scope="module")
+def deployment(tmp_path_factory) -> Deployment:
+    return generate(tmp_path_factory.mktemp("acl") / "deploy", RUN, N)
+
+
+@pytest.fixture
+def router(deployment):
+    """A router from the generated configuration; yields the endpoint clients connect to."""
+    listen, connect = free_ports()
+    with zenoh.open(deployment.router_config(listen)):
+        yield connect
+
+
+def _answer(asked: list[str]):
+    def answer(query: zenoh.Query) -> None:
+        asked.append(str(query.key_expr))
+        query.reply(query.key_expr, b"world")
+    return answer
+
+
+def test_follower_queries_only_its_own_sensing_and_motion(deployment, router):
+    asked: list[str] = []
+    with (deployment.client(router, "world") as world,
+          deployment.client(router, "follower-3") as follower):
+        handles = [world.declare_queryable(keys.sense(RUN), _answer(asked)),
+                   world.declare_queryable(keys.act(RUN), _answer(asked))]
+        assert until(lambda: replies(follower, keys.sense(RUN, 3)) == [(True, b"world")])
+        assert replies(follower, keys.act(RUN, 3)) == [(True, b"world")]
+        for other in (0, 1, 2, 4, 5):
+            assert replies(follower, keys.sense(RUN, other), ABSENT_S) == []
+            assert replies(follower, keys.act(RUN, other), ABSENT_S) == []
+        assert replies(follower, keys.sense(RUN), ABSENT_S) == []  # the wildcard
+        assert sorted(set(asked)) == [keys.act(RUN, 3), keys.sense(RUN, 3)]
+        undeclare(handles)
+
+
+def test_follower_cannot_publish_another_agents_samples_or_world_keys(deployment, router):
+    """The observer, subscribed to the whole run, is the witness: nothing forged reaches it,
+    nor the world, nor the follower behind the victim."""
+    own = keys.rod(RUN, 3)
+    forged = [keys.rod(RUN, 2), keys.obs(RUN, 2), keys.rod(RUN, 4), keys.obs(RUN, 4),
+              keys.tick(RUN), keys.done(RUN), keys.missed(RUN), keys.view(RUN, "tick"),
+              f"swarm/{RUN}/agent/3x/rod"]
+    with (deployment.client(router, "world") as world,
+          deployment.client(router, "observer") as observer,
+          deployment.client(router, "follower-3") as attacker,
+          deployment.client(router, "follower-5") as behind):
+        seen, world_inbox, behind_inbox = Inbox(), Inbox(), Inbox()
+        handles = [observer.declare_subscriber(f"swarm/{RUN}/**", seen),
+                   world.declare_subscriber(keys.rod(RUN), world_inbox),
+                   world.declare_subscriber(keys.obs(RUN), world_inbox),
+                   behind.declare_subscriber(keys.rod(RUN, 4), behind_inbox)]
+        assert delivered(lambda: attacker.put(own, b"own"), seen, (own, b"own"))
+        assert world_inbox.wait_for((own, b"own"), WAIT_S)
+        for key in forged:
+            attacker.put(key, b"forged")
+        attacker.put(own, b"after")
+        assert seen.wait_for((own, b"after"), WAIT_S)
+        assert world_inbox.wait_for((own, b"after"), WAIT_S)
+        assert not seen.wait_for((forged[0], b"forged"), ABSENT_S)
+        assert seen.keys() == {own}
+        assert world_inbox.keys() == {own}
+        assert behind_inbox.items == []
+        undeclare(handles)
+
+
+def test_agents_never_receive_world_view(deployment, router):
+    """``world/view/**`` carries absolute coordinates: observers get it, no agent does, even
+    when subscribing to it directly or through a wildcard."""
+    view = keys.view(RUN, "tick")
+    with (deployment.client(router, "world") as world,
+          deployment.client(router, "observer") as observer):
+        seen = Inbox()
+        handles = [observer.declare_subscriber(keys.view(RUN), seen)]
+        agents = [deployment.client(router, agent_user(k)) for k in (0, 1, 5)]
+        try:
+            inboxes = [Inbox() for _ in agents]
+            for agent, inbox in zip(agents, inboxes):
+                for key in (keys.view(RUN), f"swarm/{RUN}/world/**", f"swarm/{RUN}/**"):
+                    handles.append(agent.declare_subscriber(key, inbox))
+            # Positive control: the leader's own subscription to ticks, declared last.
+            handles.append(agents[0].declare_subscriber(keys.tick(RUN), inboxes[0]))
+            assert delivered(lambda: world.put(keys.tick(RUN), b"tick"), inboxes[0],
+                             (keys.tick(RUN), b"tick"))
+            assert delivered(lambda: world.put(view, b"truth"), seen, (view, b"truth"))
+            assert not any(inbox.wait_for((view, b"truth"), ABSENT_S) for inbox in inboxes)
+            assert all(view not in inbox.keys() for inbox in inboxes)
+        finally:
+            undeclare(handles)
+            for agent in agents:
+                agent.close()
+
+
+def test_follower_receives_only_its_predecessors_rod(deployment, router):
+    rod_2 = keys.rod(RUN, 2)
+    with (deployment.client(router, "world") as world,
+          deployment.client(router, "follower-2") as leader_of_3,
+          deployment.client(router, "follower-3") as follower,
+          deployment.client(router, "follower-5") as other):
+        tokens, own, foreign = Inbox(), Inbox(), Inbox()
+        handles = [world.liveliness().declare_subscriber(keys.alive(RUN, "*"), tokens,
+                                                          history=True),
+                   other.declare_subscriber(rod_2, foreign),
+                   other.declare_subscriber(keys.obs(RUN, 2), foreign),
+                   # Declared after the subscriptions: once the world sees the token, the
+                   # router has handled them.
+                   other.liveliness().declare_token(keys.alive(RUN, 5))]
+        assert tokens.wait_for((keys.alive(RUN, 5), b""), WAIT_S)
+        handles.append(follower.declare_subscriber(rod_2, own))
+        assert delivered(lambda: leader_of_3.put(rod_2, b"rod"), own, (rod_2, b"rod"))
+        leader_of_3.put(keys.obs(RUN, 2), b"obs")
+        assert not foreign.wait_for((rod_2, b"rod"), ABSENT_S)
+        assert foreign.items == []
+        undeclare(handles)
+
+
+def test_agent_cannot_serve_world_queries_or_hold_another_token(deployment, router):
+    sense_4 = keys.sense(RUN, 4)
+    with (deployment.client(router, "world") as world,
+          deployment.client(router, "follower-3") as follower,
+          deployment.client(router, "follower-4") as victim):
+        tokens = Inbox()
+        handles = [
+            world.declare_queryable(keys.sense(RUN), lambda q: q.reply(q.key_expr, b"world")),
+            world.liveliness().declare_subscriber(keys.alive(RUN, "*"), tokens, history=True),
+            follower.declare_queryable(sense_4, lambda q: q.reply(q.key_expr, b"forged")),
+            follower.liveliness().declare_token(keys.alive(RUN, 4)),
+            follower.liveliness().declare_token(keys.alive(RUN, "world")),
+            # Declared last on the same link: once the world sees it, the router has handled
+            # the forged declarations above.
+            follower.liveliness().declare_token(keys.alive(RUN, 3)),
+        ]
+        assert tokens.wait_for((keys.alive(RUN, 3), b""), WAIT_S)
+        assert tokens.keys() == {keys.alive(RUN, 3)}
+        assert until(lambda: (True, b"world") in replies(victim, sense_4))
+        assert replies(victim, sense_4) == [(True, b"world")]
+        undeclare(handles)
+
+
+@pytest.mark.parametrize("agent", [0, 1, 5])
+def test_agent_sees_the_world_and_its_own_token(deployment, router, agent):
+    """What liveliness an agent needs: the world's token, and its own (a second process with
+    the same id finds it and refuses to start)."""
+    own, user = keys.alive(RUN, agent), agent_user(agent)
+    with deployment.client(router, "world") as world, deployment.client(router, user) as client:
+        world_seen = Inbox()
+        handles = [world.liveliness().declare_token(keys.alive(RUN, "world")),
+                   client.liveliness().declare_subscriber(keys.alive(RUN, "world"), world_seen,
+                                                          history=True),
+                   client.liveliness().declare_token(own)]
+        assert world_seen.wait_for((keys.alive(RUN, "world"), b""), WAIT_S)
+        with deployment.client(router, user) as twin:
+            assert until(lambda: [str(r.ok.key_expr) for r in twin.liveliness().get(
+                own, timeout=1.0) if r.ok is not None] == [own])
+        undeclare(handles)
+
+
+def test_observer_subscribes_but_cannot_query_publish_or_declare(deployment, router):
+    asked: list[str] = []
+    with (deployment.client(router, "world") as world,
+          deployment.client(router, "observer") as observer,
+          deployment.client(router, "leader") as leader):
+        seen, ticks, tokens = Inbox(), Inbox(), Inbox()
+        handles = [world.declare_queryable(keys.sense(RUN), _answer(asked)),
+                   world.declare_queryable(keys.act(RUN), _answer(asked)),
+                   world.liveliness().declare_token(keys.alive(RUN, "world")),
+                   observer.declare_subscriber(f"swarm/{RUN}/**", seen),
+                   observer.liveliness().declare_subscriber(keys.alive(RUN, "*"), tokens,
+                                                            history=True),
+                   leader.declare_subscriber(keys.tick(RUN), ticks)]
+        # It subscribes: the world's samples, an agent's rod, the liveliness tokens.
+        assert delivered(lambda: world.put(keys.view(RUN, "tick"), b"v"), seen,
+                         (keys.view(RUN, "tick"), b"v"))
+        assert delivered(lambda: leader.put(keys.rod(RUN, 0), b"r"), seen, (keys.rod(RUN, 0), b"r"))
+        assert tokens.wait_for((keys.alive(RUN, "world"), b""), WAIT_S)
+        # It cannot query the sensing or motion of any agent.
+        for key in (keys.sense(RUN, 0), keys.act(RUN, 0), keys.sense(RUN)):
+            assert replies(observer, key, ABSENT_S) == []
+        assert asked == []
+        # It cannot publish: the leader never sees its tick.
+        observer.put(keys.tick(RUN), b"forged")
+        assert delivered(lambda: world.put(keys.tick(RUN), b"world"), ticks,
+                         (keys.tick(RUN), b"world"))
+        assert not ticks.wait_for((keys.tick(RUN), b"forged"), ABSENT_S)
+        # Its queryable and token are not declared: the world never sees the token, the
+        # leader's query reaches the world only.
+        world_tokens = Inbox()
+        handles += [world.liveliness().declare_subscriber(keys.alive(RUN, "*"), world_tokens),
+                    observer.declare_queryable(keys.sense(RUN, 0),
+                                               lambda q: q.reply(q.key_expr, b"forged")),
+                    observer.liveliness().declare_token(keys.alive(RUN, 0))]
+        assert not world_tokens.wait_for((keys.alive(RUN, 0), b""), ABSENT_S)
+        assert until(lambda: replies(leader, keys.sense(RUN, 0)) == [(True, b"world")])
+        assert replies(leader, keys.sense(RUN, 0)) == [(True, b"world")]
+        undeclare(handles)
+
+
+def test_config_of_one_run_grants_nothing_in_another(deployment, router):
+    """Cross-run: the router generated for run A, every user acting on run B's keys."""
+    asked: list[str] = []
+    with (deployment.client(router, "world") as world,
+          deployment.client(router, "leader") as leader,
+          deployment.client(router, "follower-1") as follower,
+          deployment.client(router, "observer") as observer):
+        seen, ticks, rods = Inbox(), Inbox(), Inbox()
+        handles = [world.declare_queryable(keys.sense(RUN), _answer(asked)),
+                   world.declare_queryable(keys.sense(OTHER_RUN), _answer(asked)),
+                   observer.declare_subscriber(f"swarm/{OTHER_RUN}/**", seen),
+                   leader.declare_subscriber(keys.tick(OTHER_RUN), ticks),
+                   world.declare_subscriber(keys.rod(OTHER_RUN), rods),
+                   observer.declare_subscriber(f"swarm/{RUN}/**", seen)]
+        # Positive control in run A.
+        assert until(lambda: replies(follower, keys.sense(RUN, 1)) == [(True, b"world")])
+        assert delivered(lambda: world.put(keys.tick(RUN), b"a"), seen, (keys.tick(RUN), b"a"))
+        assert replies(follower, keys.sense(OTHER_RUN, 1), ABSENT_S) == []
+        world.put(keys.tick(OTHER_RUN), b"b")
+        follower.put(keys.rod(OTHER_RUN, 1), b"b")
+        world.put(keys.tick(RUN), b"after")
+        assert seen.wait_for((keys.tick(RUN), b"after"), WAIT_S)
+        assert not ticks.wait_for((keys.tick(OTHER_RUN), b"b"), ABSENT_S)
+        assert rods.items == []
+        assert not any(key.startswith(f"swarm/{OTHER_RUN}/") for key in seen.keys())
+        assert set(asked) == {keys.sense(RUN, 1)}
+        undeclare(handles)
+
+
+def test_wrong_password_is_refused(deployment, router):
+    with deployment.client(router, "follower-1"):  # positive control: the right one opens
+        pass
+    for user, password in (("follower-1", "wrong"), ("world", deployment.password("leader"))):
+        with pytest.raises(zenoh.ZError):
+            deployment.client(router, user, password=password, connect_timeout=1.0).close()
+
+
+def test_password_with_another_users_certificate_grants_nothing(deployment, router):
+    """The leader's password with follower 1's certificate: both must name the same user, so
+    this session matches no subject and may do nothing."""
+    asked: list[str] = []
+    with (deployment.client(router, "world") as world,
+          deployment.client(router, "leader", identity="follower-1") as mixed,
+          deployment.client(router, "leader") as leader):
+        handles = [world.declare_queryable(keys.sense(RUN), _answer(asked))]
+        assert until(lambda: replies(leader, keys.sense(RUN, 0)) == [(True, b"world")])
+        for key in (keys.sense(RUN, 0), keys.sense(RUN, 1)):
+            assert replies(mixed, key, ABSENT_S) == []
+        assert set(asked) == {keys.sense(RUN, 0)}
+        undeclare(handles)
+
+
+def test_clients_without_tls_or_without_the_deployments_certificate_are_refused(
+        deployment, router, tmp_path):
+    port = router.rpartition(":")[2]
+    user, password = "follower-1", deployment.password("follower-1")
+    with deployment.client(router, user):  # positive control
+        pass
+    attempts = {
+        "plain tcp": zenoh_config("client", connect=[f"tcp/localhost:{port}"], user=user,
+                                  password=password, connect_timeout=1.0),
+        "tls, no client certificate": zenoh_config(
+            "client", connect=[router], user=user, password=password, connect_timeout=1.0,
+            extra=[f'transport/link/tls/root_ca_certificate:'
+                   f'{json.dumps(str(deployment.secret(user, "ca.pem")))}']),
+    }
+    stranger = generate(tmp_path / "stranger", RUN, N)  # the same users, another CA
+    attempts["certificate of another CA"] = zenoh_config(
+        "client", connect=[router], user=user, password=password, connect_timeout=1.0,
+        tls_ca=deployment.secret(user, "ca.pem"), tls_cert=stranger.secret(user, "cert.pem"),
+        tls_key=stranger.secret(user, "key.pem"))
+    refused = []
+    for name, conf in attempts.items():
+        try:
+            zenoh.open(conf).close()
+        except zenoh.ZError:
+            refused.append(name)
+    assert refused == list(attempts)
+
+
+def test_a_whole_run_over_the_generated_configuration(deployment, tmp_path):
+    """World, leader and five followers as processes, each with its own generated files."""
+    listen, connect = free_ports()
+    config = load_config(deployment.folder / "run.toml")
+    out = tmp_path / "results"
+
+    def command(user: str, program: list[str]) -> list[str]:
+        return [sys.executable, "-m", *program, "--config", str(deployment.folder / "run.toml"),
+                "--connect", connect, "--user", user,
+                "--password-file", str(deployment.secret(user, "password")),
+                "--tls-ca", str(deployment.secret(user, "ca.pem")),
+                "--tls-cert", str(deployment.secret(user, "cert.pem")),
+                "--tls-key", str(deployment.secret(user, "key.pem"))]
+
+    commands = {"world": command("world", ["world", "--out", str(out)]),
+                "leader": command("leader", ["agents.leader"])}
+    for k in range(1, N + 1):
+        commands[agent_user(k)] = command(agent_user(k), ["agents.follower", "--id", str(k),
+                                                          "--state-dir", str(tmp_path / f"s{k}")])
+    procs, logs = {}, {}
+    with zenoh.open(deployment.router_config(listen)):
+        try:
+            for name, cmd in commands.items():
+                logs[name] = tmp_path / f"{name}.log"
+                with logs[name].open("w") as log:
+                    procs[name] = subprocess.Popen(cmd, cwd=ROOT, stdout=log,
+                                                   stderr=subprocess.STDOUT)
+            deadline = time.monotonic() + RUN_TIMEOUT_S
+            codes = {name: proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+                     for name, proc in procs.items()}
+        finally:
+            for proc in procs.values():
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait()
+    output = {name: log.read_text()[-2000:] for name, log in logs.items()}
+    assert codes == dict.fromkeys(procs, 0), output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["complete"] and summary["ticks_completed"] == config.ticks
+    assert set(summary["followers"]) == {str(k) for k in range(1, N + 1)}
+    for stats in summary["followers"].values():
+        assert stats["estimated_ticks"] == config.ticks - config.init_ticks
+        assert stats["missed_ticks"] == 0
