@@ -1,5 +1,6 @@
-# One image for every Python service of docker-compose.yml: `python -m world`,
-# `python -m agents.leader`, `python -m agents.follower --id K`.
+# One image for every Python service of deploy/docker-compose.yml (`python -m swarm deploy`):
+# `python -m world`, `python -m agents.leader`, `python -m agents.follower --id K`.
+# Build from the repository root: docker build -t koopman-swarm:local .
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -15,10 +16,11 @@ COPY agents/ agents/
 COPY swarm/ swarm/
 RUN pip install . && rm -rf /src
 
-# Non-root. /results is created here, owned by the user, so that a named volume mounted there
-# starts with that ownership. numba caches compiled kernels under the user's home.
+# Non-root. /results (the world's) and /state (a follower's checkpoint) are created here, owned
+# by the user, so that a named volume mounted there starts with that ownership. numba caches
+# compiled kernels under the user's home.
 RUN useradd --create-home --uid 10001 swarm \
-    && mkdir /results && chown swarm:swarm /results
+    && mkdir /results /state && chown swarm:swarm /results /state && chmod 0700 /state
 USER swarm
 WORKDIR /home/swarm
 ENV NUMBA_CACHE_DIR=/home/swarm/.cache/numba
