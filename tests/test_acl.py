@@ -9,6 +9,7 @@ first.
 from __future__ import annotations
 
 import json
+import stat
 import subprocess
 import sys
 import time
@@ -18,9 +19,10 @@ import pytest
 import zenoh
 
 from protocol import keys
-from protocol.config import load_config
-from protocol.session import zenoh_config
+from protocol.config import RunConfig, load_config
+from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.deploy import agent_user
+from swarm.launch import RunCredentials, embedded_router_config
 from tests.deployment import (
     ABSENT_S, WAIT_S, Deployment, Inbox, delivered, free_ports, generate, replies, undeclare,
     until,
@@ -75,26 +77,31 @@ def test_follower_cannot_publish_another_agents_samples_or_world_keys(deployment
     forged = [keys.rod(RUN, 2), keys.obs(RUN, 2), keys.rod(RUN, 4), keys.obs(RUN, 4),
               keys.tick(RUN), keys.done(RUN), keys.missed(RUN), keys.view(RUN, "tick"),
               f"swarm/{RUN}/agent/3x/rod"]
+    rod_4 = keys.rod(RUN, 4)
     with (deployment.client(router, "world") as world,
           deployment.client(router, "observer") as observer,
           deployment.client(router, "follower-3") as attacker,
+          deployment.client(router, "follower-4") as victim,
           deployment.client(router, "follower-5") as behind):
         seen, world_inbox, behind_inbox = Inbox(), Inbox(), Inbox()
         handles = [observer.declare_subscriber(f"swarm/{RUN}/**", seen),
                    world.declare_subscriber(keys.rod(RUN), world_inbox),
                    world.declare_subscriber(keys.obs(RUN), world_inbox),
-                   behind.declare_subscriber(keys.rod(RUN, 4), behind_inbox)]
+                   behind.declare_subscriber(rod_4, behind_inbox)]
+        # Positive controls: every route is in place.
         assert delivered(lambda: attacker.put(own, b"own"), seen, (own, b"own"))
-        assert world_inbox.wait_for((own, b"own"), WAIT_S)
+        assert delivered(lambda: attacker.put(own, b"own"), world_inbox, (own, b"own"))
+        assert delivered(lambda: victim.put(rod_4, b"real"), behind_inbox, (rod_4, b"real"))
         for key in forged:
             attacker.put(key, b"forged")
         attacker.put(own, b"after")
         assert seen.wait_for((own, b"after"), WAIT_S)
         assert world_inbox.wait_for((own, b"after"), WAIT_S)
         assert not seen.wait_for((forged[0], b"forged"), ABSENT_S)
-        assert seen.keys() == {own}
-        assert world_inbox.keys() == {own}
-        assert behind_inbox.items == []
+        assert seen.keys() == {own, rod_4}
+        assert all(payload != b"forged" for _, payload in seen.items + world_inbox.items)
+        assert world_inbox.keys() == {own, rod_4}
+        assert {payload for _, payload in behind_inbox.items} == {b"real"}
         undeclare(handles)
 
 
@@ -352,3 +359,44 @@ def test_a_whole_run_over_the_generated_configuration(deployment, tmp_path):
     for stats in summary["followers"].values():
         assert stats["estimated_ticks"] == config.ticks - config.init_ticks
         assert stats["missed_ticks"] == 0
+
+
+# --- swarm run's embedded router ---------------------------------------------------------------
+
+
+def test_swarm_run_router_admits_only_the_runs_users_under_the_same_rules(tmp_path):
+    """The world's router of ``swarm run``: per-run random passwords in private files, no
+    anonymous client, and the deployment's rules (no one but the world ends the run)."""
+    config = RunConfig(run_id="embedded", followers=2)
+    credentials = RunCredentials.create(tmp_path / "credentials", config.followers)
+    assert stat.S_IMODE(credentials.folder.stat().st_mode) == 0o700
+    files = sorted(p.name for p in credentials.folder.iterdir())
+    assert files == sorted(["credentials.txt", "leader.password", "follower-1.password",
+                            "follower-2.password", "observer.password"])  # none for the world
+    assert all(stat.S_IMODE(p.stat().st_mode) == 0o600 for p in credentials.folder.iterdir())
+    assert len(set(credentials.passwords.values())) == len(credentials.passwords)
+    endpoint = free_tcp_endpoint()
+
+    def client(user: str | None, password: str | None = None) -> zenoh.Session:
+        if user is not None and password is None:
+            password = credentials.password_file(user).read_text().strip()
+        return zenoh.open(zenoh_config("client", connect=[endpoint], user=user,
+                                       password=password, connect_timeout=1.0))
+
+    with zenoh.open(embedded_router_config(config, endpoint, credentials)) as world:
+        for user, password in ((None, None), ("follower-1", "wrong"), ("world", "")):
+            with pytest.raises(zenoh.ZError):
+                client(user, password).close()
+        done = keys.done(config.run_id)
+        with client("leader") as leader, client("follower-1") as follower:
+            inbox = Inbox()
+            handles = [leader.declare_subscriber(done, inbox)]
+            assert delivered(lambda: world.put(done, b"world"), inbox, (done, b"world"))
+            follower.put(done, b"forged")
+            assert not inbox.wait_for((done, b"forged"), ABSENT_S)
+            handles.append(world.declare_queryable(keys.sense(config.run_id),
+                                                   lambda q: q.reply(q.key_expr, b"world")))
+            assert until(lambda: replies(follower, keys.sense(config.run_id, 1))
+                         == [(True, b"world")])
+            assert replies(follower, keys.sense(config.run_id, 2), ABSENT_S) == []
+            undeclare(handles)

@@ -226,3 +226,32 @@ def test_sensing_reveals_positions_when_the_run_enables_gps(monkeypatch):
         assert reply.gps == pytest.approx(poses[agent], abs=1e-12)
         assert reply.leader_gps == pytest.approx(poses[agent - 1], abs=1e-12)
         assert _reveals(reply, poses[agent]) and _reveals(reply, poses[agent - 1])
+
+
+# --- session configuration ------------------------------------------------------------------------
+
+
+def test_every_session_config_bounds_message_size_and_takes_tls_flags(deployment):
+    import argparse
+
+    from protocol.session import add_credential_flags, tls_options, zenoh_config
+
+    for mode, kwargs in (("peer", {}), ("client", {"connect": ["tcp/127.0.0.1:7447"]}),
+                         ("router", {"listen": ["tcp/127.0.0.1:0"]})):
+        conf = zenoh_config(mode, **kwargs)
+        assert json.loads(conf.get_json("transport/link/rx/max_message_size")) == MAX_MESSAGE_SIZE
+    parser = argparse.ArgumentParser()
+    add_credential_flags(parser)
+    files = [str(deployment.secret("leader", name)) for name in ("ca.pem", "cert.pem", "key.pem")]
+    args = parser.parse_args(["--tls-ca", files[0], "--tls-cert", files[1], "--tls-key", files[2]])
+    conf = zenoh_config("client", connect=["tls/localhost:7447"], **tls_options(args))
+    assert json.loads(conf.get_json("transport/link/tls/connect_certificate")) == files[1]
+    assert json.loads(conf.get_json("transport/link/tls/enable_mtls")) is True
+    assert tls_options(parser.parse_args([])) == dict.fromkeys(("tls_ca", "tls_cert", "tls_key"))
+    with pytest.raises(ValueError, match="must be given together"):
+        tls_options(parser.parse_args(["--tls-ca", files[0]]))
+    with pytest.raises(ValueError, match="no such file"):
+        tls_options(parser.parse_args(["--tls-ca", "/nonexistent", "--tls-cert", files[1],
+                                       "--tls-key", files[2]]))
+    with pytest.raises(ValueError, match="max_message_size"):
+        zenoh_config("peer", max_message_size=10)
