@@ -196,6 +196,18 @@ def test_agent_sees_the_world_and_its_own_token(deployment, router, agent):
         undeclare(handles)
 
 
+def test_a_second_world_finds_the_live_one(deployment, router):
+    """The liveliness query of ``world-token``: a world can tell that its run id is live
+    (issue 8: a second world must not join a live run)."""
+    alive = keys.alive(RUN, "world")
+    with deployment.client(router, "world") as world:
+        token = world.liveliness().declare_token(alive)
+        with deployment.client(router, "world") as second:
+            assert until(lambda: [str(r.ok.key_expr) for r in second.liveliness().get(
+                alive, timeout=1.0) if r.ok is not None] == [alive])
+        token.undeclare()
+
+
 def test_observer_subscribes_but_cannot_query_publish_or_declare(deployment, router):
     asked: list[str] = []
     with (deployment.client(router, "world") as world,
