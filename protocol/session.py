@@ -135,7 +135,7 @@ def add_credential_flags(parser: argparse.ArgumentParser) -> None:
     secret.add_argument("--password-file", metavar="FILE",
                         help="read the Zenoh password from the first line of FILE")
     parser.add_argument("--tls-ca", metavar="PEM",
-                        help="CA certificate trusted for tls/ endpoints (with --tls-cert, --tls-key)")
+                        help="CA certificate for tls/ endpoints (with --tls-cert, --tls-key)")
     parser.add_argument("--tls-cert", metavar="PEM", help="this process's TLS certificate")
     parser.add_argument("--tls-key", metavar="PEM", help="this process's TLS private key")
     parser.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",

@@ -11,7 +11,9 @@ One run id and a number of followers determine everything but the secrets:
 - :func:`write_deployment`: a folder with ``run.toml``, ``zenoh/router.json5``,
   ``docker-compose.yml`` and ``.gitignore`` (deterministic), and ``secrets/`` (random: a
   password per user, a CA, the router's and each user's certificate and key; the CA's private
-  key is never written, so no further certificate can be signed with it).
+  key is never written, so no further certificate can be signed with it). Secrets come from
+  the operating system's CSPRNG (``secrets``, ``cryptography``), deliberately unseeded: they
+  must not be reproducible from anything in the repository or the run configuration.
 """
 from __future__ import annotations
 
@@ -396,7 +398,8 @@ COMPOSE_HEADER = """\
 # Written by `python -m swarm deploy` (deploy/README.md); regenerate rather than edit.
 #
 #   docker build -t koopman-swarm:local .        # from the repository root
-#   docker compose -f deploy/docker-compose.yml up -d && docker compose -f deploy/docker-compose.yml wait world
+#   docker compose -f deploy/docker-compose.yml up -d
+#   docker compose -f deploy/docker-compose.yml wait world
 #
 # Every service mounts only its own secrets (secrets/<user>/); the world alone mounts the
 # results volume; each follower keeps its checkpoint in its own volume state-K.

@@ -8,6 +8,7 @@ and every path mapped through the compose volumes that mount it. Clients connect
 from __future__ import annotations
 
 import json
+import subprocess
 import sys
 import threading
 import time
@@ -110,6 +111,48 @@ class Deployment:
             password=self.password(user) if password is None else password,
             connect_timeout=connect_timeout, tls_ca=self.secret(identity, "ca.pem"),
             tls_cert=self.secret(identity, "cert.pem"), tls_key=self.secret(identity, "key.pem")))
+
+
+def run_processes(router: zenoh.Config, commands: dict[str, list[str]], logs: Path, cwd: Path,
+                  timeout: float) -> tuple[dict[str, int], dict[str, str]]:
+    """Start ``router``, run every command to its end (killed after ``timeout`` seconds in
+    all); return the exit codes and the tail of each output, by name."""
+    procs, files = {}, {}
+    with zenoh.open(router):
+        try:
+            for name, command in commands.items():
+                files[name] = logs / f"{name}.log"
+                with files[name].open("w") as log:
+                    procs[name] = subprocess.Popen(command, cwd=cwd, stdout=log,
+                                                   stderr=subprocess.STDOUT)
+            deadline = time.monotonic() + timeout
+            codes = {name: proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+                     for name, proc in procs.items()}
+        finally:
+            for proc in procs.values():
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait()
+    return codes, {name: path.read_text()[-2000:] for name, path in files.items()}
+
+
+def check_complete_run(out: Path, config) -> None:
+    """``out`` holds a complete run of ``config``: every tick, every follower estimating from
+    the end of its initial ticks, none missed (ValueError naming what is wrong otherwise)."""
+    summary = json.loads((out / "summary.json").read_text())
+    followers = {str(k) for k in range(1, config.followers + 1)}
+    problems = []
+    if not summary["complete"] or summary["ticks_completed"] != config.ticks:
+        problems.append(f"complete={summary['complete']}, ticks={summary['ticks_completed']}")
+    if set(summary["followers"]) != followers:
+        problems.append(f"followers {sorted(summary['followers'])}")
+    expected = (config.ticks - config.init_ticks, 0)
+    for k, stats in summary["followers"].items():
+        if (stats["estimated_ticks"], stats["missed_ticks"]) != expected:
+            problems.append(f"follower {k}: {stats['estimated_ticks']} estimated, "
+                            f"{stats['missed_ticks']} missed")
+    if problems:
+        raise ValueError(f"run in {out} is not complete: {'; '.join(problems)}")
 
 
 class Inbox:

@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import json
 import stat
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -24,8 +22,8 @@ from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.deploy import agent_user
 from swarm.launch import RunCredentials, embedded_router_config
 from tests.deployment import (
-    ABSENT_S, WAIT_S, Deployment, Inbox, delivered, free_ports, generate, replies, undeclare,
-    until,
+    ABSENT_S, WAIT_S, Deployment, Inbox, check_complete_run, delivered, free_ports, generate,
+    replies, run_processes, undeclare, until,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -347,30 +345,10 @@ def test_a_whole_run_over_the_generated_configuration(deployment, tmp_path):
     for k in range(1, N + 1):
         commands[agent_user(k)] = command(agent_user(k), ["agents.follower", "--id", str(k),
                                                           "--state-dir", str(tmp_path / f"s{k}")])
-    procs, logs = {}, {}
-    with zenoh.open(deployment.router_config(listen)):
-        try:
-            for name, cmd in commands.items():
-                logs[name] = tmp_path / f"{name}.log"
-                with logs[name].open("w") as log:
-                    procs[name] = subprocess.Popen(cmd, cwd=ROOT, stdout=log,
-                                                   stderr=subprocess.STDOUT)
-            deadline = time.monotonic() + RUN_TIMEOUT_S
-            codes = {name: proc.wait(timeout=max(0.1, deadline - time.monotonic()))
-                     for name, proc in procs.items()}
-        finally:
-            for proc in procs.values():
-                if proc.poll() is None:
-                    proc.kill()
-                    proc.wait()
-    output = {name: log.read_text()[-2000:] for name, log in logs.items()}
-    assert codes == dict.fromkeys(procs, 0), output
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["complete"] and summary["ticks_completed"] == config.ticks
-    assert set(summary["followers"]) == {str(k) for k in range(1, N + 1)}
-    for stats in summary["followers"].values():
-        assert stats["estimated_ticks"] == config.ticks - config.init_ticks
-        assert stats["missed_ticks"] == 0
+    codes, output = run_processes(deployment.router_config(listen), commands, tmp_path, ROOT,
+                                  RUN_TIMEOUT_S)
+    assert codes == dict.fromkeys(commands, 0), output
+    check_complete_run(out, config)
 
 
 # --- swarm run's embedded router ---------------------------------------------------------------

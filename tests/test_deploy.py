@@ -13,12 +13,10 @@ import math
 import stat
 import struct
 import subprocess
-import time
 from importlib.metadata import version
 from pathlib import Path
 
 import pytest
-import zenoh
 from cryptography import x509
 from cryptography.x509.oid import NameOID
 
@@ -27,7 +25,9 @@ from protocol.messages import Sensing, encode
 from protocol.session import MAX_MESSAGE_SIZE
 from swarm.deploy import SECRETS, generated_files, users
 from swarm.local import run_local
-from tests.deployment import ROUTER_IN_COMPOSE, Deployment, free_ports, generate
+from tests.deployment import (
+    ROUTER_IN_COMPOSE, Deployment, check_complete_run, free_ports, generate, run_processes,
+)
 from world.sim import WorldSim
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,7 +43,7 @@ def deployment(tmp_path_factory) -> Deployment:
     return generate(tmp_path_factory.mktemp("deploy") / "deploy", CONFIG.run_id, CONFIG.followers)
 
 
-# --- the committed deployment is the generator's output --------------------------------------------
+# --- the committed deployment is the generator's output ---------------------------------------
 
 
 def test_committed_deploy_is_the_generated_one(deployment):
@@ -65,7 +65,8 @@ def test_generated_output_is_deterministic_but_secrets_are_not(deployment, tmp_p
         assert (other.folder / rel).read_bytes() == (deployment.folder / rel).read_bytes()
     for user in users(CONFIG.followers):
         assert other.password(user) != deployment.password(user)
-        assert other.secret(user, "key.pem").read_bytes() != deployment.secret(user, "key.pem").read_bytes()
+        assert (other.secret(user, "key.pem").read_bytes()
+                != deployment.secret(user, "key.pem").read_bytes())
 
 
 def test_deploy_refuses_to_replace_secrets(deployment, capsys):
@@ -97,7 +98,8 @@ def test_secrets_are_private_and_certificates_name_their_users(deployment):
             "zenoh", "ca.pem").read_bytes()
         names[user] = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value
     assert names == {"zenoh": "router", **{u: u for u in users(CONFIG.followers)}}
-    router_cert = x509.load_pem_x509_certificate(deployment.secret("zenoh", "cert.pem").read_bytes())
+    router_cert = x509.load_pem_x509_certificate(
+        deployment.secret("zenoh", "cert.pem").read_bytes())
     alt = router_cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
     assert "zenoh" in alt.get_values_for_type(x509.DNSName)  # the compose host name
 
@@ -144,33 +146,13 @@ def test_compose_matches_router_and_credentials(deployment):
 def test_compose_services_complete_a_run(deployment, tmp_path):
     """Every compose service's command, run here against the generated router, over TLS."""
     listen, connect = free_ports()
-    procs, logs = {}, {}
-    with zenoh.open(deployment.router_config(listen)):
-        try:
-            for service in ("world", *AGENTS):
-                logs[service] = tmp_path / f"{service}.log"
-                with logs[service].open("w") as log:
-                    procs[service] = subprocess.Popen(
-                        deployment.local_command(service, connect, tmp_path), cwd=ROOT,
-                        stdout=log, stderr=subprocess.STDOUT)
-            deadline = time.monotonic() + RUN_TIMEOUT_S
-            codes = {service: proc.wait(timeout=max(0.1, deadline - time.monotonic()))
-                     for service, proc in procs.items()}
-        finally:
-            for proc in procs.values():
-                if proc.poll() is None:
-                    proc.kill()
-                    proc.wait()
-    output = {service: log.read_text()[-2000:] for service, log in logs.items()}
-    assert codes == dict.fromkeys(procs, 0), output
-    out = Path(deployment.local_path(deployment.option("world", "--out"),
-                                     deployment.mounts("world", tmp_path)))
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["complete"] and summary["ticks_completed"] == CONFIG.ticks
-    assert set(summary["followers"]) == {str(k) for k in range(1, CONFIG.followers + 1)}
-    for stats in summary["followers"].values():
-        assert stats["estimated_ticks"] == CONFIG.ticks - CONFIG.init_ticks
-        assert stats["missed_ticks"] == 0
+    commands = {service: deployment.local_command(service, connect, tmp_path)
+                for service in ("world", *AGENTS)}
+    codes, output = run_processes(deployment.router_config(listen), commands, tmp_path, ROOT,
+                                  RUN_TIMEOUT_S)
+    assert codes == dict.fromkeys(commands, 0), output
+    check_complete_run(Path(deployment.local_path(deployment.option("world", "--out"),
+                                                  deployment.mounts("world", tmp_path))), CONFIG)
 
 
 # --- what sensing reveals ------------------------------------------------------------------------
