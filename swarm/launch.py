@@ -125,10 +125,12 @@ def new_run_id() -> str:
 
 
 def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
-           on_tick: Callable[[int], None] | None = None, endpoint: str | None = None) -> dict:
+           on_tick: Callable[[int], None] | None = None, endpoint: str | None = None,
+           before_agents: Callable[[], None] | None = None) -> dict:
     """Run ``config`` end to end; return the summary (also in ``out_dir/summary.json``).
 
-    The world listens on ``endpoint`` (default: a free loopback port).
+    The world listens on ``endpoint`` (default: a free loopback port). ``before_agents`` is
+    called once the world is up, before the agents start (the live view connects there).
 
     Raises RuntimeError if the agents do not come up. Ctrl-C stops every agent and leaves a
     partial result marked incomplete.
@@ -136,9 +138,15 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
     out_dir = Path(out_dir)  # run_world resolves the config and writes config.toml first
     endpoint = endpoint or free_tcp_endpoint()
     agents = _ThreadAgents(config, endpoint) if in_process else _ProcessAgents(config, out_dir, endpoint)
+
+    def ready(service: WorldService) -> None:
+        if before_agents is not None:
+            before_agents()
+        agents.start(service)
+
     try:
         summary = run_world(config, zenoh_config("router", listen=[endpoint]), out_dir,
-                            on_tick=on_tick, on_ready=agents.start)
+                            on_tick=on_tick, on_ready=ready)
     except BaseException:  # Ctrl-C or a failure: end every agent now
         agents.stop(timeout=1.0)
         raise
