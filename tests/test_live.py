@@ -1,0 +1,440 @@
+"""The live view and the replay: payloads, drawing data, the observer's rights on a router with
+access control, identical numbers with ``--live``, and the pages in headless Chromium.
+
+Browser tests need Debian's ``chromium`` (``.ci/run`` installs it) and Playwright; they write
+their screenshots to ``$SWARM_SCREENSHOT_DIR`` when set (``docs/`` keeps the committed ones),
+else to the test's temporary folder.
+"""
+from __future__ import annotations
+
+import ast
+import json
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from protocol import keys
+from protocol.config import RunConfig, load_config
+from protocol.messages import ProtocolError
+from protocol.session import free_tcp_endpoint, zenoh_config
+from protocol.view import (
+    MAP_CELLS, MAX_VIEW_BYTES, ROWS_PER_CHUNK, TICK_COLUMNS, decode_map, decode_tick, encode_map,
+    encode_tick, tick_payloads,
+)
+from swarm.launch import launch
+from swarm.live.draw import follower_series, heading, hillshade, map_columns
+from swarm.live.store import COMPLETE, INCOMPLETE, RUNNING, Frame, RunStore, load_run
+from world.main import resolve_with_surface
+from world.sim import WorldSim
+from world.view import map_payload
+
+ROOT = Path(__file__).resolve().parents[1]
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync", "--no-first-run"]
+WAIT_S = 5.0
+RUN_TIMEOUT_S = 90.0  # a whole short run with the page server (about 10 s here)
+STATUS = re.compile(r"tick (\d+) of (\d+)")
+
+
+def _world_map(surface: str = "elliptic", followers: int = 3) -> tuple[dict, WorldSim]:
+    config, surf = resolve_with_surface(RunConfig(run_id="view", surface=surface,
+                                                  followers=followers))
+    sim = WorldSim(config, surf)
+    return map_payload(config, surf, sim.ideal), sim
+
+
+# --- payloads ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("surface", ["elliptic", "wavy", "hemisphere"])
+def test_map_covers_the_ideal_column_within_the_size_limit(surface):
+    view_map, sim = _world_map(surface)
+    assert len(encode_map(view_map)) <= MAX_VIEW_BYTES
+    assert decode_map(encode_map(view_map))["shape"] == view_map["shape"]
+    ny, nx = view_map["shape"]
+    assert ny * nx <= MAP_CELLS and min(nx, ny) >= 20
+    x0, x1, y0, y1 = view_map["box"]
+    ideal = sim.ideal[np.isfinite(sim.ideal).all(axis=2)]
+    assert (ideal[:, 0] > x0).all() and (ideal[:, 0] < x1).all()
+    assert (ideal[:, 1] > y0).all() and (ideal[:, 1] < y1).all()
+    # the grid's corners are the surface's heights there (32-bit on the wire)
+    wire = decode_map(encode_map(view_map))
+    for i, j in ((0, 0), (ny - 1, nx - 1)):
+        p = np.array([x0 if j == 0 else x1, y0 if i == 0 else y1])
+        inside = getattr(sim.surface, "contains", lambda _: True)(p)
+        expected = sim.surface.height(p) if inside else None
+        got = wire["heights"][i * nx + j]
+        assert got == (None if expected is None else pytest.approx(expected, rel=1e-6, abs=1e-6))
+    if surface == "hemisphere":  # outside the domain: no height
+        assert any(h is None for h in view_map["heights"])
+
+
+def test_tick_rows_travel_in_chunks_and_bad_payloads_are_refused():
+    rows = [{"tick": 7, "t": 8.96, "agent": k, "pos_x": float(k), "pos_y": -float(k),
+             **({} if k == 0 else {"ideal_x": 1.0, "ideal_y": 2.0, "stay_range": 0.5,
+                                   "persist_range": 0.1, "lost": 1, "missed": 0})}
+            for k in range(2 * ROWS_PER_CHUNK + 5)]
+    chunks = tick_payloads(rows, n_agents=len(rows))
+    assert [len(c["rows"]) for c in chunks] == [ROWS_PER_CHUNK, ROWS_PER_CHUNK, 5]
+    for chunk in chunks:
+        assert len(encode_tick(chunk)) <= MAX_VIEW_BYTES
+        assert decode_tick(encode_tick(chunk)) == chunk
+    first = dict(zip(TICK_COLUMNS, chunks[0]["rows"][1]))
+    assert first["pos_x"] == 1.0 and first["lost"] == 1 and first["est_x"] is None
+    store = RunStore()
+    store.add_tick(chunks[0])
+    store.add_tick(chunks[1])
+    assert store.snapshot().frames == ()  # the tick counts once every row is in
+    store.add_tick(chunks[2])
+    [frame] = store.snapshot().frames
+    assert frame.tick == 7 and len(frame.rows) == len(rows) and store.snapshot().status == RUNNING
+    bad = dict(chunks[0], rows=[[0, math.nan] + [None] * (len(TICK_COLUMNS) - 2)])
+    with pytest.raises(ProtocolError, match="pos_x"):
+        encode_tick(bad)
+    with pytest.raises(ProtocolError, match="agent 9"):
+        encode_tick(dict(chunks[0], agents=9, rows=[[9] + [1.0] * (len(TICK_COLUMNS) - 1)]))
+    with pytest.raises(ProtocolError, match="version"):
+        decode_tick(b"\x81\xa1v\x02")
+
+
+def test_store_status_and_a_vanished_world():
+    store = RunStore()
+    store.world_gone()
+    assert (store.snapshot().status, store.snapshot().reason) == (
+        INCOMPLETE, "the world process disappeared")
+    store = RunStore()
+    store.finish(True)
+    store.world_gone()  # the world leaves after world/done: still complete
+    assert store.snapshot().status == COMPLETE
+
+
+# --- drawing data --------------------------------------------------------------------------------
+
+
+def _frame(tick: int, positions: list[tuple[float, float]], ideals, estimates) -> Frame:
+    rows = {}
+    for k, (x, y) in enumerate(positions):
+        row = dict.fromkeys(TICK_COLUMNS)
+        row.update(agent=k, pos_x=x, pos_y=y, lost=0, missed=0)
+        if k > 0:
+            row.update(ideal_x=ideals[k][0], ideal_y=ideals[k][1], stay_range=1.0,
+                       persist_range=0.1)
+            if estimates[k] is not None:
+                row.update(est_x=estimates[k][0], est_y=estimates[k][1], required_range=0.01)
+        rows[k] = row
+    return Frame(tick, 1.28 * tick, rows)
+
+
+def test_map_columns_draw_every_agent_and_rod_with_headings():
+    """Four agents in a column moving +y: rods from agent k−1 to follower k's true rod end."""
+    ideals = {k: (3.0 * k, 1.0) for k in (1, 2, 3)}
+    before = _frame(0, [(3.0 * k, 0.0) for k in range(4)], ideals, dict.fromkeys(range(4)))
+    now = _frame(1, [(3.0 * k, 1.0) for k in range(4)], ideals,
+                 {1: (3.1, 1.0), 2: (6.0, 1.2), 3: None})
+    frames = {0: before, 1: now}
+    cols = map_columns(frames, 1, sensing_range=0.5)
+    assert len(cols["agents"]["x"]) == 4 and len(cols["rods"]["x0"]) == 3
+    assert cols["rods"]["x0"] == [0.0, 3.0, 6.0] and cols["rods"]["x1"] == [3.0, 6.0, 9.0]
+    assert len(cols["estimates"]["x"]) == 2 and cols["ranges"]["radius"] == [0.5, 0.5]
+    assert cols["agents"]["angle"] == pytest.approx([0.0] * 4)  # heading +y, triangle points up
+    assert heading(frames, 0, 2) == pytest.approx(math.pi / 2)  # tick 0: its first move
+    assert map_columns(frames, 1, sensing_range=None)["ranges"]["x"] == []
+    assert [len(xs) for xs in cols["paths"]["xs"]] == [2, 2, 2, 2]
+    series = follower_series([before, now], 3)
+    assert series["ranges"]["required"][1] != series["ranges"]["required"][1]  # NaN: no estimate
+    assert series["ranges"]["stay"] == [1.0, 1.0]
+
+
+def test_hillshade_lights_slopes_facing_the_light():
+    """Light from the north-west: a slope rising to the east (facing west) is brighter than one
+    rising to the west; cells outside the domain are transparent."""
+    def plane(slope: float, hole: bool = False) -> dict:
+        xs, ys = np.linspace(0, 10, 20), np.linspace(0, 10, 20)
+        z = [slope * x for y in ys for x in xs]
+        if hole:
+            z[0] = None
+        return {"shape": [20, 20], "box": [0.0, 10.0, 0.0, 10.0], "heights": z}
+
+    east, west = hillshade(plane(0.5)), hillshade(plane(-0.5))
+    assert east.shape == (20, 20, 4) and east.dtype == np.uint8
+    assert east[..., :3].mean() > west[..., :3].mean() + 20
+    holed = hillshade(plane(0.5, hole=True))
+    assert holed[0, 0, 3] == 0 and (holed[..., 3] == 255).sum() == 399
+
+
+# --- the observer never needs the world ----------------------------------------------------------
+
+
+def test_observer_does_not_import_world():
+    """Static check of swarm/live, and a fresh interpreter that loads every live module."""
+    for path in (ROOT / "swarm" / "live").glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            for name in names:
+                assert name.split(".")[0] not in ("world", "agents"), f"{path.name} imports {name}"
+    code = ("import sys, swarm.live.observer, swarm.live.page, swarm.live.server, "
+            "swarm.live.store, swarm.live.feed, swarm.live.draw; "
+            "bad = [m for m in ('world', 'agents') if m in sys.modules]; "
+            "print(bad); sys.exit(1 if bad else 0)")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+# --- the observer role on a router with access control -------------------------------------------
+
+
+def _acl_router(endpoint: str, folder: Path) -> zenoh.Config:
+    """A router where ``world`` and ``agent`` may do anything under ``swarm/**`` and
+    ``observer`` may only subscribe (samples and liveliness) and receive."""
+    (folder / "credentials.txt").write_text("world:w-pw\nagent:a-pw\nobserver:o-pw\n")
+    everything = ["put", "delete", "query", "reply", "declare_subscriber", "declare_queryable",
+                  "liveliness_token", "liveliness_query", "declare_liveliness_subscriber"]
+    acl = {
+        "enabled": True, "default_permission": "deny",
+        "rules": [
+            {"id": "all", "permission": "allow", "flows": ["ingress", "egress"],
+             "messages": everything, "key_exprs": ["swarm/**"]},
+            {"id": "observe", "permission": "allow", "flows": ["ingress"],
+             "messages": ["declare_subscriber", "declare_liveliness_subscriber"],
+             "key_exprs": ["swarm/**"]},
+            {"id": "observed", "permission": "allow", "flows": ["egress"],
+             "messages": ["put", "delete", "liveliness_token"], "key_exprs": ["swarm/**"]},
+        ],
+        "subjects": [{"id": "trusted", "usernames": ["world", "agent"]},
+                     {"id": "observer", "usernames": ["observer"]}],
+        "policies": [{"id": "trusted", "subjects": ["trusted"], "rules": ["all"]},
+                     {"id": "observer", "subjects": ["observer"], "rules": ["observe", "observed"]}],
+    }
+    conf = zenoh_config("router", listen=[endpoint])
+    conf.insert_json5("transport/auth/usrpwd/dictionary_file",
+                      json.dumps(str(folder / "credentials.txt")))
+    conf.insert_json5("access_control", json.dumps(acl))
+    return conf
+
+
+class Inbox:
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self.items: list[tuple[str, bytes]] = []
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        with self._cond:
+            self.items.append((str(sample.key_expr), sample.payload.to_bytes()))
+            self._cond.notify_all()
+
+    def wait_for(self, item: tuple[str, bytes], timeout: float) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: item in self.items, timeout)
+
+
+def _until(condition, timeout: float = WAIT_S) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_observer_can_subscribe_but_neither_query_the_world_nor_publish(tmp_path):
+    run = "acl"
+    endpoint = free_tcp_endpoint()
+
+    def client(user: str, password: str) -> zenoh.Session:
+        return zenoh.open(zenoh_config("client", connect=[endpoint], user=user,
+                                       password=password, connect_timeout=WAIT_S))
+
+    def replies(session: zenoh.Session, key: str, timeout: float = 1.0) -> list[bytes]:
+        return [r.ok.payload.to_bytes() for r in session.get(key, timeout=timeout)
+                if r.ok is not None]
+
+    with (zenoh.open(_acl_router(endpoint, tmp_path)), client("world", "w-pw") as world,
+          client("agent", "a-pw") as agent, client("observer", "o-pw") as observer):
+        heard, seen = Inbox(), Inbox()
+        handles = [world.declare_queryable(keys.sense(run), lambda q: q.reply(q.key_expr, b"w")),
+                   world.declare_subscriber(f"swarm/{run}/**", heard),
+                   observer.declare_subscriber(keys.view(run), seen)]
+        # positive controls: the agent's query is answered and its sample heard; the world's
+        # view sample reaches the observer
+        assert _until(lambda: replies(agent, keys.sense(run, 1)) == [b"w"])
+        view_tick = keys.view(run, "tick")
+        assert _until(lambda: (world.put(view_tick, b"t"), seen.wait_for((view_tick, b"t"), 0.1))[1])
+        assert replies(observer, keys.sense(run, 1), timeout=0.5) == []
+        rod = keys.rod(run, 1)
+        for key in (rod, keys.tick(run), view_tick):
+            observer.put(key, b"forged")
+        agent.put(rod, b"after")  # sent later, so it would arrive after the forged ones
+        assert heard.wait_for((rod, b"after"), WAIT_S)
+        assert not [item for item in heard.items if item[1] == b"forged"]
+        for handle in reversed(handles):
+            handle.undeclare()
+
+
+# --- runs with the live view ---------------------------------------------------------------------
+
+
+def _swarm(*args: str, log: Path) -> subprocess.Popen:
+    with log.open("w") as fh:
+        return subprocess.Popen([sys.executable, "-m", "swarm", *args], cwd=ROOT, stdout=fh,
+                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                env={**os.environ, "PYTHONPATH": str(ROOT)})
+
+
+def _complete(out: Path) -> bool:
+    try:
+        return json.loads((out / "summary.json").read_text())["complete"]
+    except (OSError, ValueError, KeyError):
+        return False
+
+
+def _interrupt(proc: subprocess.Popen) -> int:
+    """Ctrl-C the served page (it stays up until then); kill if it does not end."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        return proc.wait(timeout=15)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        raise
+
+
+def test_live_run_gives_the_same_numbers(tmp_path):
+    flags = ["--followers", "3", "--ticks", "12", "--run-id", "same", "--seed", "4"]
+    proc = _swarm("run", "--live", "--live-port", "0", "--in-process", *flags,
+                  "--out", str(tmp_path / "live"), log=tmp_path / "live.log")
+    try:
+        assert _until(lambda: _complete(tmp_path / "live"), RUN_TIMEOUT_S), \
+            (tmp_path / "live.log").read_text()[-2000:]
+    finally:
+        code = _interrupt(proc)
+    log = (tmp_path / "live.log").read_text()
+    assert code == 0, log[-2000:]
+    assert "live view: http://127.0.0.1:" in log
+    config = load_config(tmp_path / "live" / "config.toml")
+    launch(config, tmp_path / "plain", in_process=True)
+    assert (tmp_path / "live" / "ticks.csv").read_bytes() == (tmp_path / "plain" / "ticks.csv").read_bytes()
+    assert (tmp_path / "plain" / "view_map.json").read_text() == (tmp_path / "live" / "view_map.json").read_text()
+
+
+def test_replay_store_reads_the_run_folder(tmp_path):
+    config = RunConfig(run_id="folder", followers=2, ticks=8, sensing_range=2e-4)
+    summary = launch(config, tmp_path / "run", in_process=True)
+    snap = load_run(tmp_path / "run").snapshot()
+    assert [f.tick for f in snap.frames] == list(range(8))
+    assert snap.status == COMPLETE and snap.map["sensing_range"] == 2e-4
+    lost = sum(f.rows[k]["lost"] for f in snap.frames for k in (1, 2))
+    assert lost == sum(s["lost_ticks"] for s in summary["followers"].values()) > 0
+    assert {snap.choices[(7, k)] for k in (1, 2)} == {"edmd-b"}
+    with pytest.raises(ValueError, match="cannot replay"):
+        load_run(tmp_path)
+
+
+# --- in the browser ------------------------------------------------------------------------------
+
+
+def _shots(tmp_path: Path) -> Path:
+    folder = Path(os.environ.get("SWARM_SCREENSHOT_DIR", tmp_path))
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def _status(page) -> str:
+    return page.get_by_text(STATUS).inner_text(timeout=WAIT_S * 1000)
+
+
+def _count(page, renderer: str, column: str) -> int:
+    return page.evaluate(f"Bokeh.documents[0].get_model_by_name('{renderer}')"
+                         f".data_source.data['{column}'].length")
+
+
+@pytest.fixture
+def browser():
+    if not CHROMIUM.exists():
+        pytest.skip("Debian's chromium is not installed (.ci/run installs it)")
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with sync_api.sync_playwright() as pw:
+        chromium = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        try:
+            yield chromium
+        finally:
+            chromium.close()
+
+
+def _open(browser, url: str, requests: list[str]):
+    page = browser.new_page(viewport={"width": 1300, "height": 820})
+    page.on("request", lambda r: requests.append(r.url))
+    page.goto(url, timeout=WAIT_S * 4000)
+    return page
+
+
+def _external(requests: list[str], port: int) -> list[str]:
+    local = (f"http://127.0.0.1:{port}/", f"ws://127.0.0.1:{port}/")
+    return [u for u in requests if not u.startswith(local) and not u.startswith("data:")]
+
+
+@pytest.mark.timeout(240)
+def test_live_page_follows_a_run_and_replay_reaches_the_last_tick(browser, tmp_path):
+    """A realtime 3-follower run over Zenoh with ``--live``: the page's tick advances, it draws
+    4 agents and 3 rods and ends reading complete; then ``replay`` of the same folder, whose
+    slider dragged to its end shows the last tick. No request leaves the machine."""
+    out, port, ticks = tmp_path / "run", int(free_tcp_endpoint().rpartition(":")[2]), 30
+    proc = _swarm("run", "--live", "--live-port", str(port), "--followers", "3",
+                  "--ticks", str(ticks), "--mode", "realtime", "--time-scale", "0.2",
+                  "--run-id", "browser", "--out", str(out), log=tmp_path / "run.log")
+    requests: list[str] = []
+    try:
+        assert _until(lambda: "live view: " in (tmp_path / "run.log").read_text(), 30.0)
+        page = _open(browser, f"http://127.0.0.1:{port}/", requests)
+        page.get_by_text(re.compile(r"tick \d+ of \d+ · t =")).wait_for(timeout=30_000)
+        first = int(STATUS.search(_status(page)).group(1))
+        assert _until(lambda: int(STATUS.search(_status(page)).group(1)) > first, 10.0)
+        assert _count(page, "agents", "x") == 4 and _count(page, "rods", "x0") == 3
+        page.get_by_text(f"tick {ticks - 1} of {ticks - 1}").wait_for(timeout=RUN_TIMEOUT_S * 1000)
+        assert _until(lambda: _status(page).endswith("· complete"), 10.0), _status(page)
+        assert _count(page, "agents", "x") == 4 and _count(page, "rods", "x0") == 3
+        page.screenshot(path=str(_shots(tmp_path) / "live-view.png"))
+        page.close()
+    finally:
+        code = _interrupt(proc)
+    assert code == 0, (tmp_path / "run.log").read_text()[-2000:]
+    assert _external(requests, port) == []
+
+    port = int(free_tcp_endpoint().rpartition(":")[2])
+    proc = _swarm("replay", str(out), "--live-port", str(port), log=tmp_path / "replay.log")
+    requests = []
+    try:
+        assert _until(lambda: "live view: " in (tmp_path / "replay.log").read_text(), 30.0)
+        page = _open(browser, f"http://127.0.0.1:{port}/", requests)
+        page.get_by_text(f"tick 0 of {ticks - 1}").wait_for(timeout=30_000)
+        handle, track = page.locator(".noUi-handle"), page.locator(".noUi-base")
+        box, end = handle.bounding_box(), track.bounding_box()
+        page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        page.mouse.down()
+        page.mouse.move(end["x"] + end["width"] + 20, box["y"] + box["height"] / 2, steps=10)
+        page.mouse.up()
+        page.get_by_text(f"tick {ticks - 1} of {ticks - 1}").wait_for(timeout=WAIT_S * 1000)
+        assert _status(page).endswith("· complete")
+        assert _count(page, "agents", "x") == 4 and _count(page, "rods", "x0") == 3
+        page.screenshot(path=str(_shots(tmp_path) / "replay.png"))
+        page.close()
+    finally:
+        code = _interrupt(proc)
+    assert code == 0, (tmp_path / "replay.log").read_text()[-2000:]
+    assert _external(requests, port) == []
