@@ -22,6 +22,7 @@ not apply, e.g. the leader's ranges), split into chunks of at most :data:`ROWS_P
 from __future__ import annotations
 
 import math
+import struct
 from typing import Any
 
 import msgpack
@@ -142,8 +143,8 @@ def tick_payloads(rows: list[dict], n_agents: int) -> list[dict]:
             for i in range(0, len(table), ROWS_PER_CHUNK)]
 
 
-def _pack(body: dict, single_float: bool) -> bytes:
-    data = msgpack.packb(body, use_bin_type=True, use_single_float=single_float)
+def _pack(body: dict) -> bytes:
+    data = msgpack.packb(body, use_bin_type=True)
     if len(data) > MAX_VIEW_BYTES:
         raise ProtocolError(f"{body['type']} payload is {len(data)} bytes, over {MAX_VIEW_BYTES}")
     return data
@@ -159,16 +160,26 @@ def _unpack(data: bytes) -> Any:
 
 
 def encode_map(body: dict) -> bytes:
-    """The map as msgpack; heights travel as 32-bit floats (plenty for drawing)."""
-    return _pack(check_map(body), single_float=True)
+    """The map as msgpack; heights travel as little-endian 32-bit floats (plenty for drawing),
+    NaN where there is none."""
+    body = check_map(body)
+    heights = [math.nan if z is None else z for z in body["heights"]]
+    return _pack({**body, "heights": struct.pack(f"<{len(heights)}f", *heights)})
 
 
 def decode_map(data: bytes) -> dict:
-    return check_map(_unpack(data))
+    body = _unpack(data)
+    if isinstance(body, dict) and isinstance(body.get("heights"), bytes):
+        raw = body["heights"]
+        if len(raw) % 4:
+            raise ProtocolError("view field 'heights' must hold 32-bit floats")
+        body["heights"] = [None if math.isnan(z) else z
+                           for z in struct.unpack(f"<{len(raw) // 4}f", raw)]
+    return check_map(body)
 
 
 def encode_tick(body: dict) -> bytes:
-    return _pack(check_tick(body), single_float=False)
+    return _pack(check_tick(body))
 
 
 def decode_tick(data: bytes) -> dict:

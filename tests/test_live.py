@@ -143,13 +143,15 @@ def test_map_columns_draw_every_agent_and_rod_with_headings():
     now = _frame(1, [(3.0 * k, 1.0) for k in range(4)], ideals,
                  {1: (3.1, 1.0), 2: (6.0, 1.2), 3: None})
     frames = {0: before, 1: now}
-    cols = map_columns(frames, 1, sensing_range=0.5)
+    cols = map_columns(frames, 1, sensing_range=0.5, nose=0.5)
     assert len(cols["agents"]["x"]) == 4 and len(cols["rods"]["x0"]) == 3
     assert cols["rods"]["x0"] == [0.0, 3.0, 6.0] and cols["rods"]["x1"] == [3.0, 6.0, 9.0]
     assert len(cols["estimates"]["x"]) == 2 and cols["ranges"]["radius"] == [0.5, 0.5]
-    assert cols["agents"]["angle"] == pytest.approx([0.0] * 4)  # heading +y, triangle points up
+    # heading +y: the heading segments point up from every agent
+    assert cols["headings"]["x1"] == pytest.approx(cols["agents"]["x"])
+    assert cols["headings"]["y1"] == pytest.approx([1.5] * 4)
     assert heading(frames, 0, 2) == pytest.approx(math.pi / 2)  # tick 0: its first move
-    assert map_columns(frames, 1, sensing_range=None)["ranges"]["x"] == []
+    assert map_columns(frames, 1, sensing_range=None, nose=0.5)["ranges"]["x"] == []
     assert [len(xs) for xs in cols["paths"]["xs"]] == [2, 2, 2, 2]
     series = follower_series([before, now], 3)
     assert series["ranges"]["required"][1] != series["ranges"]["required"][1]  # NaN: no estimate
@@ -438,3 +440,62 @@ def test_live_page_follows_a_run_and_replay_reaches_the_last_tick(browser, tmp_p
         code = _interrupt(proc)
     assert code == 0, (tmp_path / "replay.log").read_text()[-2000:]
     assert _external(requests, port) == []
+
+
+@pytest.mark.parametrize("relief", ["analytic", "dem"])
+def test_page_draws_contours_and_relief_for_a_dem(tmp_path, relief):
+    """The page built on a document (no browser): contour lines always, hillshade for DEMs, one
+    range plot per follower, the newest tick live."""
+    from bokeh.document import Document
+    from bokeh.models import ContourRenderer, GlyphRenderer, ImageRGBA
+
+    from swarm.live.page import Page
+
+    view_map, _ = _world_map(followers=2)
+    store = RunStore()
+    store.set_map({**view_map, "relief": relief})
+    rows = [{"tick": 0, "t": 0.0, "agent": k, "pos_x": float(k), "pos_y": 0.0,
+             **({"ideal_x": float(k), "ideal_y": 0.0} if k else {})} for k in range(3)]
+    for chunk in tick_payloads(rows, n_agents=3):
+        store.add_tick(chunk)
+    doc = Document()
+    page = Page(doc, store, replay=False)
+    renderers = page.map.renderers
+    images = [r for r in renderers if isinstance(r, GlyphRenderer) and isinstance(r.glyph, ImageRGBA)]
+    assert len(images) == (1 if relief == "dem" else 0)
+    assert any(isinstance(r, ContourRenderer) for r in renderers)
+    assert sorted(page.range_plots) == [1, 2]
+    assert len(page.sources["agents"].data["x"]) == 3 and len(page.sources["rods"].data["x0"]) == 2
+    assert page.status.text == "tick 0 of 39 · t = 0.00 · running"
+
+
+def test_late_observer_gets_the_map_and_the_rest_of_the_run(tmp_path):
+    """What ``watch`` does, joining a realtime run after tick 5: the map still arrives (the
+    world republishes it), then every later tick and the final status."""
+    from swarm.live.observer import LiveView
+
+    config = RunConfig(run_id="late", followers=3, ticks=40, mode="realtime", time_scale=0.08)
+    endpoint, ticked, result = free_tcp_endpoint(), threading.Event(), {}
+
+    def run() -> None:
+        result["summary"] = launch(config, tmp_path / "late", in_process=True, endpoint=endpoint,
+                                   on_tick=lambda j: j >= 5 and ticked.set())
+
+    world = threading.Thread(target=run, daemon=True)
+    world.start()
+    live = LiveView(port=0, run_id="late")
+    try:
+        assert ticked.wait(RUN_TIMEOUT_S)
+        live.connect(zenoh_config("client", connect=[endpoint]))
+        assert _until(lambda: live.store.snapshot().map is not None, 3.0)
+        world.join(RUN_TIMEOUT_S)
+        assert not world.is_alive() and result["summary"]["complete"]
+        assert _until(lambda: live.store.snapshot().status == COMPLETE)
+    finally:
+        live.close()
+    snap = live.store.snapshot()
+    ticks = [f.tick for f in snap.frames]
+    assert ticks[0] > 5 and ticks == list(range(ticks[0], 40))
+    on_disk = json.loads((tmp_path / "late" / "view_map.json").read_text())
+    assert {**snap.map, "heights": None} == {**on_disk, "heights": None}
+    assert snap.map["heights"] == pytest.approx(on_disk["heights"], rel=1e-6)  # 32-bit on the wire

@@ -76,25 +76,40 @@ def heading(frames: Mapping[int, Frame], tick: int, agent: int) -> float:
     return 0.0
 
 
-def map_columns(frames: Mapping[int, Frame], tick: int,
-                sensing_range: float | None) -> dict[str, dict[str, list]]:
-    """Source data for the map at ``tick``: ``agents`` (position, heading, label, colour),
-    ``rods`` (agent k−1's position to its rod end, i.e. follower k's true target),
-    ``targets`` (true rod ends), ``estimates``, ``ranges`` (``R_s`` around each estimate,
-    empty when ``R_s`` is infinite) and ``paths`` (every agent's trail up to ``tick``)."""
+MAP_COLUMNS = {
+    "agents": ("x", "y", "label", "color"),
+    "headings": ("x0", "y0", "x1", "y1", "color"),
+    "rods": ("x0", "y0", "x1", "y1", "color"),
+    "targets": ("x", "y", "color"),
+    "estimates": ("x", "y", "color"),
+    "ranges": ("x", "y", "radius", "color"),
+    "paths": ("xs", "ys", "color", "width"),
+}
+
+
+def empty_map_columns() -> dict[str, dict[str, list]]:
+    """Every map source's columns, empty (:data:`MAP_COLUMNS`)."""
+    return {name: {c: [] for c in columns} for name, columns in MAP_COLUMNS.items()}
+
+
+def map_columns(frames: Mapping[int, Frame], tick: int, sensing_range: float | None,
+                nose: float) -> dict[str, dict[str, list]]:
+    """Source data for the map at ``tick``: ``agents`` (position, label, colour), ``headings``
+    (a segment of length ``nose`` along each agent's heading), ``rods`` (agent k−1's position
+    to its rod end, i.e. follower k's true target), ``targets`` (true rod ends),
+    ``estimates``, ``ranges`` (``R_s`` around each estimate, empty when ``R_s`` is infinite)
+    and ``paths`` (every agent's trail up to ``tick``)."""
     frame = frames[tick]
+    out = empty_map_columns()
+    for k in sorted(frame.rows):
+        row = frame.rows[k]
+        _append(out["agents"], x=row["pos_x"], y=row["pos_y"], label="L" if k == 0 else str(k),
+                color=agent_color(k))
+        angle = heading(frames, tick, k)
+        _append(out["headings"], x0=row["pos_x"], y0=row["pos_y"],
+                x1=row["pos_x"] + nose * math.cos(angle), y1=row["pos_y"] + nose * math.sin(angle),
+                color=agent_color(k))
     agents = sorted(frame.rows)
-    rows = [frame.rows[k] for k in agents]
-    out = {
-        "agents": {"x": [r["pos_x"] for r in rows], "y": [r["pos_y"] for r in rows],
-                   "angle": [heading(frames, tick, k) - math.pi / 2 for k in agents],
-                   "label": ["L" if k == 0 else str(k) for k in agents],
-                   "color": [agent_color(k) for k in agents]},
-        "rods": {"x0": [], "y0": [], "x1": [], "y1": [], "color": []},
-        "targets": {"x": [], "y": [], "color": []},
-        "estimates": {"x": [], "y": [], "color": []},
-        "ranges": {"x": [], "y": [], "radius": [], "color": []},
-    }
     for k in agents:
         row, holder = frame.rows[k], frame.rows.get(k - 1)
         if k == 0 or row["ideal_x"] is None:
@@ -110,10 +125,10 @@ def map_columns(frames: Mapping[int, Frame], tick: int,
                 _append(out["ranges"], x=row["est_x"], y=row["est_y"], radius=sensing_range,
                         color=color)
     trail = [frames[j] for j in sorted(frames) if j <= tick]
-    out["paths"] = {"xs": [[f.rows[k]["pos_x"] for f in trail if k in f.rows] for k in agents],
-                    "ys": [[f.rows[k]["pos_y"] for f in trail if k in f.rows] for k in agents],
-                    "color": [agent_color(k) for k in agents],
-                    "width": [2.5 if k == 0 else 1.2 for k in agents]}
+    for k in agents:
+        _append(out["paths"], xs=[f.rows[k]["pos_x"] for f in trail if k in f.rows],
+                ys=[f.rows[k]["pos_y"] for f in trail if k in f.rows], color=agent_color(k),
+                width=2.5 if k == 0 else 1.2)
     return out
 
 
@@ -148,9 +163,13 @@ def _positive(value: float | None) -> float:
     return value if value is not None and value > 0 else math.nan
 
 
-def choice_points(choices: Mapping[tuple[int, int], str]) -> dict[str, list]:
-    """Every (tick, follower) estimator choice as scatter columns, sorted by tick."""
+def choice_points(choices: Mapping[tuple[int, int], str], followers: int) -> dict[str, list]:
+    """Every (tick, follower) estimator choice as scatter columns, sorted by tick; ``y`` is
+    the label with a small offset per follower (``[label, offset]``, a Bokeh categorical
+    coordinate) so that followers choosing the same do not hide one another."""
     items = sorted(choices.items())
+    step = 0.7 / max(followers, 1)
     return {"tick": [j for (j, _), _ in items], "label": [label for _, label in items],
+            "y": [[label, (k - (followers + 1) / 2) * step] for (_, k), label in items],
             "follower": [str(k) for (_, k), _ in items],
             "color": [agent_color(k) for (_, k), _ in items]}

@@ -10,13 +10,13 @@ import numpy as np
 from bokeh.document import Document
 from bokeh.layouts import column, row
 from bokeh.models import (
-    ColumnDataSource, DataRange1d, Div, FactorRange, Slider, Span, Toggle,
+    ColumnDataSource, DataRange1d, Div, FactorRange, Range1d, Slider, Span, Toggle,
 )
 from bokeh.plotting import figure
 
 from swarm.live.draw import (
-    agent_color, choice_points, contour_levels, follower_series, height_grid, hillshade,
-    map_columns,
+    agent_color, choice_points, contour_levels, empty_map_columns, follower_series, height_grid,
+    hillshade, map_columns,
 )
 from swarm.live.store import COMPLETE, INCOMPLETE, RunStore, Snapshot
 
@@ -24,7 +24,8 @@ REFRESH_MS = 200
 PLAY_EVERY = 1  # replay: ticks advanced per refresh while playing
 MAX_RANGE_PLOTS = 8  # per-follower range plots drawn (the map shows every agent)
 
-_MAP_SOURCES = ("agents", "rods", "targets", "estimates", "ranges", "paths")
+MAP_FRAME = (680, 470)  # map's plot area in pixels (width, height): the box is fitted to it
+NOSE = 0.6  # heading segment length, in rods
 
 
 class Page:
@@ -37,22 +38,20 @@ class Page:
         self.map_drawn = False
         self.status = Div(text="waiting for the world", name="status",
                           css_classes=["swarm-status"], styles={"font-size": "16px"})
-        self.sources = {name: ColumnDataSource(name=f"{name}-source", data=_empty(name))
-                        for name in _MAP_SOURCES}
+        self.sources = {name: ColumnDataSource(name=f"{name}-source", data=data)
+                        for name, data in empty_map_columns().items()}
         self.map = self._map_figure()
         self.range_column = column(name="ranges")
         self.range_plots: dict[int, tuple[dict, Span]] = {}
-        self.choices = ColumnDataSource(name="choices",
-                                        data={"tick": [], "label": [], "follower": [], "color": []})
+        self.choices = ColumnDataSource(name="choices", data=choice_points({}, 1))
         self.ticks_range = DataRange1d()  # shared by every per-tick plot
         self.choice_plot = figure(height=170, width=480, y_range=FactorRange(),
                                   x_range=self.ticks_range, x_axis_label="tick",
                                   title="estimator per tick (auto: followed candidate)",
                                   toolbar_location=None)
-        self.choice_plot.scatter("tick", "label", color="color", legend_field="follower",
-                                 source=self.choices, size=6)
-        self.choice_plot.legend.location = "top_right"
-        self.choice_plot.legend.orientation = "horizontal"
+        self.choice_plot.scatter("tick", "y", color="color", legend_field="follower",
+                                 source=self.choices, size=5)
+        self.choice_plot.add_layout(self.choice_plot.legend[0], "right")
         self.choice_plot.legend.title = "follower"
         self.slider = Slider(start=0, end=1, value=0, step=1, title="tick", name="tick_slider",
                              width=700, visible=replay)
@@ -66,8 +65,9 @@ class Page:
         self.refresh()
 
     def _map_figure(self):
-        fig = figure(width=760, height=560, match_aspect=True, title="column on the surface",
-                     x_axis_label="x", y_axis_label="y", name="map")
+        fig = figure(frame_width=MAP_FRAME[0], frame_height=MAP_FRAME[1], x_range=Range1d(0, 1),
+                     y_range=Range1d(0, 1), title="column on the surface", x_axis_label="x",
+                     y_axis_label="y", name="map")
         src = self.sources
         fig.multi_line("xs", "ys", line_color="color", line_width="width", line_alpha=0.6,
                        source=src["paths"])
@@ -80,13 +80,15 @@ class Page:
                     line_width=2, source=src["targets"], legend_label="true rod end")
         fig.scatter("x", "y", marker="x", size=11, line_color="color", line_width=2,
                     source=src["estimates"], legend_label="estimate")
-        fig.scatter("x", "y", marker="triangle", angle="angle", size=16, fill_color="color",
-                    line_color="white", source=src["agents"], name="agents",
-                    legend_label="agent (heading)")
+        fig.segment("x0", "y0", "x1", "y1", line_color="color", line_width=3,
+                    source=src["headings"], name="headings")
+        fig.scatter("x", "y", marker="circle", size=11, fill_color="color", line_color="white",
+                    source=src["agents"], name="agents", legend_label="agent and heading")
         fig.text("x", "y", text="label", x_offset=8, y_offset=-8, text_font_size="11px",
                  source=src["agents"])
-        fig.legend.location = "top_left"
+        fig.legend.orientation = "horizontal"
         fig.legend.click_policy = "hide"
+        fig.add_layout(fig.legend[0], "below")
         return fig
 
     def _draw_surface(self, view_map: dict) -> None:
@@ -104,6 +106,7 @@ class Page:
                                         line_color=_pick(Viridis256, levels.size),
                                         line_alpha=0.7, fill_color=None)
             renderer.level = "underlay"
+        (x0, x1), (y0, y1) = _fit((x0, x1), (y0, y1), MAP_FRAME[0] / MAP_FRAME[1])
         self.map.x_range.start, self.map.x_range.end = x0, x1
         self.map.y_range.start, self.map.y_range.end = y0, y1
         self.map.title.text = (f"{view_map['surface']} surface, {view_map['followers']} "
@@ -112,7 +115,7 @@ class Page:
             self._add_range_plot(k)
 
     def _add_range_plot(self, k: int) -> None:
-        fig = figure(height=170, width=480, y_axis_type="log", toolbar_location=None,
+        fig = figure(height=200, width=480, y_axis_type="log", toolbar_location=None,
                      x_range=self.ticks_range,
                      title=f"follower {k}: sensing range needed per tick", name=f"ranges-{k}")
         sources = {name: ColumnDataSource(data=data) for name, data in
@@ -127,9 +130,10 @@ class Page:
                     legend_label="lost")
         fig.scatter("tick", "y", source=sources["missed"], marker="square_x", size=9,
                     color="purple", fill_color=None, legend_label="missed")
-        fig.legend.location = "bottom_left"
         fig.legend.label_text_font_size = "9px"
         fig.legend.orientation = "horizontal"
+        fig.legend.padding = fig.legend.spacing = 2
+        fig.add_layout(fig.legend[0], "above")
         cursor = Span(dimension="height", location=0, line_color="#999999", line_dash="dashed")
         fig.add_layout(cursor)
         self.range_plots[k] = (sources, cursor)
@@ -162,7 +166,7 @@ class Page:
         for k, (sources, _) in self.range_plots.items():
             for name, data in follower_series(snap.frames, k).items():
                 sources[name].data = data
-        points = choice_points(snap.choices)
+        points = choice_points(snap.choices, snap.map["followers"] if snap.map else 1)
         labels = sorted(set(points["label"]))
         if list(self.choice_plot.y_range.factors) != labels:
             self.choice_plot.y_range.factors = labels
@@ -179,8 +183,9 @@ class Page:
         want = int(self.slider.value) if self.replay else snap.frames[-1].tick
         tick = max((j for j in frames if j <= want), default=snap.frames[0].tick)
         sensing = snap.map["sensing_range"] if snap.map else None
+        nose = NOSE * snap.map["spacing"] if snap.map else 1.0
         if tick != self.drawn_tick or snap.version != self.drawn_version:
-            for name, data in map_columns(frames, tick, sensing).items():
+            for name, data in map_columns(frames, tick, sensing, nose).items():
                 self.sources[name].data = data
             for _, cursor in self.range_plots.values():
                 cursor.location = tick
@@ -206,12 +211,14 @@ def _pick(palette: tuple[str, ...], n: int) -> list[str]:
     return [palette[int(i)] for i in np.linspace(0, len(palette) - 1, n)]
 
 
-def _empty(name: str) -> dict[str, list]:
-    columns = {"agents": ("x", "y", "angle", "label", "color"),
-               "rods": ("x0", "y0", "x1", "y1", "color"), "targets": ("x", "y", "color"),
-               "estimates": ("x", "y", "color"), "ranges": ("x", "y", "radius", "color"),
-               "paths": ("xs", "ys", "color", "width")}[name]
-    return {c: [] for c in columns}
+def _fit(xs: tuple[float, float], ys: tuple[float, float],
+         aspect: float) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The ranges ``xs``, ``ys`` widened about their centres to the width/height ``aspect``
+    (one length unit the same number of pixels on both axes)."""
+    width, height = xs[1] - xs[0], ys[1] - ys[0]
+    width, height = max(width, height * aspect), max(height, width / aspect)
+    cx, cy = sum(xs) / 2, sum(ys) / 2
+    return (cx - width / 2, cx + width / 2), (cy - height / 2, cy + height / 2)
 
 
 def build_page(doc: Document, store: RunStore, replay: bool) -> None:
