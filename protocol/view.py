@@ -178,8 +178,10 @@ def decode_map(data: bytes) -> dict:
     return check_map(body)
 
 
-def encode_tick(body: dict) -> bytes:
-    return _pack(check_tick(body))
+def encode_tick(body: dict, *, check: bool = True) -> bytes:
+    """One tick chunk as msgpack; ``check=False`` skips validating a chunk that
+    :func:`tick_payloads` built (and so validated) already."""
+    return _pack(check_tick(body) if check else body)
 
 
 def decode_tick(data: bytes) -> dict:
