@@ -61,7 +61,7 @@ class Page:
         doc.add_root(column(self.status, row(self.slider, self.play),
                             row(self.map, column(self.range_column, self.choice_plot))))
         doc.title = "swarm replay" if replay else "swarm live"
-        doc.add_periodic_callback(self.refresh, REFRESH_MS)
+        doc.add_periodic_callback(self.on_timer, REFRESH_MS)
         self.refresh()
 
     def _map_figure(self):
@@ -144,13 +144,18 @@ class Page:
         if active and self.slider.value >= self.slider.end:
             self.slider.value = self.slider.start
 
-    def refresh(self, force: bool = False) -> None:
-        """Redraw what changed since the last call (called periodically and on slider moves)."""
+    def on_timer(self) -> None:
+        """Every :data:`REFRESH_MS`: a playing replay advances its slider (whose change
+        handler redraws), anything else redraws what changed."""
         if self.replay and self.play.active:
             if self.slider.value < self.slider.end:
                 self.slider.value = min(self.slider.value + PLAY_EVERY, self.slider.end)
-                return  # the slider's change handler redraws
+                return
             self.play.active = False
+        self.refresh()
+
+    def refresh(self, force: bool = False) -> None:
+        """Redraw what changed since the last call (``force``: the tick to show changed)."""
         snap = self.store.snapshot()
         if snap.version == self.drawn_version and not force:
             return

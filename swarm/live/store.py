@@ -9,7 +9,7 @@ from __future__ import annotations
 import csv
 import json
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 
@@ -39,18 +39,17 @@ class Snapshot:
     reason: str
 
 
-@dataclass
 class RunStore:
     """Thread-safe accumulator of one run's view; ``version`` grows with every change."""
 
-    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
-    _map: dict | None = None
-    _frames: dict[int, Frame] = field(default_factory=dict)
-    _partial: dict[int, dict[int, dict]] = field(default_factory=dict)
-    _choices: dict[tuple[int, int], str] = field(default_factory=dict)
-    _status: str = WAITING
-    _reason: str = ""
-    _version: int = 0
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._map: dict | None = None
+        self._frames: dict[int, Frame] = {}
+        self._partial: dict[int, dict[int, dict]] = {}  # tick -> rows so far, until complete
+        self._choices: dict[tuple[int, int], str] = {}
+        self._status, self._reason = WAITING, ""
+        self._version = 0
 
     def set_map(self, body: dict) -> None:
         """The world's map payload (validated); the first one is kept."""
