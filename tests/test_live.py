@@ -535,3 +535,15 @@ def test_replay_page_plays_one_tick_per_refresh(tmp_path):
     assert page.status.text == "tick 5 of 5 · t = 6.40 · complete"
     page.slider.value = 2
     assert page.status.text.startswith("tick 2 of 5 · t = 2.56")
+
+
+def test_cli_refuses_bad_live_arguments(tmp_path, capsys):
+    from swarm.cli import main
+
+    assert main(["watch", "--connect", "tcp/127.0.0.1:7447", "--run-id", "no spaces"]) == 2
+    assert "run_id must be" in capsys.readouterr().err
+    assert main(["replay", str(tmp_path)]) == 2
+    assert "cannot replay" in capsys.readouterr().err
+    assert main(["run", "--live", "--live-port", "70000", "--out", str(tmp_path / "r")]) == 1
+    assert "port must be" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()  # nothing ran

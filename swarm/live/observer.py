@@ -8,6 +8,7 @@ import threading
 
 import zenoh
 
+from protocol import keys
 from swarm.live.feed import ZenohFeed
 from swarm.live.server import PageServer
 from swarm.live.store import RunStore
@@ -19,7 +20,7 @@ class LiveView:
 
     def __init__(self, *, port: int, run_id: str | None = None, store: RunStore | None = None,
                  replay: bool = False) -> None:
-        self.run_id = run_id
+        self.run_id = None if run_id is None else keys.check_run_id(run_id)
         self.store = RunStore() if store is None else store
         self.server = PageServer(self.store, port=port, replay=replay)
         self._session: zenoh.Session | None = None
