@@ -85,7 +85,8 @@ def check_map(body: Any) -> dict:
         out[name] = _count(name, body.get(name))
     out["sensing_range"] = _number("sensing_range", body.get("sensing_range"), optional=True)
     if body.get("relief") not in RELIEFS:
-        raise ProtocolError(f"view field 'relief' must be one of {RELIEFS}, got {body.get('relief')!r}")
+        raise ProtocolError(f"view field 'relief' must be one of {RELIEFS}, "
+                            f"got {body.get('relief')!r}")
     out["relief"] = body["relief"]
     box, shape, heights = body.get("box"), body.get("shape"), body.get("heights")
     if not isinstance(box, list) or len(box) != 4:

@@ -299,7 +299,8 @@ def add_live_port(parser: argparse.ArgumentParser) -> None:
     from swarm.live import DEFAULT_PORT
 
     parser.add_argument("--live-port", type=int, default=DEFAULT_PORT,
-                        help=f"port of the page on 127.0.0.1 (default {DEFAULT_PORT}, 0 = any free)")
+                        help=f"port of the page on 127.0.0.1 (default {DEFAULT_PORT}, "
+                             "0 = any free)")
 
 
 def main(argv: list[str] | None = None) -> int:

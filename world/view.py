@@ -78,7 +78,8 @@ def map_payload(config: RunConfig, surface: Surface, ideal: np.ndarray) -> dict:
     z = height_grid(surface, low, high, shape)
     return check_map({
         "v": VIEW_VERSION, "type": "view-map", "run_id": config.run_id,
-        "surface": config.surface, "relief": "dem" if config.surface.startswith("dem:") else "analytic",
+        "surface": config.surface,
+        "relief": "dem" if config.surface.startswith("dem:") else "analytic",
         "estimator": config.estimator, "dictionary": config.dictionary, "mode": config.mode,
         "followers": config.followers, "ticks": config.ticks, "init_ticks": config.init_ticks,
         "comm_period": config.comm_period, "spacing": config.spacing,

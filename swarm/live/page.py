@@ -110,7 +110,8 @@ class Page:
         self.map.x_range.start, self.map.x_range.end = x0, x1
         self.map.y_range.start, self.map.y_range.end = y0, y1
         self.map.title.text = (f"{view_map['surface']} surface, {view_map['followers']} "
-                               f"follower(s), {view_map['estimator']}, T_c {view_map['comm_period']:g}")
+                               f"follower(s), {view_map['estimator']}, "
+                               f"T_c {view_map['comm_period']:g}")
         for k in range(1, min(view_map["followers"], MAX_RANGE_PLOTS) + 1):
             self._add_range_plot(k)
 

@@ -15,7 +15,8 @@ from types import MappingProxyType
 
 from protocol.view import MAP_FILE, TICK_COLUMNS, check_map, check_tick
 
-WAITING, RUNNING, COMPLETE, INCOMPLETE = "waiting for the world", "running", "complete", "incomplete"
+WAITING, RUNNING = "waiting for the world", "running"
+COMPLETE, INCOMPLETE = "complete", "incomplete"
 
 
 @dataclass(frozen=True)
