@@ -359,6 +359,11 @@ def test_replay_store_reads_the_run_folder(tmp_path):
     assert {snap.choices[(7, k)] for k in (1, 2)} == {"edmd-b"}
     with pytest.raises(ValueError, match="cannot replay"):
         load_run(tmp_path)
+    # auto's followed candidate, where observations carry it, is shown instead of "auto"
+    path = tmp_path / "run" / "observations.csv"
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join([lines[0] + ",followed"] + [line + ",edmd-bu" for line in lines[1:]]))
+    assert set(load_run(tmp_path / "run").snapshot().choices.values()) == {"edmd-bu"}
 
 
 # --- in the browser ------------------------------------------------------------------------------
@@ -518,6 +523,7 @@ def test_late_observer_gets_the_map_and_the_rest_of_the_run(tmp_path):
     snap = live.store.snapshot()
     ticks = [f.tick for f in snap.frames]
     assert ticks[0] > 5 and ticks == list(range(ticks[0], 40))
+    assert {snap.choices[(39, k)] for k in (1, 2, 3)} == {"edmd-b"}  # from agent/<id>/obs
     on_disk = json.loads((tmp_path / "late" / "view_map.json").read_text())
     assert {**snap.map, "heights": None} == {**on_disk, "heights": None}
     assert snap.map["heights"] == pytest.approx(on_disk["heights"], rel=1e-6)  # 32-bit on the wire
