@@ -86,7 +86,8 @@ def map_payload(config: RunConfig, surface: Surface, ideal: np.ndarray) -> dict:
         "sensing_range": config.sensing_range if math.isfinite(config.sensing_range) else None,
         "box": [float(low[0]), float(high[0]), float(low[1]), float(high[1])],
         "shape": list(shape),
-        "heights": [float(h) if math.isfinite(h) else None for h in z.ravel()],
+        # 7 significant digits: what the wire's 32-bit floats carry, and a compact JSON file
+        "heights": [float(f"{h:.7g}") if math.isfinite(h) else None for h in z.ravel()],
     })
 
 
