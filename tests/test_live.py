@@ -160,6 +160,11 @@ def test_map_columns_draw_every_agent_and_rod_with_headings():
     series = follower_series([before, now], 3)
     assert series["ranges"]["required"][1] != series["ranges"]["required"][1]  # NaN: no estimate
     assert series["ranges"]["stay"] == [1.0, 1.0]
+    # a missed tick whose ranges are all zero (its leader did not move) is marked at the floor
+    stuck = _frame(2, [(3.0 * k, 1.0) for k in range(4)], ideals, dict.fromkeys(range(4)))
+    stuck.rows[3].update(stay_range=0.0, persist_range=0.0, missed=1)
+    series = follower_series([before, now, stuck], 3)
+    assert series["missed"] == {"tick": [2], "y": [0.1]} and series["lost"]["tick"] == []
 
 
 def test_hillshade_lights_slopes_facing_the_light():
@@ -434,7 +439,7 @@ def test_live_page_follows_a_run_and_replay_reaches_the_last_tick(browser, tmp_p
         page.get_by_text(f"tick {ticks - 1} of {ticks - 1}").wait_for(timeout=RUN_TIMEOUT_S * 1000)
         assert _until(lambda: _status(page).endswith("· complete"), 10.0), _status(page)
         assert _count(page, "agents", "x") == 4 and _count(page, "rods", "x0") == 3
-        page.screenshot(path=str(_shots(tmp_path) / "live-view.png"))
+        page.screenshot(path=str(_shots(tmp_path) / "live-view.png"), full_page=True)
         page.close()
         assert _until(lambda: _served_after_run(tmp_path / "run.log"), 15.0)
     finally:
@@ -458,7 +463,7 @@ def test_live_page_follows_a_run_and_replay_reaches_the_last_tick(browser, tmp_p
         page.get_by_text(f"tick {ticks - 1} of {ticks - 1}").wait_for(timeout=WAIT_S * 1000)
         assert _status(page).endswith("· complete")
         assert _count(page, "agents", "x") == 4 and _count(page, "rods", "x0") == 3
-        page.screenshot(path=str(_shots(tmp_path) / "replay.png"))
+        page.screenshot(path=str(_shots(tmp_path) / "replay.png"), full_page=True)
         page.get_by_role("button", name="play").click()  # at the end: plays from the start
         assert _until(lambda: 0 < _shown_tick(page) < ticks - 1)
         page.close()

@@ -139,7 +139,8 @@ def _append(columns: dict[str, list], **values) -> None:
 
 def follower_series(frames: Sequence[Frame], follower: int) -> dict[str, dict[str, list]]:
     """Per tick of ``frames`` (sorted): ``ranges`` (required, stay, persist; NaN where absent
-    or not positive, for a log axis), ``lost`` and ``missed`` (tick and the range to mark)."""
+    or not positive, for a log axis), ``lost`` and ``missed`` (tick and the height of the mark:
+    the tick's first positive range, else the series' smallest, so that every mark shows)."""
     ranges: dict[str, list] = {"tick": [], "required": [], "stay": [], "persist": []}
     lost: dict[str, list] = {"tick": [], "y": []}
     missed: dict[str, list] = {"tick": [], "y": []}
@@ -156,6 +157,10 @@ def follower_series(frames: Sequence[Frame], follower: int) -> dict[str, dict[st
             if row[flag]:
                 marks["tick"].append(frame.tick)
                 marks["y"].append(mark)
+    floor = min((v for name in ("required", "stay", "persist") for v in ranges[name]
+                 if not math.isnan(v)), default=1.0)
+    for marks in (lost, missed):
+        marks["y"] = [floor if math.isnan(y) else y for y in marks["y"]]
     return {"ranges": ranges, "lost": lost, "missed": missed}
 
 
