@@ -196,10 +196,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
 def _serve(live, conf) -> int:
     """Serve ``live`` (connected with ``conf`` unless None) until Ctrl-C."""
     try:
-        url = live.start()
-        if conf is not None:
+        print(f"live view: {live.start()} (Ctrl-C to quit)", flush=True)
+        if conf is not None:  # the page waits for the world meanwhile
             live.connect(conf)
-        print(f"live view: {url} (Ctrl-C to quit)", flush=True)
         live.serve_until_interrupted()
     except RuntimeError as exc:
         print(f"error: {exc}", file=sys.stderr)

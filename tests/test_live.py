@@ -564,3 +564,31 @@ def test_cli_refuses_bad_live_arguments(tmp_path, capsys):
     assert main(["run", "--live", "--live-port", "70000", "--out", str(tmp_path / "r")]) == 1
     assert "port must be" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()  # nothing ran
+
+
+def test_watch_page_of_a_run_assembled_elsewhere(browser, tmp_path):
+    """``swarm watch`` started before the world exists: the page waits for it, then follows the
+    run (world and agents as processes on their own router) to its last tick and end."""
+    endpoint, port = free_tcp_endpoint(), int(free_tcp_endpoint().rpartition(":")[2])
+    config = RunConfig(run_id="watched", followers=3, ticks=20)
+    proc = _swarm("watch", "--connect", endpoint, "--run-id", "watched", "--live-port", str(port),
+                  log=tmp_path / "watch.log")
+    result: dict = {}
+    world = threading.Thread(target=lambda: result.update(
+        summary=launch(config, tmp_path / "run", endpoint=endpoint)), daemon=True)
+    try:
+        assert _until(lambda: "live view: " in (tmp_path / "watch.log").read_text(), 30.0)
+        page = _open(browser, f"http://127.0.0.1:{port}/", [])
+        page.get_by_text("waiting for the world").wait_for(timeout=WAIT_S * 1000)
+        world.start()
+        page.get_by_text("tick 19 of 19").wait_for(timeout=RUN_TIMEOUT_S * 1000)
+        assert _until(lambda: _status(page).endswith("· complete"), 10.0), _status(page)
+        assert _count(page, "agents", "x") == 4 and _count(page, "rods", "x0") == 3
+        page.close()
+        world.join(RUN_TIMEOUT_S)
+        assert result["summary"]["complete"]
+    finally:
+        code = _interrupt(proc)
+        if world.is_alive():
+            world.join(RUN_TIMEOUT_S)
+    assert code == 0, (tmp_path / "watch.log").read_text()[-2000:]
