@@ -84,6 +84,20 @@ def test_map_covers_the_ideal_column_within_the_size_limit(surface):
         assert any(h is None for h in view_map["heights"])
 
 
+def test_height_grid_leaves_out_points_a_surface_refuses():
+    from world.geometry import SurfaceDomainError
+    from world.view import height_grid
+
+    class HalfPlane:  # defined for x >= 0 only, and says so by raising
+        def height(self, p):
+            if p[0] < 0:
+                raise SurfaceDomainError(f"{p} is outside")
+            return 2.0 * p[0]
+
+    z = height_grid(HalfPlane(), np.array([-1.0, 0.0]), np.array([1.0, 1.0]), (2, 3))
+    assert np.isnan(z[:, 0]).all() and z[:, 1:].tolist() == [[0.0, 2.0], [0.0, 2.0]]
+
+
 def test_tick_rows_travel_in_chunks_and_bad_payloads_are_refused():
     rows = [{"tick": 7, "t": 8.96, "agent": k, "pos_x": float(k), "pos_y": -float(k),
              **({} if k == 0 else {"ideal_x": 1.0, "ideal_y": 2.0, "stay_range": 0.5,

@@ -50,7 +50,9 @@ def grid_shape(low: np.ndarray, high: np.ndarray, cells: int = MAP_CELLS) -> tup
 
 def height_grid(surface: Surface, low: np.ndarray, high: np.ndarray,
                 shape: tuple[int, int]) -> np.ndarray:
-    """Heights (ny, nx) at the grid over ``low``..``high``; NaN outside the surface's domain."""
+    """Heights (ny, nx) at the grid over ``low``..``high``; NaN outside the surface's domain
+    (where ``contains`` says no, or where ``height`` refuses the point with a ValueError such
+    as ``SurfaceDomainError``: the map's margin may reach past a surface's edge)."""
     ny, nx = shape
     xs, ys = np.linspace(low[0], high[0], nx), np.linspace(low[1], high[1], ny)
     contains = getattr(surface, "contains", None)
@@ -59,7 +61,10 @@ def height_grid(surface: Surface, low: np.ndarray, high: np.ndarray,
         for j, x in enumerate(xs):
             p = np.array([x, y])
             if contains is None or contains(p):
-                z[i, j] = surface.height(p)
+                try:
+                    z[i, j] = surface.height(p)
+                except ValueError:
+                    continue
     return z
 
 
