@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from protocol.config import RunConfig, config_from_dict, load_config
+from protocol.session import add_credential_flags
 
 # CLI flag -> (config field, argparse kwargs). Flags left unset do not override the file.
 RUN_FLAGS: dict[str, tuple[str, dict]] = {
@@ -95,10 +96,6 @@ def _num(x: float | None) -> str:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from swarm.launch import launch
-
     try:
         config = config_from_args(args)
     except ValueError as exc:
@@ -109,10 +106,46 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"error: {out} already holds a run's results; choose another --out "
               "(nothing was overwritten)", file=sys.stderr)
         return 2
+    live = endpoint = None
+    if args.live:
+        from protocol.session import free_tcp_endpoint
+        from swarm.live.observer import LiveView
+
+        try:
+            live = LiveView(port=args.live_port, run_id=config.run_id)
+            print(f"live view: {live.start()}", flush=True)
+        except (ValueError, RuntimeError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        endpoint = free_tcp_endpoint()
+    try:
+        return _run_and_report(args, config, out, live, endpoint)
+    finally:
+        if live is not None:
+            live.close()
+
+
+def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live, endpoint) -> int:
+    from tqdm import tqdm
+
+    from swarm.launch import launch
+
+    observe = None
+    if live is not None:
+        from protocol.session import zenoh_config
+
+        from swarm.deploy import OBSERVER
+
+        def observe(credentials) -> None:
+            password = credentials.password_file(OBSERVER).read_text(encoding="utf-8").strip()
+            live.connect(zenoh_config("client", connect=[endpoint], user=OBSERVER,
+                                      password=password))
+
     bar = tqdm(total=config.ticks, desc=f"{config.surface} {config.estimator}", unit="tick",
                disable=None)
     try:
-        summary = launch(config, out, in_process=args.in_process, on_tick=lambda j: bar.update(1))
+        summary = launch(config, out, in_process=args.in_process, on_tick=lambda j: bar.update(1),
+                         endpoint=endpoint, before_agents=observe)
     except (ValueError, RuntimeError) as exc:
         bar.close()
         print(f"error: {exc}", file=sys.stderr)
@@ -123,13 +156,60 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 130
     bar.close()
     print(format_summary(summary))
-    print(f"results: {out}")
+    print(f"results: {out}", flush=True)
     if args.plot:
         from swarm.plots import plot_run
 
         for path in plot_run(out):
             print(f"figure: {path}")
+    if live is not None:
+        print(f"live view still at {live.server.url} (Ctrl-C to quit)", flush=True)
+        live.serve_until_interrupted()
     return 0 if summary["complete"] else 1
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    """``watch``: the live view of a run assembled elsewhere, as a read-only observer."""
+    from protocol.session import credentials, zenoh_config
+    from swarm.live.observer import LiveView
+
+    try:
+        user, password = credentials(args)
+        conf = zenoh_config(args.mode, connect=args.connect, user=user, password=password,
+                            extra=args.cfg)
+        live = LiveView(port=args.live_port, run_id=args.run_id)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return _serve(live, conf)
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    """``replay RUN_DIR``: the same page for a finished run, with a tick slider."""
+    from swarm.live.observer import LiveView
+    from swarm.live.store import load_run
+
+    try:
+        live = LiveView(port=args.live_port, store=load_run(args.run_dir), replay=True)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return _serve(live, None)
+
+
+def _serve(live, conf) -> int:
+    """Serve ``live`` (connected with ``conf`` unless None) until Ctrl-C."""
+    try:
+        print(f"live view: {live.start()} (Ctrl-C to quit)", flush=True)
+        if conf is not None:  # the page waits for the world meanwhile
+            live.connect(conf)
+        live.serve_until_interrupted()
+    except RuntimeError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        live.close()
+    return 0
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
@@ -205,6 +285,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="agents as sessions in this process")
     run.add_argument("--out", help="results folder (default runs/<run_id>)")
     run.add_argument("--plot", action="store_true", help="draw the run's figures at the end")
+    run.add_argument("--live", action="store_true",
+                     help="serve a live view of the run on localhost (kept up until Ctrl-C)")
+    add_live_port(run)
     run.set_defaults(func=cmd_run, in_process=False)
     experiment = sub.add_parser("experiment", help="regenerate the paper's tables, figures and report")
     experiment.add_argument("name", choices=("paper",), help="which experiment")
@@ -229,7 +312,27 @@ def build_parser() -> argparse.ArgumentParser:
     deploy.add_argument("--force", action="store_true",
                         help="replace the passwords and keys already in OUT/secrets")
     deploy.set_defaults(func=cmd_deploy)
+    watch = sub.add_parser("watch", help="live view of a running run, as a read-only observer")
+    watch.add_argument("--connect", action="append", required=True, metavar="ENDPOINT",
+                       help="Zenoh router (or peer) to connect to, e.g. tcp/127.0.0.1:7447")
+    watch.add_argument("--run-id", required=True, help="the run to watch")
+    watch.add_argument("--mode", choices=("client", "peer"), default="client")
+    add_credential_flags(watch)
+    add_live_port(watch)
+    watch.set_defaults(func=cmd_watch)
+    replay = sub.add_parser("replay", help="the live view of a finished run, with a tick slider")
+    replay.add_argument("run_dir", metavar="RUN_DIR", help="a results folder")
+    add_live_port(replay)
+    replay.set_defaults(func=cmd_replay)
     return p
+
+
+def add_live_port(parser: argparse.ArgumentParser) -> None:
+    from swarm.live import DEFAULT_PORT
+
+    parser.add_argument("--live-port", type=int, default=DEFAULT_PORT,
+                        help=f"port of the page on 127.0.0.1 (default {DEFAULT_PORT}, "
+                             "0 = any free)")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -185,38 +185,54 @@ def new_run_id() -> str:
 
 def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
            on_tick: Callable[[int], None] | None = None, endpoint: str | None = None,
-           credentials_dir: str | Path | None = None) -> dict:
+           credentials_dir: str | Path | None = None,
+           credentials: RunCredentials | None = None,
+           before_agents: Callable[[RunCredentials], None] | None = None) -> dict:
     """Run ``config`` end to end; return the summary (also in ``out_dir/summary.json``).
 
     The world listens on ``endpoint`` (default: a free loopback port) as a router that admits
     only this run's users, each with a random password (:class:`RunCredentials`), under the
     access-control rules of a deployment. The credentials are written to ``credentials_dir``
     (created, mode 0700; it must not exist), by default to a temporary folder removed at the
-    end.
+    end; or ``credentials`` made beforehand with :meth:`RunCredentials.create` are used.
+    ``before_agents`` is called with them once the world is up, before the agents start
+    (the live view connects there, as the ``observer`` user).
 
     Raises RuntimeError if the agents do not come up. Ctrl-C stops every agent and leaves a
     partial result marked incomplete.
     """
     out_dir = Path(out_dir)  # run_world resolves the config and writes config.toml first
     endpoint = endpoint or free_tcp_endpoint()
+    if credentials is not None:
+        return _launch(config, out_dir, in_process, on_tick, endpoint, credentials,
+                       before_agents)
     if credentials_dir is not None:
         return _launch(config, out_dir, in_process, on_tick, endpoint,
-                       RunCredentials.create(Path(credentials_dir), config.followers))
+                       RunCredentials.create(Path(credentials_dir), config.followers),
+                       before_agents)
     with tempfile.TemporaryDirectory(prefix="swarm-credentials-") as scratch:
         return _launch(config, out_dir, in_process, on_tick, endpoint,
-                       RunCredentials.create(Path(scratch) / "run", config.followers))
+                       RunCredentials.create(Path(scratch) / "run", config.followers),
+                       before_agents)
 
 
 def _launch(config: RunConfig, out_dir: Path, in_process: bool,
             on_tick: Callable[[int], None] | None, endpoint: str,
-            credentials: RunCredentials) -> dict:
+            credentials: RunCredentials,
+            before_agents: Callable[[RunCredentials], None] | None = None) -> dict:
     agents = (_ThreadAgents(config, endpoint, credentials) if in_process
               else _ProcessAgents(config, out_dir, endpoint, credentials))
     log.info("run %s: credentials in %s (observer: %s)", config.run_id, credentials.folder,
              credentials.password_file(OBSERVER))
+
+    def ready(service: WorldService) -> None:
+        if before_agents is not None:
+            before_agents(credentials)
+        agents.start(service)
+
     try:
         summary = run_world(config, embedded_router_config(config, endpoint, credentials),
-                            out_dir, on_tick=on_tick, on_ready=agents.start)
+                            out_dir, on_tick=on_tick, on_ready=ready)
     except BaseException:  # Ctrl-C or a failure: end every agent now
         agents.stop(timeout=1.0)
         raise

@@ -26,6 +26,7 @@ from protocol.config import write_atomic
 from world.results import RunRecorder, read_observations, read_ticks
 from world.sim import RequestError, RunEnded, TickMissed, WorldSim
 from world.surfaces import Surface
+from world.view import ViewPublisher
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +57,7 @@ class WorldService:
         self.session, self.config = session, config
         self.sim = WorldSim(config, surface)
         self.recorder = RunRecorder(out_dir, config)
+        self.view = ViewPublisher(session, config, surface, self.sim.ideal, out_dir)
         if resume:
             self._resume()
         self.on_tick = on_tick
@@ -80,7 +82,7 @@ class WorldService:
         self._missed_pub = session.declare_publisher(keys.missed(run))
         self._done_pub = session.declare_publisher(keys.done(run))
         self._token = session.liveliness().declare_token(keys.alive(run, "world"))
-        self._declared += [self._tick_pub, self._missed_pub, self._done_pub, self._token]
+        self._declared += [self._tick_pub, self._missed_pub, self._done_pub, self._token, self.view]
 
     def _resume(self) -> None:
         """Continue from the results folder's checkpoint (the last complete tick)."""
@@ -292,7 +294,9 @@ class WorldService:
                 self._cond.wait(left)
             if self._ended is not None:
                 return self._ended
-            self.recorder.add_tick(self.sim.finish_tick())
+            rows = self.sim.finish_tick()
+            self.recorder.add_tick(rows)
+            self.view.publish_tick(rows)
             if realtime:  # pace by the wall clock
                 next_start = self._tick_started + self.period
                 while self._ended is None and (left := next_start - time.monotonic()) > 0:
@@ -314,6 +318,7 @@ class WorldService:
         """
         started = time.monotonic()
         self.wait_for_agents(self.config.start_timeout)
+        self.view.publish_map(force=True)
         reason = ""
         try:
             for tick in range(self.recorder.ticks_done, self.config.ticks):

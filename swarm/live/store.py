@@ -1,0 +1,151 @@
+"""What an observer knows about a run: the map, complete ticks, estimator choices, status.
+
+A :class:`RunStore` is filled from Zenoh (live, :mod:`swarm.live.feed`) or from a run folder
+(:func:`load_run`) and read by every open page through :meth:`RunStore.snapshot`; it is safe to
+fill from Zenoh's threads while pages read it.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from types import MappingProxyType
+
+from protocol.view import MAP_FILE, TICK_COLUMNS, check_map, check_tick
+
+WAITING, RUNNING = "waiting for the world", "running"
+COMPLETE, INCOMPLETE = "complete", "incomplete"
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One complete tick: ``rows[agent]`` maps :data:`protocol.view.TICK_COLUMNS` to values."""
+
+    tick: int
+    t: float
+    rows: dict[int, dict]
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """A consistent copy of a store for drawing (``frames`` sorted by tick)."""
+
+    version: int
+    map: dict | None
+    frames: tuple[Frame, ...]
+    choices: MappingProxyType  # (tick, follower) -> estimator or auto's followed candidate
+    status: str
+    reason: str
+
+
+class RunStore:
+    """Thread-safe accumulator of one run's view; ``version`` grows with every change."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._map: dict | None = None
+        self._frames: dict[int, Frame] = {}
+        self._partial: dict[int, dict[int, dict]] = {}  # tick -> rows so far, until complete
+        self._choices: dict[tuple[int, int], str] = {}
+        self._status, self._reason = WAITING, ""
+        self._version = 0
+
+    def set_map(self, body: dict) -> None:
+        """The world's map payload (validated); the first one is kept."""
+        body = check_map(body)
+        with self._lock:
+            if self._map is None:
+                self._map = body
+                self._version += 1
+
+    def add_tick(self, body: dict) -> None:
+        """One chunk of a tick's rows (validated); the tick counts once all its rows are in."""
+        body = check_tick(body)
+        rows = {row[0]: dict(zip(TICK_COLUMNS, row)) for row in body["rows"]}
+        with self._lock:
+            parts = self._partial.setdefault(body["tick"], {})
+            parts.update(rows)
+            if len(parts) >= body["agents"]:
+                del self._partial[body["tick"]]
+                self._frames[body["tick"]] = Frame(body["tick"], body["t"], parts)
+                if self._status == WAITING:
+                    self._status = RUNNING
+                self._version += 1
+
+    def add_choice(self, tick: int, follower: int, label: str) -> None:
+        """Follower ``follower``'s estimator at ``tick`` (``auto``: its followed candidate)."""
+        with self._lock:
+            self._choices[(tick, follower)] = label
+            self._version += 1
+
+    def finish(self, complete: bool, reason: str = "") -> None:
+        """The run ended (``world/done`` or the run folder's summary)."""
+        with self._lock:
+            self._status, self._reason = (COMPLETE, "") if complete else (INCOMPLETE, reason)
+            self._version += 1
+
+    def world_gone(self) -> None:
+        """The world's liveliness token vanished: an end without ``world/done`` is a failure."""
+        with self._lock:
+            if self._status in (WAITING, RUNNING):
+                self._status, self._reason = INCOMPLETE, "the world process disappeared"
+                self._version += 1
+
+    @property
+    def version(self) -> int:
+        with self._lock:
+            return self._version
+
+    def snapshot(self) -> Snapshot:
+        with self._lock:
+            return Snapshot(self._version, self._map,
+                            tuple(self._frames[j] for j in sorted(self._frames)),
+                            MappingProxyType(dict(self._choices)), self._status, self._reason)
+
+
+def load_run(run_dir: str | Path) -> RunStore:
+    """A store holding a finished (or interrupted) run, read from its folder alone.
+
+    Reads ``view_map.json``, ``ticks.csv``, ``observations.csv`` and ``summary.json``
+    (ValueError naming what is missing or malformed).
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise ValueError(f"run_dir {run_dir} is not a folder")
+    store = RunStore()
+    try:
+        store.set_map(json.loads((run_dir / MAP_FILE).read_text()))
+        with open(run_dir / "ticks.csv", newline="", encoding="utf-8") as fh:
+            ticks = list(csv.DictReader(fh))
+        summary = json.loads((run_dir / "summary.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"cannot replay {run_dir}: {exc}") from None
+    n_agents = store.snapshot().map["followers"] + 1
+    by_tick: dict[int, list[dict]] = {}
+    for raw in ticks:
+        by_tick.setdefault(int(raw["tick"]), []).append(raw)
+    for tick, raws in sorted(by_tick.items()):
+        store.add_tick({"v": 1, "type": "view-tick", "tick": tick, "t": float(raws[0]["t"]),
+                        "agents": n_agents, "rows": [_row(raw) for raw in raws]})
+    obs_path = run_dir / "observations.csv"
+    if obs_path.exists():
+        with open(obs_path, newline="", encoding="utf-8") as fh:
+            for raw in csv.DictReader(fh):
+                store.add_choice(int(raw["tick"]), int(raw["agent"]),
+                                 raw.get("followed") or raw["estimator"])
+    store.finish(bool(summary.get("complete")), str(summary.get("reason", "")))
+    return store
+
+
+def _row(raw: dict) -> list:
+    """A ``ticks.csv`` row as a view row (``missed`` is 0 where the file has no such column)."""
+    out = []
+    for name in TICK_COLUMNS:
+        value = raw.get(name) or ""
+        if name in ("agent", "lost", "missed"):
+            out.append(int(value or 0))
+        else:
+            out.append(float(value) if value else None)
+    return out

@@ -1,0 +1,615 @@
+"""The live view and the replay: payloads, drawing data, the observer's rights on a router with
+access control, identical numbers with ``--live``, and the pages in headless Chromium.
+
+Lockstep runs here use agent processes (the default layout): an in-process run once ended here
+with "agent 1 did not settle at tick 0" (once in 18 runs, no live view involved), probably a
+follower's rod subscription reaching the leader's peer session after tick 0 had started.
+
+Browser tests need Debian's ``chromium`` (``.ci/run`` installs it) and Playwright; they write
+their screenshots to ``$SWARM_SCREENSHOT_DIR`` when set (``docs/`` keeps the committed ones),
+else to the test's temporary folder.
+"""
+from __future__ import annotations
+
+import ast
+import json
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from protocol import keys
+from protocol.config import RunConfig, load_config
+from protocol.messages import ProtocolError
+from protocol.session import free_tcp_endpoint, zenoh_config
+from protocol.view import (
+    MAP_CELLS, MAX_VIEW_BYTES, ROWS_PER_CHUNK, TICK_COLUMNS, decode_map, decode_tick, encode_map,
+    encode_tick, tick_payloads,
+)
+from swarm.deploy import OBSERVER
+from swarm.launch import RunCredentials, launch
+from swarm.live.draw import follower_series, heading, hillshade, map_columns
+from swarm.live.store import COMPLETE, INCOMPLETE, RUNNING, Frame, RunStore, load_run
+from world.main import resolve_with_surface
+from world.sim import WorldSim
+from world.view import map_payload
+
+ROOT = Path(__file__).resolve().parents[1]
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync", "--no-first-run"]
+WAIT_S = 5.0
+RUN_TIMEOUT_S = 90.0  # a whole short run with the page server (about 10 s here)
+STATUS = re.compile(r"tick (\d+) of (\d+)")
+
+
+def _world_map(surface: str = "elliptic", followers: int = 3) -> tuple[dict, WorldSim]:
+    config, surf = resolve_with_surface(RunConfig(run_id="view", surface=surface,
+                                                  followers=followers))
+    sim = WorldSim(config, surf)
+    return map_payload(config, surf, sim.ideal), sim
+
+
+# --- payloads ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("surface", ["elliptic", "wavy", "hemisphere"])
+def test_map_covers_the_ideal_column_within_the_size_limit(surface):
+    view_map, sim = _world_map(surface)
+    assert len(encode_map(view_map)) <= MAX_VIEW_BYTES
+    assert decode_map(encode_map(view_map))["shape"] == view_map["shape"]
+    ny, nx = view_map["shape"]
+    assert ny * nx <= MAP_CELLS and min(nx, ny) >= 20
+    x0, x1, y0, y1 = view_map["box"]
+    ideal = sim.ideal[np.isfinite(sim.ideal).all(axis=2)]
+    assert (ideal[:, 0] > x0).all() and (ideal[:, 0] < x1).all()
+    assert (ideal[:, 1] > y0).all() and (ideal[:, 1] < y1).all()
+    # the grid's corners are the surface's heights there (32-bit on the wire)
+    wire = decode_map(encode_map(view_map))
+    for i, j in ((0, 0), (ny - 1, nx - 1)):
+        p = np.array([x0 if j == 0 else x1, y0 if i == 0 else y1])
+        inside = getattr(sim.surface, "contains", lambda _: True)(p)
+        expected = sim.surface.height(p) if inside else None
+        got = wire["heights"][i * nx + j]
+        assert got == (None if expected is None else pytest.approx(expected, rel=1e-6, abs=1e-6))
+    if surface == "hemisphere":  # outside the domain: no height
+        assert any(h is None for h in view_map["heights"])
+
+
+def test_height_grid_leaves_out_points_a_surface_refuses():
+    from world.geometry import SurfaceDomainError
+    from world.view import height_grid
+
+    class HalfPlane:  # defined for x >= 0 only, and says so by raising
+        def height(self, p):
+            if p[0] < 0:
+                raise SurfaceDomainError(f"{p} is outside")
+            return 2.0 * p[0]
+
+    z = height_grid(HalfPlane(), np.array([-1.0, 0.0]), np.array([1.0, 1.0]), (2, 3))
+    assert np.isnan(z[:, 0]).all() and z[:, 1:].tolist() == [[0.0, 2.0], [0.0, 2.0]]
+
+
+def test_tick_rows_travel_in_chunks_and_bad_payloads_are_refused():
+    rows = [{"tick": 7, "t": 8.96, "agent": k, "pos_x": float(k), "pos_y": -float(k),
+             **({} if k == 0 else {"ideal_x": 1.0, "ideal_y": 2.0, "stay_range": 0.5,
+                                   "persist_range": 0.1, "lost": 1, "missed": 0})}
+            for k in range(2 * ROWS_PER_CHUNK + 5)]
+    chunks = tick_payloads(rows, n_agents=len(rows))
+    assert [len(c["rows"]) for c in chunks] == [ROWS_PER_CHUNK, ROWS_PER_CHUNK, 5]
+    for chunk in chunks:
+        assert len(encode_tick(chunk)) <= MAX_VIEW_BYTES
+        assert decode_tick(encode_tick(chunk)) == chunk
+    first = dict(zip(TICK_COLUMNS, chunks[0]["rows"][1]))
+    assert first["pos_x"] == 1.0 and first["lost"] == 1 and first["est_x"] is None
+    store = RunStore()
+    store.add_tick(chunks[0])
+    store.add_tick(chunks[1])
+    assert store.snapshot().frames == ()  # the tick counts once every row is in
+    store.add_tick(chunks[2])
+    [frame] = store.snapshot().frames
+    assert frame.tick == 7 and len(frame.rows) == len(rows) and store.snapshot().status == RUNNING
+    bad = dict(chunks[0], rows=[[0, math.nan] + [None] * (len(TICK_COLUMNS) - 2)])
+    with pytest.raises(ProtocolError, match="pos_x"):
+        encode_tick(bad)
+    with pytest.raises(ProtocolError, match="agent 9"):
+        encode_tick(dict(chunks[0], agents=9, rows=[[9] + [1.0] * (len(TICK_COLUMNS) - 1)]))
+    with pytest.raises(ProtocolError, match="version"):
+        decode_tick(b"\x81\xa1v\x02")
+
+
+def test_store_status_and_a_vanished_world():
+    store = RunStore()
+    store.world_gone()
+    assert (store.snapshot().status, store.snapshot().reason) == (
+        INCOMPLETE, "the world process disappeared")
+    store = RunStore()
+    store.finish(True)
+    store.world_gone()  # the world leaves after world/done: still complete
+    assert store.snapshot().status == COMPLETE
+
+
+# --- drawing data --------------------------------------------------------------------------------
+
+
+def _frame(tick: int, positions: list[tuple[float, float]], ideals, estimates) -> Frame:
+    rows = {}
+    for k, (x, y) in enumerate(positions):
+        row = dict.fromkeys(TICK_COLUMNS)
+        row.update(agent=k, pos_x=x, pos_y=y, lost=0, missed=0)
+        if k > 0:
+            row.update(ideal_x=ideals[k][0], ideal_y=ideals[k][1], stay_range=1.0,
+                       persist_range=0.1)
+            if estimates[k] is not None:
+                row.update(est_x=estimates[k][0], est_y=estimates[k][1], required_range=0.01)
+        rows[k] = row
+    return Frame(tick, 1.28 * tick, rows)
+
+
+def test_map_columns_draw_every_agent_and_rod_with_headings():
+    """Four agents in a column moving +y: rods from agent k−1 to follower k's true rod end."""
+    ideals = {k: (3.0 * k, 1.0) for k in (1, 2, 3)}
+    before = _frame(0, [(3.0 * k, 0.0) for k in range(4)], ideals, dict.fromkeys(range(4)))
+    now = _frame(1, [(3.0 * k, 1.0) for k in range(4)], ideals,
+                 {1: (3.1, 1.0), 2: (6.0, 1.2), 3: None})
+    frames = {0: before, 1: now}
+    cols = map_columns(frames, 1, sensing_range=0.5, nose=0.5)
+    assert len(cols["agents"]["x"]) == 4 and len(cols["rods"]["x0"]) == 3
+    assert cols["rods"]["x0"] == [0.0, 3.0, 6.0] and cols["rods"]["x1"] == [3.0, 6.0, 9.0]
+    assert len(cols["estimates"]["x"]) == 2 and cols["ranges"]["radius"] == [0.5, 0.5]
+    # heading +y: the heading segments point up from every agent
+    assert cols["headings"]["x1"] == pytest.approx(cols["agents"]["x"])
+    assert cols["headings"]["y1"] == pytest.approx([1.5] * 4)
+    assert heading(frames, 0, 2) == pytest.approx(math.pi / 2)  # tick 0: its first move
+    assert map_columns(frames, 1, sensing_range=None, nose=0.5)["ranges"]["x"] == []
+    assert [len(xs) for xs in cols["paths"]["xs"]] == [2, 2, 2, 2]
+    series = follower_series([before, now], 3)
+    assert series["ranges"]["required"][1] != series["ranges"]["required"][1]  # NaN: no estimate
+    assert series["ranges"]["stay"] == [1.0, 1.0]
+    # a missed tick whose ranges are all zero (its leader did not move) is marked at the floor
+    stuck = _frame(2, [(3.0 * k, 1.0) for k in range(4)], ideals, dict.fromkeys(range(4)))
+    stuck.rows[3].update(stay_range=0.0, persist_range=0.0, missed=1)
+    series = follower_series([before, now, stuck], 3)
+    assert series["missed"] == {"tick": [2], "y": [0.1]} and series["lost"]["tick"] == []
+
+
+def test_hillshade_lights_slopes_facing_the_light():
+    """Light from the north-west: a slope rising to the east (facing west) is brighter than one
+    rising to the west; cells outside the domain are transparent."""
+    def plane(slope: float, hole: bool = False) -> dict:
+        xs, ys = np.linspace(0, 10, 20), np.linspace(0, 10, 20)
+        z = [slope * x for y in ys for x in xs]
+        if hole:
+            z[0] = None
+        return {"shape": [20, 20], "box": [0.0, 10.0, 0.0, 10.0], "heights": z}
+
+    east, west = hillshade(plane(0.5)), hillshade(plane(-0.5))
+    assert east.shape == (20, 20, 4) and east.dtype == np.uint8
+    assert east[..., :3].mean() > west[..., :3].mean() + 20
+    holed = hillshade(plane(0.5, hole=True))
+    assert holed[0, 0, 3] == 0 and (holed[..., 3] == 255).sum() == 399
+
+
+# --- the observer never needs the world ----------------------------------------------------------
+
+
+def test_observer_does_not_import_world():
+    """Static check of swarm/live, and a fresh interpreter that loads every live module."""
+    for path in (ROOT / "swarm" / "live").glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            for name in names:
+                assert name.split(".")[0] not in ("world", "agents"), f"{path.name} imports {name}"
+    code = ("import sys, swarm.live.observer, swarm.live.page, swarm.live.server, "
+            "swarm.live.store, swarm.live.feed, swarm.live.draw; "
+            "bad = [m for m in ('world', 'agents') if m in sys.modules]; "
+            "print(bad); sys.exit(1 if bad else 0)")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+# --- the observer role on a router with access control -------------------------------------------
+
+
+def _acl_router(endpoint: str, folder: Path) -> zenoh.Config:
+    """A router where ``world`` and ``agent`` may do anything under ``swarm/**`` and
+    ``observer`` may only subscribe (samples and liveliness) and receive."""
+    (folder / "credentials.txt").write_text("world:w-pw\nagent:a-pw\nobserver:o-pw\n")
+    everything = ["put", "delete", "query", "reply", "declare_subscriber", "declare_queryable",
+                  "liveliness_token", "liveliness_query", "declare_liveliness_subscriber"]
+    acl = {
+        "enabled": True, "default_permission": "deny",
+        "rules": [
+            {"id": "all", "permission": "allow", "flows": ["ingress", "egress"],
+             "messages": everything, "key_exprs": ["swarm/**"]},
+            {"id": "observe", "permission": "allow", "flows": ["ingress"],
+             "messages": ["declare_subscriber", "declare_liveliness_subscriber"],
+             "key_exprs": ["swarm/**"]},
+            {"id": "observed", "permission": "allow", "flows": ["egress"],
+             "messages": ["put", "delete", "liveliness_token"], "key_exprs": ["swarm/**"]},
+        ],
+        "subjects": [{"id": "trusted", "usernames": ["world", "agent"]},
+                     {"id": "observer", "usernames": ["observer"]}],
+        "policies": [{"id": "trusted", "subjects": ["trusted"], "rules": ["all"]},
+                     {"id": "observer", "subjects": ["observer"],
+                      "rules": ["observe", "observed"]}],
+    }
+    conf = zenoh_config("router", listen=[endpoint])
+    conf.insert_json5("transport/auth/usrpwd/dictionary_file",
+                      json.dumps(str(folder / "credentials.txt")))
+    conf.insert_json5("access_control", json.dumps(acl))
+    return conf
+
+
+class Inbox:
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self.items: list[tuple[str, bytes]] = []
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        with self._cond:
+            self.items.append((str(sample.key_expr), sample.payload.to_bytes()))
+            self._cond.notify_all()
+
+    def wait_for(self, item: tuple[str, bytes], timeout: float) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: item in self.items, timeout)
+
+
+def _until(condition, timeout: float = WAIT_S) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_observer_can_subscribe_but_neither_query_the_world_nor_publish(tmp_path):
+    run = "acl"
+    endpoint = free_tcp_endpoint()
+
+    def client(user: str, password: str) -> zenoh.Session:
+        return zenoh.open(zenoh_config("client", connect=[endpoint], user=user,
+                                       password=password, connect_timeout=WAIT_S))
+
+    def replies(session: zenoh.Session, key: str, timeout: float = 1.0) -> list[bytes]:
+        return [r.ok.payload.to_bytes() for r in session.get(key, timeout=timeout)
+                if r.ok is not None]
+
+    with (zenoh.open(_acl_router(endpoint, tmp_path)), client("world", "w-pw") as world,
+          client("agent", "a-pw") as agent, client("observer", "o-pw") as observer):
+        heard, seen = Inbox(), Inbox()
+        handles = [world.declare_queryable(keys.sense(run), lambda q: q.reply(q.key_expr, b"w")),
+                   world.declare_subscriber(f"swarm/{run}/**", heard),
+                   observer.declare_subscriber(keys.view(run), seen)]
+        # positive controls: the agent's query is answered and its sample heard; the world's
+        # view sample reaches the observer
+        assert _until(lambda: replies(agent, keys.sense(run, 1)) == [b"w"])
+        view_tick = keys.view(run, "tick")
+        def delivered() -> bool:
+            world.put(view_tick, b"t")
+            return seen.wait_for((view_tick, b"t"), 0.1)
+
+        assert _until(delivered)
+        assert replies(observer, keys.sense(run, 1), timeout=0.5) == []
+        rod = keys.rod(run, 1)
+        for key in (rod, keys.tick(run), view_tick):
+            observer.put(key, b"forged")
+        agent.put(rod, b"after")  # sent later, so it would arrive after the forged ones
+        assert heard.wait_for((rod, b"after"), WAIT_S)
+        assert not [item for item in heard.items if item[1] == b"forged"]
+        for handle in reversed(handles):
+            handle.undeclare()
+
+
+# --- runs with the live view ---------------------------------------------------------------------
+
+
+def _swarm(*args: str, log: Path) -> subprocess.Popen:
+    with log.open("w") as fh:
+        return subprocess.Popen([sys.executable, "-m", "swarm", *args], cwd=ROOT, stdout=fh,
+                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                env={**os.environ, "PYTHONPATH": str(ROOT)})
+
+
+def _served_after_run(log: Path) -> bool:
+    return "live view still at http://127.0.0.1:" in log.read_text()
+
+
+def _complete(out: Path) -> bool:
+    try:
+        return json.loads((out / "summary.json").read_text())["complete"]
+    except (OSError, ValueError, KeyError):
+        return False
+
+
+def _interrupt(proc: subprocess.Popen) -> int:
+    """Ctrl-C the served page (it stays up until then); kill if it does not end."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        return proc.wait(timeout=15)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        raise
+
+
+def test_live_run_gives_the_same_numbers(tmp_path):
+    flags = ["--followers", "3", "--ticks", "12", "--run-id", "same", "--seed", "4"]
+    proc = _swarm("run", "--live", "--live-port", "0", *flags,
+                  "--out", str(tmp_path / "live"), log=tmp_path / "live.log")
+    try:  # the page stays up after the run, until Ctrl-C
+        assert _until(lambda: _served_after_run(tmp_path / "live.log"), RUN_TIMEOUT_S), \
+            (tmp_path / "live.log").read_text()[-2000:]
+    finally:
+        code = _interrupt(proc)
+    log = (tmp_path / "live.log").read_text()
+    assert code == 0, log[-2000:]
+    assert "live view: http://127.0.0.1:" in log and _complete(tmp_path / "live")
+    config = load_config(tmp_path / "live" / "config.toml")
+    launch(config, tmp_path / "plain")
+    for name in ("ticks.csv", "view_map.json"):
+        assert (tmp_path / "live" / name).read_bytes() == (tmp_path / "plain" / name).read_bytes()
+
+
+def test_replay_store_reads_the_run_folder(tmp_path):
+    config = RunConfig(run_id="folder", followers=2, ticks=8, sensing_range=2e-4)
+    summary = launch(config, tmp_path / "run")
+    snap = load_run(tmp_path / "run").snapshot()
+    assert [f.tick for f in snap.frames] == list(range(8))
+    assert snap.status == COMPLETE and snap.map["sensing_range"] == 2e-4
+    lost = sum(f.rows[k]["lost"] for f in snap.frames for k in (1, 2))
+    assert lost == sum(s["lost_ticks"] for s in summary["followers"].values()) > 0
+    assert {snap.choices[(7, k)] for k in (1, 2)} == {"edmd-b"}
+    with pytest.raises(ValueError, match="cannot replay"):
+        load_run(tmp_path)
+    # auto's followed candidate, where observations carry it, is shown instead of "auto"
+    path = tmp_path / "run" / "observations.csv"
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join([lines[0] + ",followed"] + [line + ",edmd-bu" for line in lines[1:]]))
+    assert set(load_run(tmp_path / "run").snapshot().choices.values()) == {"edmd-bu"}
+
+
+# --- in the browser ------------------------------------------------------------------------------
+
+
+def _shots(tmp_path: Path) -> Path:
+    folder = Path(os.environ.get("SWARM_SCREENSHOT_DIR", tmp_path))
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def _status(page) -> str:
+    return page.get_by_text(STATUS).inner_text(timeout=WAIT_S * 1000)
+
+
+def _shown_tick(page) -> int:
+    return int(STATUS.search(_status(page)).group(1))
+
+
+def _count(page, renderer: str, column: str) -> int:
+    return page.evaluate(f"Bokeh.documents[0].get_model_by_name('{renderer}')"
+                         f".data_source.data['{column}'].length")
+
+
+@pytest.fixture
+def browser():
+    if not CHROMIUM.exists():
+        pytest.skip("Debian's chromium is not installed (.ci/run installs it)")
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with sync_api.sync_playwright() as pw:
+        chromium = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        try:
+            yield chromium
+        finally:
+            chromium.close()
+
+
+def _open(browser, url: str, requests: list[str]):
+    page = browser.new_page(viewport={"width": 1300, "height": 820})
+    page.on("request", lambda r: requests.append(r.url))
+    page.goto(url, timeout=WAIT_S * 4000)
+    return page
+
+
+def _external(requests: list[str], port: int) -> list[str]:
+    local = (f"http://127.0.0.1:{port}/", f"ws://127.0.0.1:{port}/")
+    return [u for u in requests if not u.startswith(local) and not u.startswith("data:")]
+
+
+@pytest.mark.timeout(240)
+def test_live_page_follows_a_run_and_replay_reaches_the_last_tick(browser, tmp_path):
+    """A realtime 3-follower run over Zenoh with ``--live``: the page's tick advances, it draws
+    4 agents and 3 rods and ends reading complete; then ``replay`` of the same folder, whose
+    slider dragged to its end shows the last tick, and play runs it from the start. No request
+    leaves the machine."""
+    out, port, ticks = tmp_path / "run", int(free_tcp_endpoint().rpartition(":")[2]), 30
+    proc = _swarm("run", "--live", "--live-port", str(port), "--followers", "3",
+                  "--ticks", str(ticks), "--mode", "realtime", "--time-scale", "0.2",
+                  "--run-id", "browser", "--out", str(out), log=tmp_path / "run.log")
+    requests: list[str] = []
+    try:
+        assert _until(lambda: "live view: " in (tmp_path / "run.log").read_text(), 30.0)
+        page = _open(browser, f"http://127.0.0.1:{port}/", requests)
+        page.get_by_text(re.compile(r"tick \d+ of \d+ · t =")).wait_for(timeout=30_000)
+        first = _shown_tick(page)
+        assert _until(lambda: _shown_tick(page) > first, 10.0)
+        assert _count(page, "agents", "x") == 4 and _count(page, "rods", "x0") == 3
+        page.get_by_text(f"tick {ticks - 1} of {ticks - 1}").wait_for(timeout=RUN_TIMEOUT_S * 1000)
+        assert _until(lambda: _status(page).endswith("· complete"), 10.0), _status(page)
+        assert _count(page, "agents", "x") == 4 and _count(page, "rods", "x0") == 3
+        page.screenshot(path=str(_shots(tmp_path) / "live-view.png"), full_page=True)
+        page.close()
+        assert _until(lambda: _served_after_run(tmp_path / "run.log"), 15.0)
+    finally:
+        code = _interrupt(proc)
+    assert code == 0, (tmp_path / "run.log").read_text()[-2000:]
+    assert _external(requests, port) == []
+
+    port = int(free_tcp_endpoint().rpartition(":")[2])
+    proc = _swarm("replay", str(out), "--live-port", str(port), log=tmp_path / "replay.log")
+    requests = []
+    try:
+        assert _until(lambda: "live view: " in (tmp_path / "replay.log").read_text(), 30.0)
+        page = _open(browser, f"http://127.0.0.1:{port}/", requests)
+        page.get_by_text(f"tick 0 of {ticks - 1}").wait_for(timeout=30_000)
+        handle, track = page.locator(".noUi-handle"), page.locator(".noUi-base")
+        box, end = handle.bounding_box(), track.bounding_box()
+        page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        page.mouse.down()
+        page.mouse.move(end["x"] + end["width"] + 20, box["y"] + box["height"] / 2, steps=10)
+        page.mouse.up()
+        page.get_by_text(f"tick {ticks - 1} of {ticks - 1}").wait_for(timeout=WAIT_S * 1000)
+        assert _status(page).endswith("· complete")
+        assert _count(page, "agents", "x") == 4 and _count(page, "rods", "x0") == 3
+        page.screenshot(path=str(_shots(tmp_path) / "replay.png"), full_page=True)
+        page.get_by_role("button", name="play").click()  # at the end: plays from the start
+        assert _until(lambda: 0 < _shown_tick(page) < ticks - 1)
+        page.close()
+    finally:
+        code = _interrupt(proc)
+    assert code == 0, (tmp_path / "replay.log").read_text()[-2000:]
+    assert _external(requests, port) == []
+
+
+@pytest.mark.parametrize("relief", ["analytic", "dem"])
+def test_page_draws_contours_and_relief_for_a_dem(tmp_path, relief):
+    """The page built on a document (no browser): contour lines always, hillshade for DEMs, one
+    range plot per follower, the newest tick live."""
+    from bokeh.document import Document
+    from bokeh.models import ContourRenderer, GlyphRenderer, ImageRGBA
+
+    from swarm.live.page import Page
+
+    view_map, _ = _world_map(followers=2)
+    store = RunStore()
+    store.set_map({**view_map, "relief": relief})
+    rows = [{"tick": 0, "t": 0.0, "agent": k, "pos_x": float(k), "pos_y": 0.0,
+             **({"ideal_x": float(k), "ideal_y": 0.0} if k else {})} for k in range(3)]
+    for chunk in tick_payloads(rows, n_agents=3):
+        store.add_tick(chunk)
+    doc = Document()
+    page = Page(doc, store, replay=False)
+    renderers = page.map.renderers
+    images = [r for r in renderers
+              if isinstance(r, GlyphRenderer) and isinstance(r.glyph, ImageRGBA)]
+    assert len(images) == (1 if relief == "dem" else 0)
+    assert any(isinstance(r, ContourRenderer) for r in renderers)
+    assert sorted(page.range_plots) == [1, 2]
+    assert len(page.sources["agents"].data["x"]) == 3 and len(page.sources["rods"].data["x0"]) == 2
+    assert page.status.text == "tick 0 of 39 · t = 0.00 · running"
+
+
+def test_late_observer_gets_the_map_and_the_rest_of_the_run(tmp_path):
+    """What ``watch`` does, joining a realtime run after tick 5: the map still arrives (the
+    world republishes it), then every later tick and the final status."""
+    from swarm.live.observer import LiveView
+
+    config = RunConfig(run_id="late", followers=3, ticks=40, mode="realtime", time_scale=0.08)
+    endpoint, ticked, result = free_tcp_endpoint(), threading.Event(), {}
+    credentials = RunCredentials.create(tmp_path / "credentials", config.followers)
+
+    def run() -> None:
+        result["summary"] = launch(config, tmp_path / "late", in_process=True, endpoint=endpoint,
+                                   on_tick=lambda j: j >= 5 and ticked.set(),
+                                   credentials=credentials)
+
+    world = threading.Thread(target=run, daemon=True)
+    world.start()
+    live = LiveView(port=0, run_id="late")
+    try:
+        assert ticked.wait(RUN_TIMEOUT_S)
+        live.connect(zenoh_config("client", connect=[endpoint], user=OBSERVER,
+                                  password=credentials.passwords[OBSERVER]))
+        assert _until(lambda: live.store.snapshot().map is not None, 3.0)
+        world.join(RUN_TIMEOUT_S)
+        assert not world.is_alive() and result["summary"]["complete"]
+        assert _until(lambda: live.store.snapshot().status == COMPLETE)
+    finally:
+        live.close()
+    snap = live.store.snapshot()
+    ticks = [f.tick for f in snap.frames]
+    assert ticks[0] > 5 and ticks == list(range(ticks[0], 40))
+    assert {snap.choices[(39, k)] for k in (1, 2, 3)} == {"edmd-b"}  # from agent/<id>/obs
+    on_disk = json.loads((tmp_path / "late" / "view_map.json").read_text())
+    assert {**snap.map, "heights": None} == {**on_disk, "heights": None}
+    assert snap.map["heights"] == pytest.approx(on_disk["heights"], rel=1e-6)  # 32-bit on the wire
+
+
+def test_replay_page_plays_one_tick_per_refresh(tmp_path):
+    from bokeh.document import Document
+
+    from swarm.live.page import Page
+
+    launch(RunConfig(run_id="play", followers=1, ticks=6), tmp_path / "run")
+    page = Page(Document(), load_run(tmp_path / "run"), replay=True)
+    assert (page.slider.start, page.slider.end, page.slider.value) == (0, 5, 0)
+    page.slider.value = 5
+    page.play.active = True  # at the end, play starts over
+    seen = []
+    for _ in range(8):
+        page.on_timer()
+        seen.append(page.slider.value)
+    assert seen == [1, 2, 3, 4, 5, 5, 5, 5] and page.play.active is False
+    assert page.status.text == "tick 5 of 5 · t = 6.40 · complete"
+    page.slider.value = 2
+    assert page.status.text.startswith("tick 2 of 5 · t = 2.56")
+
+
+def test_cli_refuses_bad_live_arguments(tmp_path, capsys):
+    from swarm.cli import main
+
+    assert main(["watch", "--connect", "tcp/127.0.0.1:7447", "--run-id", "no spaces"]) == 2
+    assert "run_id must be" in capsys.readouterr().err
+    assert main(["replay", str(tmp_path)]) == 2
+    assert "cannot replay" in capsys.readouterr().err
+    assert main(["run", "--live", "--live-port", "70000", "--out", str(tmp_path / "r")]) == 1
+    assert "port must be" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()  # nothing ran
+
+
+def test_watch_page_of_a_run_assembled_elsewhere(browser, tmp_path):
+    """``swarm watch`` started before the world exists: the page waits for it, then follows the
+    run (world and agents as processes on their own router) to its last tick and end."""
+    endpoint, port = free_tcp_endpoint(), int(free_tcp_endpoint().rpartition(":")[2])
+    config = RunConfig(run_id="watched", followers=3, ticks=20)
+    credentials = RunCredentials.create(tmp_path / "credentials", config.followers)
+    proc = _swarm("watch", "--connect", endpoint, "--run-id", "watched", "--live-port", str(port),
+                  "--user", OBSERVER, "--password-file", str(credentials.password_file(OBSERVER)),
+                  log=tmp_path / "watch.log")
+    result: dict = {}
+    world = threading.Thread(target=lambda: result.update(
+        summary=launch(config, tmp_path / "run", endpoint=endpoint, credentials=credentials)),
+        daemon=True)
+    try:
+        assert _until(lambda: "live view: " in (tmp_path / "watch.log").read_text(), 30.0)
+        page = _open(browser, f"http://127.0.0.1:{port}/", [])
+        page.get_by_text("waiting for the world").wait_for(timeout=WAIT_S * 1000)
+        world.start()
+        page.get_by_text("tick 19 of 19").wait_for(timeout=RUN_TIMEOUT_S * 1000)
+        assert _until(lambda: _status(page).endswith("· complete"), 10.0), _status(page)
+        assert _count(page, "agents", "x") == 4 and _count(page, "rods", "x0") == 3
+        page.close()
+        world.join(RUN_TIMEOUT_S)
+        assert result["summary"]["complete"]
+    finally:
+        code = _interrupt(proc)
+        if world.is_alive():
+            world.join(RUN_TIMEOUT_S)
+    assert code == 0, (tmp_path / "watch.log").read_text()[-2000:]
