@@ -35,7 +35,7 @@ class Auto(Policy):
     name = "auto"
 
     def __init__(self, candidates: list[Policy], horizon: int = 4, trust: float | None = 3.0,
-                 min_scores: int = 2) -> None:
+                 min_scores: int = 1, burn_in: int = 1) -> None:
         if not candidates:
             raise ValueError("candidates must not be empty")
         if horizon < 1:
@@ -50,7 +50,11 @@ class Auto(Policy):
         self.candidates = candidates
         self.trust = trust
         self.min_scores = min_scores
+        if burn_in < 0:
+            raise ValueError(f"burn_in must be >= 0, got {burn_in}")
+        self.burn_in = burn_in
         self.errors = [deque(maxlen=horizon) for _ in candidates]
+        self.scored = [0] * len(candidates)  # ticks each candidate was scored on
 
     def choose(self, proposals: list[Proposal | None]) -> int:
         """Index of the candidate to follow, given each candidate's proposal (None: not ready)."""
@@ -91,9 +95,12 @@ class Auto(Policy):
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
         if target is not None:
-            for errors, proposal in zip(self.errors, self._proposals(reconstructed_pre(settled, target))):
+            proposals = self._proposals(reconstructed_pre(settled, target))
+            for i, proposal in enumerate(proposals):
                 if proposal is not None:
-                    errors.append(float(np.hypot(*(proposal.offset - target))))
+                    self.scored[i] += 1
+                    if self.scored[i] > self.burn_in:
+                        self.errors[i].append(float(np.hypot(*(proposal.offset - target))))
         measured = [cand.record(settled, target) for cand in self.candidates]
         return measured[0]
 
