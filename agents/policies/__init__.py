@@ -34,7 +34,7 @@ def classical(name: str, settings: AgentSettings) -> Policy:
     if name == "kalman":
         return Kalman(settings.noise_range, settings.noise_bearing, accel=settings.kalman_accel)
     if name == "arx":
-        return ARX(settings.arx_order, settings.arx_window or None, comm_period=settings.comm_period)
+        return ARX(settings.arx_order, settings.arx_window or None)
     if name == "gp":
         return GaussianProcess(settings.gp_samples, noise=cartesian_sigma**2)
     raise ValueError(f"unknown classical estimator {name!r}")
@@ -54,9 +54,9 @@ def auto_candidates(settings: AgentSettings) -> list[Policy]:
         paper_edmd("b", tc),
         EDMDPolicy(make_dictionary("b", tc), delays=1),
         EDMDPolicy(xy(), delays=2),
-        ARX(order=2, window=10, affine=False, comm_period=tc, name="arx-o2-w10-lin"),
-        ARX(order=2, window=None, affine=True, comm_period=tc, name="arx-o2"),
-        ARX(order=1, window=None, affine=True, comm_period=tc, name="arx-o1"),
+        ARX(order=2, window=10, affine=False, name="arx-o2-w10-lin"),
+        ARX(order=2, window=None, affine=True, name="arx-o2"),
+        ARX(order=1, window=None, affine=True, name="arx-o1"),
         EDMDPolicy(xy(), delays=1, affine=True, window=8),
         *(classical(name, settings) for name in ("cv", "kalman", "arx", "gp")),
     ]

@@ -197,18 +197,18 @@ class ARX(Policy):
     ``x_{i+1} = sum_k (A_k x_{i-k} + B_k u_{i-k}) (+ c)``, ``k < order``, is fitted by least
     squares (minimum norm, singular values below ``1e-10`` of the largest cut) over the
     ``window`` newest pairs (all if None). ``record`` rebuilds each past ``u`` from the settled
-    reading and the follower's displacement (``target``, or odometry when the rod was lost).
+    reading and the follower's displacement ``target``; a lost or missed tick restarts the
+    chain of samples.
     This is EDMD with control on ``[x, u]`` (an EDMDc-style idea), least squares row by row.
     """
 
     def __init__(self, order: int = 1, window: int | None = 10, affine: bool = True,
-                 comm_period: float = 1.0, name: str | None = None) -> None:
+                 name: str | None = None) -> None:
         if order < 1:
             raise ValueError(f"order must be >= 1, got {order}")
         if window is not None and window < 1:
             raise ValueError(f"window must be >= 1 or None, got {window}")
         self.order, self.window, self.affine = order, window, affine
-        self.comm_period = comm_period
         self.name = name or "arx"
         keep = None if window is None else window + order
         # x_0 .. x_j (measured, or bridged when lost) and u_0 .. u_{j-1}: xs[i] and us[i]
@@ -249,25 +249,20 @@ class ARX(Policy):
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
         seen = relative(settled)
-        moved = target
-        if moved is None and settled.velocity is not None:  # lost: odometry gives the move
-            moved = self.comm_period * np.asarray(settled.velocity)
-        if self.last_seen is not None and moved is not None:
-            u = seen + np.asarray(moved) - self.last_seen
-            x = seen
-            if target is None:  # lost: bridge with the model's own prediction
-                try:
-                    x = self._regressor(len(self.xs) - 1, u_now=u) @ self._coefficients()
-                except NotFitted:
-                    pass
-            self.us.append(u)
-            self.xs.append(x)
-        else:  # first sample, or the chain is broken: start a new one
+        if target is None:
+            # Lost: the follower is off its ideal position by an unknown amount, and bridging
+            # with the model's own predictions compounds (a fitted A may be unstable). Restart
+            # the chain at the next tick that sees the rod; persist stands in meanwhile.
+            self.skip()
+            return float(seen[0]), float(seen[1])
+        if self.last_seen is not None:
+            self.us.append(seen + np.asarray(target) - self.last_seen)
+        else:
             self.xs.clear()
             self.us.clear()
-            self.xs.append(seen)
+        self.xs.append(seen)
         self.last_seen = seen
-        return float(self.xs[-1][0]), float(self.xs[-1][1])
+        return float(seen[0]), float(seen[1])
 
     def skip(self) -> None:
         """The leader's displacement over a missed tick is unknown: restart the chain."""
