@@ -68,6 +68,12 @@ def reconstructed_pre(settled: Sensing, target: np.ndarray) -> Sensing:
     stood, so the leader relative to its old place is ``relative(settled) + target`` (with the
     settled reading's sensor noise in place of the pre reading's). This lets ``record`` score
     what a policy would have proposed without keeping anything from ``propose``.
+
+    Examples
+    --------
+    >>> s = reconstructed_pre(Sensing(tick=5, r=3.0, theta=0.0), np.array([0.0, 4.0]))
+    >>> round(s.r, 12), round(s.theta, 12)  # leader 3 east of the follower, which came 4 north
+    (5.0, 0.927295218002)
     """
     x, y = relative(settled) + np.asarray(target, dtype=float)
     return Sensing(tick=settled.tick, r=math.hypot(x, y), theta=math.atan2(y, x),

@@ -65,7 +65,19 @@ class RelativeTracker(Policy):
 
 
 class ConstantVelocity(RelativeTracker):
-    """``cv``: ``x*_{j+1} = 2 x_j - x_{j-1}`` (constant-velocity extrapolation)."""
+    """``cv``: ``x*_{j+1} = 2 x_j - x_{j-1}`` (constant-velocity extrapolation).
+
+    Examples
+    --------
+    >>> from protocol.messages import Sensing
+    >>> cv = ConstantVelocity()
+    >>> for r in (3.0, 3.1):
+    ...     _ = cv.record(Sensing(tick=0, r=r, theta=0.0), target=np.zeros(2))
+    >>> cv.forecast().round(12)
+    array([3.2, 0. ])
+    >>> cv.propose(Sensing(tick=2, r=3.5, theta=0.0)).offset.round(12)  # leader 0.3 further
+    array([0.3, 0. ])
+    """
 
     name = "cv"
 
