@@ -56,7 +56,7 @@ class RunConfig:
     arx_order: int = 1
     arx_window: int = 10
     gp_samples: int = 8
-    kalman_accel: float = 1e-4
+    kalman_accel: float = 1e-3
     gps: bool = False
     noise_range: float = 0.0
     noise_bearing: float = 0.0

@@ -27,8 +27,14 @@ __all__ = ["ARX", "Auto", "ConstantVelocity", "EDMDPolicy", "FallbackToPersist",
 
 
 def classical(name: str, settings: AgentSettings) -> Policy:
-    """The classical baseline ``name`` (cv, kalman, arx, gp) with the run's options."""
-    cartesian_sigma = max(settings.noise_range, settings.noise_bearing * settings.spacing)
+    """The classical baseline ``name`` (cv, kalman, arx, gp) with the run's options.
+
+    The declared sensor noise enters ``kalman`` as is (mapped to xy at each reading) and ``gp``
+    as the per-coordinate variance of a reading at the rod's distance,
+    ``(sigma_r**2 + (d sigma_theta)**2) / 2``.
+    """
+    coordinate_variance = (settings.noise_range**2
+                           + (settings.spacing * settings.noise_bearing) ** 2) / 2.0
     if name == "cv":
         return ConstantVelocity()
     if name == "kalman":
@@ -36,7 +42,7 @@ def classical(name: str, settings: AgentSettings) -> Policy:
     if name == "arx":
         return ARX(settings.arx_order, settings.arx_window or None)
     if name == "gp":
-        return GaussianProcess(settings.gp_samples, noise=cartesian_sigma**2)
+        return GaussianProcess(settings.gp_samples, noise=coordinate_variance)
     raise ValueError(f"unknown classical estimator {name!r}")
 
 
@@ -63,14 +69,14 @@ def auto_candidates(settings: AgentSettings) -> list[Policy]:
 
 
 def make_policy(settings: AgentSettings) -> Policy:
-    """The policy a follower runs, from its settings; every estimator other than the two
-    baselines falls back to ``persist`` (flagged) while it cannot predict."""
+    """The policy a follower runs, from its settings; it falls back to ``persist`` (flagged)
+    while it cannot predict, and its proposals name what was followed."""
     name = settings.estimator
     if name == "stay":
-        return Stay()
-    if name == "persist":
-        return Persist()
-    if name == "auto":
+        policy: Policy = Stay()
+    elif name == "persist":
+        policy = Persist()
+    elif name == "auto":
         policy = Auto(auto_candidates(settings))
     elif name in ("cv", "kalman", "arx", "gp"):
         policy = classical(name, settings)

@@ -157,7 +157,7 @@ class Kalman(RelativeTracker):
     name = "kalman"
     F = np.block([[np.eye(2), np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])
 
-    def __init__(self, sigma_r: float = 0.0, sigma_theta: float = 0.0, accel: float = 1e-4) -> None:
+    def __init__(self, sigma_r: float = 0.0, sigma_theta: float = 0.0, accel: float = 1e-3) -> None:
         super().__init__(history=1)
         for name, value in (("sigma_r", sigma_r), ("sigma_theta", sigma_theta)):
             if not value >= 0.0:
