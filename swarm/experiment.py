@@ -1,7 +1,8 @@
 """``python -m swarm experiment paper``: the paper's Section 4 over Zenoh, as tables, figures, report.
 
 The grid is data: :func:`paper_grid` returns, per table, the named :class:`GridRun` s (a
-``RunConfig`` plus the table columns it fills). :func:`run_grid` runs them in a process pool,
+``RunConfig`` plus the table columns it fills), built by :func:`swarm.grid.expand` from axes as
+any ``swarm sweep`` grid is. :func:`swarm.grid.run_grid` runs them in a process pool,
 each task one :func:`swarm.launch.launch` (world as embedded router, every agent its own Zenoh
 session) into ``D/runs/<table>/<name>/``; a failed run is recorded and the others go on.
 :func:`run_paper_experiment` then writes ``D/tables/*.csv`` from the runs' summaries, draws
@@ -27,7 +28,6 @@ from collections import defaultdict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from protocol.config import RunConfig
 from swarm.grid import (RUN_ATTEMPTS, Axis, GridRun, RunOutcome, execute, expand, is_nan, number,

@@ -88,8 +88,8 @@ def test_propose_is_pure_and_state_is_the_call_log(name):
 
     cfg = RunConfig(surface="wavy", ticks=16, sensing_range=0.03, seed=2, noise_range=0.005,
                     noise_bearing=0.002, **CONFIGS[name])
-    checked, rows = run_local(cfg, policy_factory=factory)
-    plain, plain_rows = run_local(cfg)
+    _, rows = run_local(cfg, policy_factory=factory)
+    _, plain_rows = run_local(cfg)
     assert rows == plain_rows  # the checks themselves change nothing
     assert checkers[0].checked == cfg.ticks
     assert any(call[0] == "record" and call[2] is None for call in checkers[0].log), "no lost tick"
