@@ -20,7 +20,9 @@ class Auto(Policy):
     ``record`` asks each candidate what it would have proposed from where the follower stood
     (:func:`reconstructed_pre`) and appends ``|offset - target|`` to a window of ``horizon``
     ticks, before the candidate learns from the tick. Scoring starts in the initial ticks,
-    where nothing moves. ``propose`` follows, among the candidates with at least
+    where nothing moves; each candidate's first ``burn_in`` scores are dropped (a least-squares
+    model fitted on its minimum number of pairs says little about its later errors).
+    ``propose`` follows, among the candidates with at least
     ``min_scores`` scores, the one with the lowest mean squared error over the ticks all of
     them were scored on (the same ticks for each: a late starter is not compared on fewer,
     luckier ticks); ties go to the earlier candidate.
@@ -44,14 +46,14 @@ class Auto(Policy):
             raise ValueError(f"min_scores must be in [1, horizon], got {min_scores}")
         if trust is not None and trust <= 0:
             raise ValueError(f"trust must be positive or None, got {trust}")
+        if burn_in < 0:
+            raise ValueError(f"burn_in must be >= 0, got {burn_in}")
         names = [c.name for c in candidates]
         if len(set(names)) != len(names):
             raise ValueError(f"candidate names must be unique, got {names}")
         self.candidates = candidates
         self.trust = trust
         self.min_scores = min_scores
-        if burn_in < 0:
-            raise ValueError(f"burn_in must be >= 0, got {burn_in}")
         self.burn_in = burn_in
         self.errors = [deque(maxlen=horizon) for _ in candidates]
         self.scored = [0] * len(candidates)  # ticks each candidate was scored on
