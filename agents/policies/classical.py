@@ -95,9 +95,12 @@ class GaussianProcess(RelativeTracker):
 
     Each coordinate is modelled, over the tick index, as a linear trend plus a squared-
     exponential residual with length scale ``ell`` ticks and a measurement-noise variance
-    ``noise`` (length²; from the run's declared sensor noise) plus a relative jitter. The trend
-    is fitted by generalised least squares (universal kriging), the signal variance by its
-    closed-form maximum-likelihood value, and ``ell`` by maximum likelihood over a grid.
+    ``noise`` (length²; from the run's declared sensor noise) plus a relative jitter of 1e-8.
+    The noise enters relative to the samples' variance (standing in for the unknown signal
+    variance); given that ratio the trend is fitted by generalised least squares (universal
+    kriging), the signal variance takes its closed-form maximum-likelihood value, and ``ell``
+    the grid value of highest (concentrated) likelihood. Deterministic: no optimiser, no
+    random restarts.
     """
 
     name = "gp"
@@ -129,7 +132,7 @@ class GaussianProcess(RelativeTracker):
         for ell in self.LENGTHS:
             k = np.exp(-0.5 * ((t[:, None] - t[None, :]) / ell) ** 2)
             # Signal variance s2 and noise variance enter as C = k + (noise / s2 + jitter) I;
-            # s2 is unknown, so use the residual scale of the trend fit as its first guess.
+            # s2 is unknown, so the samples' variance stands in for it here.
             cov = k + (self.noise / scale + self.JITTER) * np.eye(t.size)
             chol = np.linalg.cholesky(cov)
             solve = lambda b: np.linalg.solve(chol.T, np.linalg.solve(chol, b))  # noqa: E731
