@@ -210,8 +210,13 @@ def cmd_compare(args: argparse.Namespace) -> int:
     try:
         _check_workers(args.workers)
         base = config_from_args(args)
-        seeds = [int(x) for x in args.seeds.split(",")] if args.seeds else [base.seed]
+        try:
+            seeds = [int(x) for x in args.seeds.split(",")] if args.seeds else [base.seed]
+        except ValueError:
+            raise ValueError(f"--seeds must be comma-separated integers, got {args.seeds!r}") from None
         axes = compare_axes([e for e in args.estimators.split(",") if e], seeds)
+        if not 1 <= args.follower <= base.followers:
+            raise ValueError(f"--follower must be in 1..{base.followers}, got {args.follower}")
         from swarm.grid import expand
 
         expand("compare", base, axes)  # every combination must be valid before anything runs
@@ -219,7 +224,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = Path(args.out) if args.out else Path("runs") / f"compare-{base.run_id}"
-    return _run_sweep_and_print("compare", base, axes, out, 1, args.workers)
+    return _run_sweep_and_print("compare", base, axes, out, args.follower, args.workers)
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
@@ -279,6 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
                          help="comma-separated: edmd-<letter>, a built-in name, or "
                               "package.module:Name (default: %(default)s)")
     compare.add_argument("--seeds", help="comma-separated seeds (default: --seed)")
+    compare.add_argument("--follower", type=int, default=1, help="whose metrics (default 1)")
     compare.add_argument("--out", help="output folder (default runs/compare-<run id>)")
     compare.add_argument("--workers", type=int, default=None,
                          help="runs in parallel (default min(2, CPU count))")

@@ -77,6 +77,19 @@ def test_bad_grid_files_are_refused(tmp_path, capsys, text, message):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("flags, message", [
+    (["--seeds", "0,x"], "--seeds must be comma-separated integers"),
+    (["--follower", "2"], "--follower must be in 1..1"),
+    (["--estimators", ","], "--estimators must name at least one estimator"),
+    (["--estimators", "persist,nope"], "estimator must be one of"),
+    (["--workers", "0"], "--workers must be at least 1"),
+])
+def test_bad_compare_flags_are_refused(tmp_path, capsys, flags, message):
+    assert main(["compare", "--out", str(tmp_path / "o"), *flags]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 def test_report_does_not_import_the_experiment():
     """The experiment <-> report import cycle is gone: report needs only the grid module."""
     code = ("import sys, swarm.report; "
