@@ -33,3 +33,9 @@ class MeanStep:
 def not_a_policy(settings):
     """A factory that returns something without the streaming interface."""
     return object()
+
+
+class LongName(MeanStep):
+    """A policy whose name is too long to travel in an observation."""
+
+    name = "x" * 200

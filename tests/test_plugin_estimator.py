@@ -47,6 +47,8 @@ def test_plugin_errors_name_the_problem():
         load_estimator("tests.example_estimator:Missing", settings)
     with pytest.raises(ValueError, match="does not implement propose, record, skip"):
         load_estimator("tests.example_estimator:not_a_policy", settings)
+    with pytest.raises(ValueError, match="name must be at most 128 characters"):
+        load_estimator("tests.example_estimator:LongName", settings)
     with pytest.raises(ValueError, match="estimator must be one of"):
         RunConfig(estimator="no colon")
     policy = make_policy(AgentSettings.from_config(RunConfig(estimator=SPEC)))

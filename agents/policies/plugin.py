@@ -13,6 +13,8 @@ import importlib
 from agents.policies.base import Policy
 from protocol.config import PLUGIN_ESTIMATOR, AgentSettings
 
+MAX_NAME = 128
+
 
 def load_estimator(spec: str, settings: AgentSettings) -> Policy:
     """Import ``package.module:Name`` and build the policy from ``settings``.
@@ -38,4 +40,6 @@ def load_estimator(spec: str, settings: AgentSettings) -> Policy:
         raise ValueError(f"estimator {spec!r} does not implement {', '.join(missing)}")
     if not isinstance(getattr(policy, "name", None), str) or not policy.name:
         policy.name = spec
+    if len(policy.name) > MAX_NAME:  # it travels in every observation (4 KiB at most)
+        raise ValueError(f"estimator {spec!r}: name must be at most {MAX_NAME} characters")
     return policy
