@@ -16,7 +16,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["StreamingEDMD", "delay_embed"]
+__all__ = ["NotFitted", "StreamingEDMD", "delay_embed"]
 
 FloatArray = NDArray[np.float64]
 
@@ -33,6 +33,17 @@ _MAX_RECURSIVE_COND = 1e3
 # factors are about 1 / (1 - n / window), so this happens every ~2.3 window / n pairs at a
 # cost O(window n^2): O(n^3) amortised per pair, whatever the history length.
 _MAX_DOWNDATE_GROWTH = 10.0
+# Forgetting without ridge and without a window: data that stop exciting a direction make the
+# weighted Gram matrix G decay there by `forget` per pair, and P = G^{-1} grows without bound
+# (recursive-least-squares wind-up). The recursion is stopped once the bound
+# trace(P) * trace(G) >= cond(G) reaches this (the square of the limit at which it starts,
+# times a margin of 100); the fit is then the exact pseudoinverse of a bounded summary, as at
+# the start, until the data are well conditioned again.
+_MAX_WINDUP = 100.0 * _MAX_RECURSIVE_COND**2
+
+
+class NotFitted(RuntimeError):
+    """Too few samples to fit or predict yet; the message says how many are needed."""
 
 
 def delay_embed(history: ArrayLike, delays: int) -> FloatArray:
@@ -151,10 +162,15 @@ class StreamingEDMD:
     -----
     With ``forget < 1`` and ``ridge == 0``, data that stop exciting some direction make
     ``X W X^T`` decay towards singularity in that direction and ``P`` grow like
-    ``forget**-k`` (the classic recursive-least-squares wind-up); the online and batch
-    fits then drift apart. A small ``ridge`` (which keeps ``P <= I / ridge``) or a
-    ``window`` (whose fit is recomputed from its pairs when a downdate nearly empties a
-    direction) avoids it.
+    ``forget**-k`` (the classic recursive-least-squares wind-up). Without a window the
+    online estimator therefore keeps its ``(2n, 2n)`` summary of the pairs while recursing
+    (one QR step per pair) and tracks ``trace(X W X^T)``; once ``trace(P) trace(X W X^T)``
+    (an upper bound of the condition number) passes ``1e8 n^2`` it stops the recursion and
+    computes the batch pseudoinverse fit from the summary until the data are well
+    conditioned again. A ``ridge`` keeps ``P <= I / ridge``; a ``window`` is refitted from its
+    pairs when a downdate nearly empties a direction. So no setting winds up: the online fit
+    follows the batch one to about ``eps * cond(X W^{1/2})**2`` relative, at most ~1e-10
+    while recursing (the recursion runs only below cond 1e3 at its start).
 
     References
     ----------
@@ -220,6 +236,7 @@ class StreamingEDMD:
         # Online without a window, before the recursion starts: R with R^T R equal to the
         # weighted sum of [x; y][x; y]^T, i.e. the pairs up to an orthogonal transform.
         self._sqrt_data: FloatArray | None = None
+        self._gram_trace = 0.0  # online, wind-up guard: trace of X W X^T
 
     # ------------------------------------------------------------------ public API
 
@@ -302,6 +319,12 @@ class StreamingEDMD:
             self._refit()
         else:
             self._recursive_step(x, psi, leaving)
+            if self._guards_windup:
+                self._absorb_pair(x, psi)
+                self._gram_trace = self.forget * self._gram_trace + float(x.dot(x))
+                if float(np.trace(self._P)) * self._gram_trace > _MAX_WINDUP * x.size**2:
+                    self._P = None
+                    self._refit()
 
     def predict(self, z: ArrayLike | None = None) -> FloatArray:
         """Predict the next measurement.
@@ -357,7 +380,7 @@ class StreamingEDMD:
 
     def _fitted_K(self) -> FloatArray:
         if self._n_pairs_seen == 0:
-            raise RuntimeError(
+            raise NotFitted(
                 f"StreamingEDMD(delays={self.delays}) needs {self.delays + 2} observed "
                 f"samples to fit K, it has {self._n_observed}"
             )
@@ -434,8 +457,16 @@ class StreamingEDMD:
         self._downdate_growth = 1.0
         if self.online:
             self._P = _inverse_gram(x)
-            if self._P is not None:
+            if self._P is not None and self._guards_windup:
+                self._gram_trace = float(np.sum(x * x))  # trace of X W X^T
+            elif self._P is not None:
                 self._sqrt_data = None
+
+    @property
+    def _guards_windup(self) -> bool:
+        """Online fit that can wind up (forgetting, no ridge, no window): it keeps the
+        bounded summary of its pairs while recursing, to refit from when P grows too large."""
+        return self.online and self.window is None and self.forget < 1.0 and self.ridge == 0.0
 
     def _recursive_step(
         self, x: FloatArray, y: FloatArray, leaving: tuple[FloatArray, FloatArray] | None

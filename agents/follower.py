@@ -30,8 +30,9 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
     try:  # during the initial ticks the prediction is only scored, not followed
         proposal = policy.propose(pre)
         offset, prediction = proposal.offset, proposal.prediction
+        followed, fallback = proposal.followed, proposal.fallback
     except NotReady:
-        offset, prediction = np.zeros(2), None
+        offset, prediction, followed, fallback = np.zeros(2), None, "", False
     if tick < settings.init_ticks:
         offset, rod = np.zeros(2), pre.rod
     else:
@@ -42,7 +43,7 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
     target = None if lost or rod is None else offset + np.asarray(rod)
     measurement = policy.record(settled, target)
     return Observation(tick=tick, estimator=policy.name, measurement=measurement,
-                       prediction=prediction, lost=lost)
+                       prediction=prediction, lost=lost, followed=followed, fallback=fallback)
 
 
 def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,

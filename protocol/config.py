@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
 import tempfile
 import tomllib
 from dataclasses import dataclass, field
@@ -18,7 +19,10 @@ from typing import Any
 
 from protocol.keys import check_run_id
 
-ESTIMATORS = ("edmd", "stay", "persist", "auto")
+ESTIMATORS = ("edmd", "stay", "persist", "auto", "cv", "kalman", "arx", "gp")
+# Your own estimator (SPEC §6): imported by the follower process only, never checked here
+# beyond its shape.
+PLUGIN_ESTIMATOR = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$")
 DICTIONARIES = ("a", "b", "c", "d", "e", "f", "g")
 GPS_DICTIONARIES = ("d", "e", "f", "g")
 VELOCITY_VARIANTS = ("oracle", "lagged", "estimated")
@@ -49,6 +53,10 @@ class RunConfig:
     forget: float = 1.0
     window: int = 0
     ridge: float = 0.0
+    arx_order: int = 1
+    arx_window: int = 10
+    gp_samples: int = 8
+    kalman_accel: float = 1e-3
     gps: bool = False
     noise_range: float = 0.0
     noise_bearing: float = 0.0
@@ -63,7 +71,8 @@ class RunConfig:
 
     def __post_init__(self) -> None:
         check_run_id(self.run_id)
-        _check_choice("estimator", self.estimator, ESTIMATORS)
+        if not (isinstance(self.estimator, str) and PLUGIN_ESTIMATOR.match(self.estimator)):
+            _check_choice("estimator", self.estimator, ESTIMATORS + ("package.module:Name",))
         _check_choice("dictionary", self.dictionary, DICTIONARIES)
         _check_choice("velocity", self.velocity, VELOCITY_VARIANTS)
         _check_choice("side", self.side, tuple(SIDES))
@@ -75,8 +84,12 @@ class RunConfig:
         _check_int("init_ticks", self.init_ticks, 2, self.ticks)
         _check_int("delays", self.delays, 0, 1000)
         _check_int("window", self.window, 0, 10_000_000)
+        _check_int("arx_order", self.arx_order, 1, 100)
+        _check_int("arx_window", self.arx_window, 0, 10_000_000)
+        _check_int("gp_samples", self.gp_samples, 3, 1000)
         _check_int("seed", self.seed, 0, 2**63 - 1)
-        for name in ("comm_period", "spacing", "time_scale", "agent_timeout", "start_timeout"):
+        for name in ("comm_period", "spacing", "time_scale", "agent_timeout", "start_timeout",
+                     "kalman_accel"):
             _check_float(name, getattr(self, name), positive=True)
         for name in ("ridge", "noise_range", "noise_bearing", "noise_velocity", "noise_move"):
             _check_float(name, getattr(self, name), positive=False)
@@ -147,6 +160,12 @@ class AgentSettings:
     forget: float
     window: int
     ridge: float
+    arx_order: int
+    arx_window: int
+    gp_samples: int
+    kalman_accel: float
+    noise_range: float
+    noise_bearing: float
     gps: bool
     mode: str
     time_scale: float

@@ -225,13 +225,20 @@ class Rod(Message):
 
 @dataclass(frozen=True)
 class Observation(Message):
-    """``agent/<id>/obs``: the agent's settled measurement and what it had predicted for it."""
+    """``agent/<id>/obs``: the agent's settled measurement and what it had predicted for it.
+
+    ``followed`` names the policy whose estimate was followed (``auto``'s candidate, or
+    ``persist`` on a fallback); ``fallback`` is true when the estimator could not predict yet
+    and ``persist`` stood in. Both are optional on the wire (older senders omit them).
+    """
 
     TYPE: ClassVar[str] = "obs"
     estimator: str = _kind("text", "")
     measurement: tuple[float, ...] | None = _kind("vec?", None)
     prediction: tuple[float, ...] | None = _kind("vec?", None)
     lost: bool = _kind("flag", False)
+    followed: str = field(default="", metadata={"kind": "text", "optional": True})
+    fallback: bool = field(default=False, metadata={"kind": "flag", "optional": True})
 
 
 @dataclass(frozen=True)
@@ -337,19 +344,24 @@ def decode(
 
 
 @functools.cache
-def _spec(cls: type[Message]) -> tuple[tuple[tuple[str, Any], ...], frozenset[str]]:
-    """Per message class: (field name, checker) pairs and the set of allowed keys."""
+def _spec(cls: type[Message]) -> tuple[tuple[tuple[str, Any], ...], frozenset[str], dict[str, Any]]:
+    """Per message class: (field name, checker) pairs, the set of allowed keys, and the
+    defaults of the optional fields (which an older sender may omit)."""
     pairs = tuple((f.name, _KINDS[f.metadata["kind"]]) for f in fields(cls))
-    return pairs, frozenset(name for name, _ in pairs) | {"v", "type"}
+    optional = {f.name: f.default for f in fields(cls) if f.metadata.get("optional")}
+    return pairs, frozenset(name for name, _ in pairs) | {"v", "type"}, optional
 
 
 def _validate(cls: type[Message], body: dict[str, Any]) -> dict[str, Any]:
-    pairs, allowed = _spec(cls)
+    pairs, allowed, optional = _spec(cls)
     if not allowed.issuperset(body):
         unknown = set(body) - allowed
         raise ProtocolError(f"{cls.TYPE}: unknown field(s) {sorted(map(str, unknown))}")
     values = {}
     for name, check in pairs:
+        if name not in body and name in optional:
+            values[name] = optional[name]
+            continue
         if name not in body:
             raise ProtocolError(f"{cls.TYPE}: missing field {name!r}")
         values[name] = check(name, body[name])

@@ -18,7 +18,8 @@ RUN_FLAGS: dict[str, tuple[str, dict]] = {
     "--spacing": ("spacing", {"type": float, "help": "rod length d (Riemannian)"}),
     "--ticks": ("ticks", {"type": int}),
     "--init-ticks": ("init_ticks", {"type": int}),
-    "--estimator": ("estimator", {"choices": ("edmd", "stay", "persist", "auto")}),
+    "--estimator": ("estimator", {"help": "edmd, stay, persist, auto, cv, kalman, arx, gp, or "
+                                          "your own package.module:Name (SPEC §6)"}),
     "--dictionary": ("dictionary", {"choices": tuple("abcdefg")}),
     "--velocity": ("velocity", {"choices": ("oracle", "lagged", "estimated")}),
     "--online": ("online", {"action": "store_const", "const": True}),
@@ -27,6 +28,11 @@ RUN_FLAGS: dict[str, tuple[str, dict]] = {
     "--forget": ("forget", {"type": float}),
     "--window": ("window", {"type": int, "help": "sliding window of pairs (0 = all)"}),
     "--ridge": ("ridge", {"type": float}),
+    "--arx-order": ("arx_order", {"type": int, "help": "arx: past (x, u) pairs per regressor"}),
+    "--arx-window": ("arx_window", {"type": int, "help": "arx: pairs fitted (0 = all)"}),
+    "--gp-samples": ("gp_samples", {"type": int, "help": "gp: relative positions fitted"}),
+    "--kalman-accel": ("kalman_accel", {"type": float,
+                                        "help": "kalman: process noise (length²/tick⁴)"}),
     "--gps": ("gps", {"action": "store_const", "const": True}),
     "--noise-range": ("noise_range", {"type": float}),
     "--noise-bearing": ("noise_bearing", {"type": float}),
@@ -77,14 +83,29 @@ def _file_keys(path: str) -> set[str]:
 
 
 def format_summary(summary: dict) -> str:
-    """The per-follower table printed at the end of a run."""
-    head = (f"{'follower':>8}  {'required (' + summary['estimator'] + ')':>20}  {'rmse':>8}  "
-            f"{'stay':>8}  {'persist':>8}  {'lost':>4}  {'missed':>6}")
+    """The per-follower table printed at the end of a run: the estimator's required range,
+    the baselines (persist from the same noisy readings, its ratio, the noise-free persist
+    counterfactual) and what ``auto`` followed."""
+    label = "required (" + summary["estimator"] + ")"
+    width = max(20, len(label))
+    head = (f"{'follower':>8}  {label:>{width}}  {'rmse':>8}  {'stay':>8}  {'persist':>8}  "
+            f"{'/persist':>8}  {'persist*':>8}  {'lost':>4}  {'missed':>6}  {'fallback':>8}")
     lines = [head, "-" * len(head)]
+    shares = []
     for k, s in summary["followers"].items():
-        lines.append(f"{k:>8}  {_num(s['mean_required_range']):>20}  {_num(s['rmse']):>8}  "
-                     f"{_num(s['mean_stay_range']):>8}  {_num(s['mean_persist_range']):>8}  "
-                     f"{s['lost_ticks']:>4}  {s['missed_ticks']:>6}")
+        required, persist = s["mean_required_range"], s["mean_persist_range"]
+        ratio = required / persist if required is not None and persist else None
+        lines.append(f"{k:>8}  {_num(required):>{width}}  {_num(s['rmse']):>8}  "
+                     f"{_num(s['mean_stay_range']):>8}  {_num(persist):>8}  {_num(ratio):>8}  "
+                     f"{_num(s.get('mean_persist_range_noise_free')):>8}  "
+                     f"{s['lost_ticks']:>4}  {s['missed_ticks']:>6}  {s.get('fallback_ticks', 0):>8}")
+        followed = s.get("followed") or {}
+        if len(followed) > 1:
+            shares.append(f"follower {k} followed " + ", ".join(
+                f"{name} {share:.0%}" for name, share in followed.items()))
+    lines.append("persist: from the same (noisy) readings; persist*: its noise-free "
+                 "counterfactual; /persist: required over persist")
+    lines += shares
     state = "complete" if summary["complete"] else f"INCOMPLETE: {summary['reason']}"
     lines.append(f"surface {summary['surface']}, comm period {summary['comm_period']}, "
                  f"{summary['ticks_completed']} ticks, {summary['wall_time']:.1f} s wall, {state}")
@@ -240,6 +261,66 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     return 1 if result["failed"] else 0
 
 
+def _run_sweep_and_print(name, base, axes, out, follower, workers) -> int:
+    from swarm.sweep import format_means, run_sweep
+
+    try:
+        result = run_sweep(name, base, axes, out, follower=follower, workers=workers)
+    except KeyboardInterrupt:
+        print(f"interrupted: finished runs are in {Path(out) / 'runs'}", file=sys.stderr)
+        return 130
+    print(format_means(result["means"], result["keys"]))
+    for path in result["tables"].values():
+        print(f"table: {path}")
+    failed = [o for o in result["outcomes"] if not o.ok]
+    for outcome in failed:
+        print(f"FAILED {outcome.run.folder}: {outcome.error}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def _check_workers(workers: int | None) -> None:
+    if workers is not None and workers < 1:
+        raise ValueError(f"--workers must be at least 1, got {workers}")
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    """``compare``: one setup (``run``'s flags), several estimators and seeds, one table."""
+    from swarm.sweep import compare_axes
+
+    try:
+        _check_workers(args.workers)
+        base = config_from_args(args)
+        try:
+            seeds = [int(x) for x in args.seeds.split(",")] if args.seeds else [base.seed]
+        except ValueError:
+            raise ValueError(f"--seeds must be comma-separated integers, got {args.seeds!r}") from None
+        axes = compare_axes([e for e in args.estimators.split(",") if e], seeds)
+        if not 1 <= args.follower <= base.followers:
+            raise ValueError(f"--follower must be in 1..{base.followers}, got {args.follower}")
+        from swarm.grid import expand
+
+        expand("compare", base, axes)  # every combination must be valid before anything runs
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.out) if args.out else Path("runs") / f"compare-{base.run_id}"
+    return _run_sweep_and_print("compare", base, axes, out, args.follower, args.workers)
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    """``sweep GRID.toml``: any grid of options, one table (``experiment paper`` is one)."""
+    from swarm.sweep import load_grid
+
+    try:
+        _check_workers(args.workers)
+        name, base, axes, follower = load_grid(args.grid)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.out) if args.out else Path("runs") / f"sweep-{name}"
+    return _run_sweep_and_print(name, base, axes, out, follower, args.workers)
+
+
 def cmd_plot(args: argparse.Namespace) -> int:
     """``plot RUN_DIR``: draw one run's figures into RUN_DIR/figures."""
     from swarm.plots import plot_run
@@ -298,6 +379,23 @@ def build_parser() -> argparse.ArgumentParser:
     experiment.add_argument("--workers", type=int, default=None,
                             help="runs in parallel (default min(2, CPU count))")
     experiment.set_defaults(func=cmd_experiment)
+    compare = sub.add_parser("compare", help="one setup, several estimators and seeds, one table")
+    add_run_flags(compare)
+    compare.add_argument("--estimators", default="persist,edmd-b,cv,kalman,arx,gp,auto",
+                         help="comma-separated: edmd-<letter>, a built-in name, or "
+                              "package.module:Name (default: %(default)s)")
+    compare.add_argument("--seeds", help="comma-separated seeds (default: --seed)")
+    compare.add_argument("--follower", type=int, default=1, help="whose metrics (default 1)")
+    compare.add_argument("--out", help="output folder (default runs/compare-<run id>)")
+    compare.add_argument("--workers", type=int, default=None,
+                         help="runs in parallel (default min(2, CPU count))")
+    compare.set_defaults(func=cmd_compare)
+    sweep = sub.add_parser("sweep", help="run a grid file (surfaces × estimators × ...)")
+    sweep.add_argument("grid", metavar="GRID.toml", help="the grid: [base] options and [axes]")
+    sweep.add_argument("--out", help="output folder (default runs/sweep-<name>)")
+    sweep.add_argument("--workers", type=int, default=None,
+                       help="runs in parallel (default min(2, CPU count))")
+    sweep.set_defaults(func=cmd_sweep)
     plot = sub.add_parser("plot", help="draw one run's figures into RUN_DIR/figures")
     plot.add_argument("run_dir", metavar="RUN_DIR", help="a results folder of `swarm run`")
     plot.set_defaults(func=cmd_plot)

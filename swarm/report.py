@@ -11,9 +11,7 @@ from typing import Any
 import numpy as np
 
 from protocol.config import RunConfig, write_atomic
-from swarm.experiment import (
-    TABLE_COLUMNS, GridSpec, RunOutcome, effectiveness_run, is_nan, read_table,
-)
+from swarm.grid import RunOutcome, is_nan, read_table
 
 def _g(x: float) -> str:
     """Three significant digits; 'n/a' for a missing number."""
@@ -189,12 +187,18 @@ def _comm_period_text(rows: list[dict]) -> str:
             f"frequent. auto is lowest in {auto_best} of {len(cells)} (surface, T_c) cells.")
 
 
-def write_report(out_dir: Path, spec: GridSpec, outcomes: list[RunOutcome],
+def effectiveness_run(out_dir: Path, surface: str) -> Path:
+    """The sensing-range run whose trajectories the effectiveness figure of ``surface`` shows."""
+    return out_dir / "runs" / "sensing_range" / f"{surface}-edmd-b"
+
+
+def write_report(out_dir: Path, spec, outcomes: list[RunOutcome],
                  figures: dict[str, Path], problems: dict[str, str], timing: dict[str, float],
-                 workers: int) -> Path:
+                 workers: int, table_names: tuple[str, ...]) -> Path:
     """Write ``out_dir/report.md``: every figure with what it shows and the numbers that
-    matter, read back from ``out_dir/tables``."""
-    tables = {t: read_table(out_dir / "tables" / f"{t}.csv") for t in TABLE_COLUMNS}
+    matter, read back from ``out_dir/tables/<name>.csv`` for each of ``table_names``; ``spec``
+    is the experiment's ``GridSpec``."""
+    tables = {t: read_table(out_dir / "tables" / f"{t}.csv") for t in table_names}
     failed = [o for o in outcomes if not o.ok]
     retried = [o for o in outcomes if o.ok and o.attempts > 1]
     surfaces = list(dict.fromkeys(r["surface"] for r in tables["sensing_range"]))

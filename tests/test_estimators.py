@@ -441,3 +441,28 @@ def test_benchmark_runs_and_reports_its_figures() -> None:
         assert set(result["online_us"]) == {20, 40}
         assert result["online_flatness"] > 0 and result["batch_over_online"] > 0
         assert set(result["reference_over_online"]) == {"odmd", "river"}
+
+
+@pytest.mark.parametrize("options", [{"forget": 0.9}, {"forget": 0.9, "delays": 1},
+                                     {"forget": 0.8, "affine": True}])
+def test_online_forgetting_without_ridge_does_not_wind_up(options: dict) -> None:
+    """Exciting data, then a stream that excites one direction only: with forgetting the Gram
+    matrix decays in the others. Without the guard P grew to 1e14-1e38 here; with it P stays
+    bounded (the fit switches to the summary's pseudoinverse) and online still equals batch."""
+    rng = np.random.default_rng(7)
+    data = np.r_[rng.normal(size=(40, 2)),
+                 np.tile([0.3, -0.2], (400, 1)) + 1e-9 * np.arange(400)[:, None]]
+    online = StreamingEDMD(online=True, **options)
+    batch = StreamingEDMD(**options)
+    largest_p, recursive_steps = 0.0, 0
+    for z in data:
+        online.observe(z)
+        batch.observe(z)
+        if online.n_pairs:
+            np.testing.assert_allclose(online.predict(), batch.predict(), rtol=1e-7, atol=1e-8)
+            if online.recursive:
+                recursive_steps += 1
+                largest_p = max(largest_p, float(np.trace(online._P)))
+    assert recursive_steps > 50  # the recursion ran, and was stopped in time
+    assert largest_p < 1e10
+    assert not online.recursive

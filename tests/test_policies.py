@@ -97,24 +97,50 @@ def test_unwrapper_keeps_bearing_continuous():
     assert out[1] == pytest.approx(-3.0 + 2 * math.pi)
 
 
+class _Fixed(Stay):
+    """A candidate that always proposes the same offset."""
+
+    def __init__(self, name, offset):
+        super().__init__()
+        self.name, self.offset = name, np.asarray(offset, float)
+
+    def propose(self, pre):
+        return Proposal(self.offset.copy())
+
+
 def test_auto_follows_lowest_recent_error_and_falls_back_to_anchor():
-    class Fixed(Stay):
-        def __init__(self, offset):
-            super().__init__()
-            self.offset = np.asarray(offset, float)
-
-        def propose(self, pre):
-            return Proposal(self.offset.copy())
-
-    auto = Auto([Fixed([0.0, 0.0]), Fixed([1.0, 0.0]), Fixed([0.5, 0.0])], horizon=2, trust=3.0)
-    auto.propose(_sensing())
+    auto = Auto([_Fixed("a", [0.0, 0.0]), _Fixed("b", [1.0, 0.0]), _Fixed("c", [0.5, 0.0])],
+                horizon=2, trust=3.0, burn_in=0)
+    first = auto.propose(_sensing())
+    assert first.followed == "a"  # nothing scored yet: the anchor
     auto.record(_sensing(), np.array([0.4, 0.0]))  # errors 0.4, 0.6, 0.1
-    assert np.allclose(auto.propose(_sensing()).offset, [0.5, 0.0]) and auto.chosen == 2
+    proposal = auto.propose(_sensing())
+    assert np.allclose(proposal.offset, [0.5, 0.0]) and proposal.followed == "c"
     auto.record(_sensing(), np.array([0.05, 0.0]))  # anchor's errors now 0.4, 0.05
     auto.errors[2].clear()
-    auto.errors[2].extend([0.0, 0.0])  # candidate 2 looks perfect ...
+    auto.errors[2].extend([0.0, 0.0])  # candidate c looks perfect ...
     auto.candidates[2].offset = np.array([5.0, 0.0])  # ... but proposes a wild jump
-    assert np.allclose(auto.propose(_sensing()).offset, [0.0, 0.0]) and auto.chosen == 0
+    proposal = auto.propose(_sensing())
+    assert np.allclose(proposal.offset, [0.0, 0.0]) and proposal.followed == "a"
+
+
+def test_auto_compares_candidates_on_the_same_ticks():
+    """A late starter is compared on the ticks it was scored on, not against older errors."""
+    auto = Auto([_Fixed("anchor", [0.0, 0.0]), _Fixed("late", [0.3, 0.0])], horizon=4,
+                trust=None, burn_in=0)
+    auto.errors[0].extend([0.0, 0.0, 0.5])  # the anchor was perfect early, poor lately
+    auto.errors[1].extend([0.2])  # the late starter was scored only on the last tick
+    assert auto.propose(_sensing()).followed == "late"
+
+
+def test_auto_burn_in_drops_each_candidates_first_score():
+    auto = Auto([_Fixed("a", [0.0, 0.0]), _Fixed("b", [1.0, 0.0])], burn_in=1)
+    auto.record(_sensing(), np.array([0.4, 0.0]))
+    assert [len(e) for e in auto.errors] == [0, 0]
+    auto.record(_sensing(), np.array([0.4, 0.0]))
+    assert [list(e) for e in auto.errors] == [[pytest.approx(0.4)], [pytest.approx(0.6)]]
+    with pytest.raises(ValueError, match="candidate names must be unique"):
+        Auto([_Fixed("a", [0, 0]), _Fixed("a", [1, 0])])
 
 
 def test_not_ready_and_factory():

@@ -18,8 +18,10 @@ VERSION = "0.1.0"
 TICK_COLUMNS = (
     "tick", "t", "agent", "estimator", "ideal_x", "ideal_y", "est_x", "est_y", "pos_x", "pos_y",
     "required_range", "stay_range", "persist_range", "lost", "formation_error",
+    "persist_range_noise_free",
 )
-OBS_COLUMNS = ("tick", "agent", "estimator", "lost", "measurement", "prediction")
+OBS_COLUMNS = ("tick", "agent", "estimator", "lost", "measurement", "prediction", "followed",
+               "fallback")
 
 
 class RunRecorder:
@@ -43,7 +45,8 @@ class RunRecorder:
         self.ticks_done = 0
         self._tick_lines: list[str] = []
         self._obs_lines: list[str] = []
-        self._metrics = {k: {"required": [], "stay": [], "persist": [], "lost": 0}
+        self._metrics = {k: {"required": [], "stay": [], "persist": [], "persist_noise_free": [],
+                             "lost": 0, "fallback": 0, "followed": {}}
                          for k in range(1, self.config.followers + 1)}
 
     def add_tick(self, rows: list[dict]) -> None:
@@ -59,6 +62,7 @@ class RunRecorder:
                     m["required"].append(row["required_range"])
                     m["stay"].append(row["stay_range"])
                     m["persist"].append(row["persist_range"])
+                    m["persist_noise_free"].append(row["persist_range_noise_free"])
             self.ticks_done = max(self.ticks_done, row["tick"] + 1)
             self._tick_lines.append(_line(TICK_COLUMNS, row))
         self.rows.extend(rows)
@@ -69,9 +73,15 @@ class RunRecorder:
             "tick": msg.tick, "agent": agent, "estimator": msg.estimator, "lost": int(msg.lost),
             "measurement": " ".join(map(repr, msg.measurement or ())),
             "prediction": " ".join(map(repr, msg.prediction or ())),
+            "followed": msg.followed, "fallback": int(msg.fallback),
         })
 
     def _add_observation_row(self, row: dict) -> None:
+        m = self._metrics.get(row["agent"])
+        if m is not None and row["tick"] >= self.config.init_ticks:
+            m["fallback"] += int(row.get("fallback") or 0)
+            if row.get("followed"):
+                m["followed"][row["followed"]] = m["followed"].get(row["followed"], 0) + 1
         self.observations.append(row)
         self._obs_lines.append(_line(OBS_COLUMNS, row))
 
@@ -95,9 +105,12 @@ class RunRecorder:
                 "rmse": _rms(m["required"]),
                 "mean_stay_range": _mean(m["stay"]),
                 "mean_persist_range": _mean(m["persist"]),
+                "mean_persist_range_noise_free": _mean(m["persist_noise_free"]),
                 "lost_ticks": m["lost"],
                 "missed_ticks": self.missed.get(k, 0),
-                "estimated_ticks": len(m["required"]),
+                "estimated_ticks": len(m["required"]) - m["fallback"],
+                "fallback_ticks": m["fallback"],
+                "followed": _shares(m["followed"]),
             }
         return {
             "followers": followers,
@@ -148,6 +161,12 @@ def _cell(value) -> str:
 
 def _mean(values: list[float]) -> float | None:
     return math.fsum(values) / len(values) if values else None
+
+
+def _shares(counts: dict[str, int]) -> dict[str, float]:
+    """Each name's share of the counted ticks, largest first."""
+    total = sum(counts.values())
+    return {name: n / total for name, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))}
 
 
 def _rms(values: list[float]) -> float | None:

@@ -135,10 +135,12 @@ class WorldSim:
                 prev = state.settled.get(j - 1, pos)
                 lead_now = self.agents[k - 1].settled[j]
                 lead_prev = self.agents[k - 1].settled.get(j - 1, lead_now)
-                persist = prev + (lead_now - lead_prev)
+                persist_noise_free = prev + (lead_now - lead_prev)
                 row.update(
                     estimator=cfg.estimator, ideal_x=ideal[0], ideal_y=ideal[1],
-                    stay_range=_dist(prev, ideal), persist_range=_dist(persist, ideal),
+                    stay_range=_dist(prev, ideal),
+                    persist_range=_dist(self._sensed_persist(k, j), ideal),
+                    persist_range_noise_free=_dist(persist_noise_free, ideal),
                     lost=int(state.lost), missed=int(state.missed),
                     formation_error=_finite_or_none(_dist(pos, self.ideal[k, j])),
                 )
@@ -218,18 +220,38 @@ class WorldSim:
             self.leader_time = target
         leader.settled[tick] = leader.pos.copy()
 
+    def _relative_reading(self, agent: int, tick: int, phase: str, leader_pos: np.ndarray,
+                          own_pos: np.ndarray) -> tuple[float, float]:
+        """The noisy (range, bearing) reading ``agent`` gets of a leader at ``leader_pos``
+        from ``own_pos`` in ``phase`` of ``tick`` (noise keyed, so it can be re-derived)."""
+        cfg = self.config
+        (lx, ly), (fx, fy) = leader_pos.tolist(), own_pos.tolist()
+        r = math.hypot(lx - fx, ly - fy) + gaussian_scalar(
+            cfg.seed, agent, tick, "range", phase, cfg.noise_range)
+        theta = math.atan2(ly - fy, lx - fx) + gaussian_scalar(
+            cfg.seed, agent, tick, "bearing", phase, cfg.noise_bearing)
+        return r, math.atan2(math.sin(theta), math.cos(theta))
+
+    def _sensed_persist(self, agent: int, tick: int) -> np.ndarray:
+        """Where ``persist`` would have put follower ``agent`` at ``tick`` from the same noisy
+        readings the follower had (SPEC §6): ``f_{j-1} + rel(pre_j) - rel(settled_{j-1})``,
+        with ``pre_j`` read from ``f_{j-1}`` with the leader at ``l_j``."""
+        own, lead = self.agents[agent].settled, self.agents[agent - 1].settled
+        if tick - 1 not in own or tick - 1 not in lead:
+            return own[tick]
+        prev = own[tick - 1]
+        pre = self._relative_reading(agent, tick, "pre", lead[tick], prev)
+        before = self._relative_reading(agent, tick - 1, "settled", lead[tick - 1], prev)
+        return prev + _polar(*pre) - _polar(*before)
+
     def sense(self, agent: int, tick: int, phase: str) -> Sensing:
         """What follower ``agent``'s sensors read now, in its local frame (SPEC §5)."""
         self._check_request(agent, tick)
         self._check_follower_turn(agent, settled_ok=phase == "settled")
         cfg, state = self.config, self.agents[agent]
         leader = self.agents[agent - 1]
-        (lx, ly), (fx, fy) = leader.pos.tolist(), state.pos.tolist()
-        r = math.hypot(lx - fx, ly - fy) + gaussian_scalar(
-            cfg.seed, agent, tick, "range", phase, cfg.noise_range)
-        theta = math.atan2(ly - fy, lx - fx) + gaussian_scalar(
-            cfg.seed, agent, tick, "bearing", phase, cfg.noise_bearing)
-        theta = math.atan2(math.sin(theta), math.cos(theta))
+        r, theta = self._relative_reading(agent, tick, phase, leader.pos, state.pos)
+        fx, fy = state.pos.tolist()
         ex, ey = self._leader_rod(agent)[0].tolist()
         offset = (ex - fx, ey - fy)
         visible = self._sees_rod(tick, math.hypot(*offset))
@@ -316,6 +338,10 @@ class WorldSim:
 
     def _gps(self, pos: np.ndarray) -> tuple[float, float, float]:
         return float(pos[0]), float(pos[1]), float(self.surface.height(pos))
+
+
+def _polar(r: float, theta: float) -> np.ndarray:
+    return np.array([r * math.cos(theta), r * math.sin(theta)])
 
 
 def _norm(v: np.ndarray) -> float:

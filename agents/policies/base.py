@@ -1,0 +1,187 @@
+"""The streaming interface every follower policy implements, the baselines, and fallback.
+
+A policy sees only the :class:`protocol.messages.Sensing` replies of its own sensors. Each tick
+the follower loop calls
+
+1. :meth:`Policy.propose` with the pre-move sensing: returns a :class:`Proposal`, the xy offset
+   (local frame) to the estimated ideal position plus what was predicted. It is a pure read of
+   the policy's state: calling it twice, or not at all, changes nothing;
+2. :meth:`Policy.record` with the settled sensing and ``target``, the ideal position relative
+   to where the follower stood before moving (None when it lost the rod): the policy learns;
+3. :meth:`Policy.skip` for a tick it did not take part in.
+
+State changes only in ``record`` and ``skip``, and a policy is a deterministic function of that
+call sequence, so a follower's state is the log of those calls (replayed after a crash).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from agents.estimators import NotFitted
+from protocol.messages import Sensing
+
+# The policy-level name of "too little history to propose"; StreamingEDMD raises the same.
+NotReady = NotFitted
+
+
+@dataclass(frozen=True)
+class Proposal:
+    """What a policy proposes for one tick.
+
+    Attributes
+    ----------
+    offset : ndarray, shape (2,)
+        Local-frame xy offset from where the follower stands to its estimated ideal position.
+    prediction : tuple of float, optional
+        The predicted lifted measurement (for the record).
+    followed : str
+        Name of the policy whose estimate this is (``auto``'s candidate, or ``persist`` when
+        a policy that is not ready falls back); empty means the policy itself.
+    fallback : bool
+        True when the policy was not ready and ``persist`` proposed instead.
+    """
+
+    offset: np.ndarray
+    prediction: tuple[float, ...] | None = None
+    followed: str = ""
+    fallback: bool = False
+
+
+def polar(r: float, theta: float) -> np.ndarray:
+    """Vector (2,) of length ``r`` at bearing ``theta`` (radians)."""
+    return np.array([r * math.cos(theta), r * math.sin(theta)])
+
+
+def relative(s: Sensing) -> np.ndarray:
+    """The sensed leader position relative to the follower, xy (2,)."""
+    return polar(s.r, s.theta)
+
+
+def reconstructed_pre(settled: Sensing, target: np.ndarray) -> Sensing:
+    """The leader as seen from where the follower stood before moving, from the settled reading.
+
+    After a snap the follower stands at its ideal position, ``target`` away from where it
+    stood, so the leader relative to its old place is ``relative(settled) + target`` (with the
+    settled reading's sensor noise in place of the pre reading's). This lets ``record`` score
+    what a policy would have proposed without keeping anything from ``propose``.
+
+    Examples
+    --------
+    >>> s = reconstructed_pre(Sensing(tick=5, r=3.0, theta=0.0), np.array([0.0, 4.0]))
+    >>> round(s.r, 12), round(s.theta, 12)  # leader 3 east of the follower, which came 4 north
+    (5.0, 0.927295218002)
+    """
+    x, y = relative(settled) + np.asarray(target, dtype=float)
+    return Sensing(tick=settled.tick, r=math.hypot(x, y), theta=math.atan2(y, x),
+                   velocity=settled.velocity)
+
+
+class Unwrapper:
+    """Keeps a bearing sequence continuous: each new angle within pi of the previous one."""
+
+    def __init__(self) -> None:
+        self.last: float | None = None
+
+    def peek(self, theta: float) -> float:
+        """``theta`` unwrapped against the last angle, without storing it."""
+        if self.last is None:
+            return theta
+        return self.last + math.remainder(theta - self.last, 2 * math.pi)
+
+    def __call__(self, theta: float) -> float:
+        self.last = self.peek(theta)
+        return self.last
+
+
+class Policy:
+    """Base class; subclasses implement :meth:`propose` and :meth:`record`."""
+
+    name = "policy"
+
+    def propose(self, pre: Sensing) -> Proposal:
+        """The move for this tick from the pre-move sensing (no side effects).
+
+        Raises
+        ------
+        NotFitted
+            When the policy has too little history to propose.
+        """
+        raise NotImplementedError
+
+    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        """Learn from the settled sensing; returns the measurement it recorded."""
+        raise NotImplementedError
+
+    def skip(self) -> None:
+        """A tick went by without this follower (it missed it or was restarting)."""
+
+
+class Stay(Policy):
+    """No estimation: wait where the last tick ended (the paper's "without EDMD")."""
+
+    name = "stay"
+
+    def __init__(self) -> None:
+        self.unwrap = Unwrapper()
+
+    def propose(self, pre: Sensing) -> Proposal:
+        return Proposal(np.zeros(2))
+
+    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        return (settled.r, self.unwrap(settled.theta))
+
+
+class Persist(Policy):
+    """Assume the relative position to the leader does not change (dictionary b with K = I)."""
+
+    name = "persist"
+
+    def __init__(self) -> None:
+        self.unwrap = Unwrapper()
+        self.last: tuple[float, float] | None = None
+
+    def propose(self, pre: Sensing) -> Proposal:
+        if self.last is None:
+            raise NotFitted("persist needs one settled measurement")
+        return Proposal(relative(pre) - polar(*self.last), self.last)
+
+    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        rel = (settled.r, self.unwrap(settled.theta))
+        if target is not None or self.last is None:  # lost: keep believing the last one
+            self.last = rel
+        return self.last
+
+
+class FallbackToPersist(Policy):
+    """``policy``, or ``persist``'s proposal (flagged ``fallback``) while it is not ready.
+
+    The ticks a policy could not predict are then neither silent ``stay`` ticks nor reported as
+    estimated: the proposal says ``fallback=True`` and ``followed="persist"`` (SPEC §6).
+    """
+
+    def __init__(self, policy: Policy) -> None:
+        self.policy = policy
+        self.persist = Persist()
+        self.name = policy.name
+
+    def propose(self, pre: Sensing) -> Proposal:
+        try:
+            proposal = self.policy.propose(pre)
+        except NotFitted:
+            return dataclasses.replace(self.persist.propose(pre), followed=self.persist.name,
+                                       fallback=True)
+        if proposal.followed:
+            return proposal
+        return dataclasses.replace(proposal, followed=self.policy.name)
+
+    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        self.persist.record(settled, target)
+        return self.policy.record(settled, target)
+
+    def skip(self) -> None:
+        self.persist.skip()
+        self.policy.skip()

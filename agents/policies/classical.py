@@ -1,0 +1,286 @@
+"""Classical tracking baselines the paper does not compare with (SPEC §6): ``cv``, ``kalman``,
+``arx``, ``gp``.
+
+Each predicts the leader's next position relative to the follower's next ideal position,
+``x*_{j+1}`` (xy, local frame), and proposes ``relative(pre) - x*``, as dictionary b does. All
+state is data (floats and small arrays) changed only by ``record`` and ``skip``.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+
+from agents.estimators import NotFitted
+from agents.policies.base import Policy, Proposal, relative
+from protocol.messages import Sensing
+
+# Relative cut-off of singular values in the least-squares fits (as StreamingEDMD's rcond).
+RCOND = 1e-10
+
+
+def cartesian_noise(r: float, theta: float, sigma_r: float, sigma_theta: float) -> np.ndarray:
+    """Covariance (2, 2) of ``relative(r, theta)`` for range/bearing noise (first order)."""
+    c, s = math.cos(theta), math.sin(theta)
+    jac = np.array([[c, -r * s], [s, r * c]])
+    return jac @ np.diag([sigma_r**2, sigma_theta**2]) @ jac.T
+
+
+class RelativeTracker(Policy):
+    """Base: keeps the last ``history`` relative positions; subclasses implement ``forecast``.
+
+    A lost or missed tick is bridged with the tracker's own forecast (multi-step).
+    """
+
+    def __init__(self, history: int) -> None:
+        if history < 1:
+            raise ValueError(f"history must be >= 1, got {history}")
+        self.history: deque[np.ndarray] = deque(maxlen=history)
+
+    def forecast(self) -> np.ndarray:
+        """Predicted relative position (2,) at the next tick (raises NotFitted)."""
+        raise NotImplementedError
+
+    def propose(self, pre: Sensing) -> Proposal:
+        x = self.forecast()
+        return Proposal(relative(pre) - x, (float(x[0]), float(x[1])))
+
+    def _forecast_or_none(self) -> np.ndarray | None:
+        try:
+            return self.forecast()
+        except NotFitted:
+            return None
+
+    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        x = self._forecast_or_none() if target is None else None
+        x = relative(settled) if x is None else x
+        self.history.append(x)
+        return float(x[0]), float(x[1])
+
+    def skip(self) -> None:
+        x = self._forecast_or_none()
+        if x is not None:
+            self.history.append(x)
+
+
+class ConstantVelocity(RelativeTracker):
+    """``cv``: ``x*_{j+1} = 2 x_j - x_{j-1}`` (constant-velocity extrapolation).
+
+    Examples
+    --------
+    >>> from protocol.messages import Sensing
+    >>> cv = ConstantVelocity()
+    >>> for r in (3.0, 3.1):
+    ...     _ = cv.record(Sensing(tick=0, r=r, theta=0.0), target=np.zeros(2))
+    >>> cv.forecast().round(12)
+    array([3.2, 0. ])
+    >>> cv.propose(Sensing(tick=2, r=3.5, theta=0.0)).offset.round(12)  # leader 0.3 further
+    array([0.3, 0. ])
+    """
+
+    name = "cv"
+
+    def __init__(self) -> None:
+        super().__init__(history=2)
+
+    def forecast(self) -> np.ndarray:
+        if len(self.history) < 2:
+            raise NotFitted("cv needs two relative positions")
+        return 2.0 * self.history[-1] - self.history[-2]
+
+
+class GaussianProcess(RelativeTracker):
+    """``gp``: Gaussian-process extrapolation over time of the last ``samples`` positions.
+
+    Each coordinate is modelled, over the tick index, as a linear trend plus a squared-
+    exponential residual with length scale ``ell`` ticks and a measurement-noise variance
+    ``noise`` (length²; from the run's declared sensor noise) plus a relative jitter of 1e-8.
+    The noise enters relative to the samples' variance (standing in for the unknown signal
+    variance); given that ratio the trend is fitted by generalised least squares (universal
+    kriging), the signal variance takes its closed-form maximum-likelihood value, and ``ell``
+    the grid value of highest (concentrated) likelihood. Deterministic: no optimiser, no
+    random restarts.
+    """
+
+    name = "gp"
+    LENGTHS = (1.0, 2.0, 3.0, 5.0, 8.0)
+    JITTER = 1e-8
+
+    def __init__(self, samples: int = 8, noise: float = 0.0) -> None:
+        if samples < 3:
+            raise ValueError(f"samples must be >= 3, got {samples}")
+        if not noise >= 0.0:
+            raise ValueError(f"noise must be >= 0, got {noise}")
+        super().__init__(history=samples)
+        self.noise = noise
+
+    def forecast(self) -> np.ndarray:
+        n = len(self.history)
+        if n < 2:
+            raise NotFitted("gp needs two relative positions")
+        y = np.array(self.history)
+        if n == 2:  # too few for a residual: the trend alone
+            return 2.0 * y[-1] - y[-2]
+        t = np.arange(n, dtype=float)
+        basis = np.c_[np.ones(n), t]
+        return np.array([self._coordinate(t, basis, y[:, i]) for i in range(2)])
+
+    def _coordinate(self, t: np.ndarray, basis: np.ndarray, y: np.ndarray) -> float:
+        scale = float(np.var(y)) + 1e-300
+        best = None
+        for ell in self.LENGTHS:
+            k = np.exp(-0.5 * ((t[:, None] - t[None, :]) / ell) ** 2)
+            # Signal variance s2 and noise variance enter as C = k + (noise / s2 + jitter) I;
+            # s2 is unknown, so the samples' variance stands in for it here.
+            cov = k + (self.noise / scale + self.JITTER) * np.eye(t.size)
+            chol = np.linalg.cholesky(cov)
+            solve = lambda b: np.linalg.solve(chol.T, np.linalg.solve(chol, b))  # noqa: E731
+            ci_h, ci_y = solve(basis), solve(y)
+            beta = np.linalg.lstsq(basis.T @ ci_h, basis.T @ ci_y, rcond=None)[0]
+            resid = y - basis @ beta
+            s2 = max(float(resid @ solve(resid)) / t.size, 1e-300)
+            nll = t.size * math.log(s2) + 2.0 * float(np.sum(np.log(np.diag(chol))))
+            if best is None or nll < best[0]:
+                t_new = float(t.size)
+                k_new = np.exp(-0.5 * ((t - t_new) / ell) ** 2)
+                pred = float(np.array([1.0, t_new]) @ beta + k_new @ solve(resid))
+                best = (nll, pred)
+        return best[1]
+
+
+class Kalman(RelativeTracker):
+    """``kalman``: constant-velocity Kalman filter on the relative position (per tick).
+
+    State ``[x, y, vx, vy]`` with ``x_{j+1} = x_j + v_j``; white-acceleration process noise of
+    variance ``accel`` (length² per tick⁴); measurement noise from the run's declared range and
+    bearing noise (``sigma_r``, ``sigma_theta``), mapped to xy at each measurement.
+    """
+
+    name = "kalman"
+    F = np.block([[np.eye(2), np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])
+
+    def __init__(self, sigma_r: float = 0.0, sigma_theta: float = 0.0, accel: float = 1e-3) -> None:
+        super().__init__(history=1)
+        for name, value in (("sigma_r", sigma_r), ("sigma_theta", sigma_theta)):
+            if not value >= 0.0:
+                raise ValueError(f"{name} must be >= 0, got {value}")
+        if not accel > 0.0:
+            raise ValueError(f"accel must be > 0, got {accel}")
+        self.sigma_r, self.sigma_theta = sigma_r, sigma_theta
+        half, one = 0.5 * np.eye(2), np.eye(2)
+        self.Q = accel * np.block([[0.25 * one, half], [half, one]])
+        self.mean: np.ndarray | None = None
+        self.cov: np.ndarray | None = None
+
+    def forecast(self) -> np.ndarray:
+        if self.mean is None:
+            raise NotFitted("kalman needs one relative position")
+        return (self.F @ self.mean)[:2]
+
+    def _predict_step(self) -> None:
+        self.mean = self.F @ self.mean
+        self.cov = self.F @ self.cov @ self.F.T + self.Q
+
+    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        noise = cartesian_noise(settled.r, settled.theta, self.sigma_r, self.sigma_theta)
+        noise += 1e-12 * np.eye(2)
+        x = relative(settled)
+        if self.mean is None:
+            self.mean = np.r_[x, 0.0, 0.0]
+            self.cov = np.block([[noise, np.zeros((2, 2))], [np.zeros((2, 2)), np.eye(2)]])
+            return float(x[0]), float(x[1])
+        self._predict_step()
+        if target is not None:  # lost: predict only
+            innovation_cov = self.cov[:2, :2] + noise
+            gain = np.linalg.solve(innovation_cov, self.cov[:2, :]).T
+            self.mean = self.mean + gain @ (x - self.mean[:2])
+            self.cov = self.cov - gain @ self.cov[:2, :]
+            self.cov = 0.5 * (self.cov + self.cov.T)
+        return float(self.mean[0]), float(self.mean[1])
+
+    def skip(self) -> None:
+        if self.mean is not None:
+            self._predict_step()
+
+
+class ARX(Policy):
+    """``arx``: least-squares autoregression with the leader's displacement as input.
+
+    Before moving at tick ``j+1`` the follower has not moved since it settled at tick ``j``, so
+    ``u_j = relative(pre_{j+1}) - relative(settled_j)`` is the leader's displacement. The model
+    ``x_{i+1} = sum_k (A_k x_{i-k} + B_k u_{i-k}) (+ c)``, ``k < order``, is fitted by least
+    squares (minimum norm, singular values below ``1e-10`` of the largest cut) over the
+    ``window`` newest pairs (all if None). ``record`` rebuilds each past ``u`` from the settled
+    reading and the follower's displacement ``target``; a lost or missed tick restarts the
+    chain of samples.
+    This is EDMD with control on ``[x, u]`` (an EDMDc-style idea), least squares row by row.
+    """
+
+    def __init__(self, order: int = 1, window: int | None = 10, affine: bool = True,
+                 name: str | None = None) -> None:
+        if order < 1:
+            raise ValueError(f"order must be >= 1, got {order}")
+        if window is not None and window < 1:
+            raise ValueError(f"window must be >= 1 or None, got {window}")
+        self.order, self.window, self.affine = order, window, affine
+        self.name = name or "arx"
+        keep = None if window is None else window + order
+        # x_0 .. x_j (measured, or bridged when lost) and u_0 .. u_{j-1}: xs[i] and us[i]
+        # belong to the same tick, also once the oldest are dropped.
+        self.xs: deque[np.ndarray] = deque(maxlen=None if keep is None else keep + 1)
+        self.us: deque[np.ndarray] = deque(maxlen=keep)
+        self.last_seen: np.ndarray | None = None  # measured relative(settled_j)
+
+    def _regressor(self, end: int, u_now: np.ndarray | None = None) -> np.ndarray:
+        """``[x_end, u_end, x_{end-1}, u_{end-1}, ... (, 1)]`` over ``order`` lags."""
+        xs, us = list(self.xs), list(self.us) + ([] if u_now is None else [u_now])
+        parts = []
+        for k in range(self.order):
+            parts += [xs[end - k], us[end - k]]
+        if self.affine:
+            parts.append(np.ones(1))
+        return np.concatenate(parts)
+
+    def _coefficients(self) -> np.ndarray:
+        n_pairs = len(self.us) - self.order + 1  # pairs (phi_i -> x_{i+1}), i = order-1 .. j-1
+        if n_pairs < 1:
+            raise NotFitted(f"{self.name} needs {self.order + 1} connected samples")
+        first = len(self.us) - n_pairs
+        if self.window is not None:
+            first = max(first, len(self.us) - self.window)
+        rows = range(first, len(self.us))
+        phi = np.array([self._regressor(i) for i in rows])
+        target = np.array([self.xs[i + 1] for i in rows])
+        return np.linalg.pinv(phi, rcond=RCOND) @ target  # (p, 2)
+
+    def propose(self, pre: Sensing) -> Proposal:
+        if self.last_seen is None:
+            raise NotFitted(f"{self.name} needs one settled measurement")
+        u = relative(pre) - self.last_seen
+        theta = self._coefficients()
+        x = self._regressor(len(self.xs) - 1, u_now=u) @ theta
+        return Proposal(relative(pre) - x, (float(x[0]), float(x[1])))
+
+    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        seen = relative(settled)
+        if target is None:
+            # Lost: the follower is off its ideal position by an unknown amount, and bridging
+            # with the model's own predictions compounds (a fitted A may be unstable). Restart
+            # the chain at the next tick that sees the rod; persist stands in meanwhile.
+            self.skip()
+            return float(seen[0]), float(seen[1])
+        if self.last_seen is not None:
+            self.us.append(seen + np.asarray(target) - self.last_seen)
+        else:
+            self.xs.clear()
+            self.us.clear()
+        self.xs.append(seen)
+        self.last_seen = seen
+        return float(seen[0]), float(seen[1])
+
+    def skip(self) -> None:
+        """The leader's displacement over a missed tick is unknown: restart the chain."""
+        self.xs.clear()
+        self.us.clear()
+        self.last_seen = None

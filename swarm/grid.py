@@ -1,0 +1,264 @@
+"""Grids of runs (the types, the one runner and the table I/O) shared by ``swarm experiment``,
+``swarm compare`` and ``swarm sweep``.
+
+A :class:`GridRun` is a ``RunConfig`` with a table, a folder name and the key columns it fills;
+:func:`run_grid` runs a list of them (each one :func:`swarm.launch.launch` over Zenoh, in a
+process pool) and returns one :class:`RunOutcome` per run. :func:`write_table` /
+:func:`read_table` write and read the CSV tables.
+"""
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import math
+import multiprocessing
+import os
+import re
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from protocol.config import RunConfig, write_atomic
+
+RUN_ATTEMPTS = 2
+
+
+@dataclass(frozen=True)
+class GridRun:
+    """One run of the grid: its table, its folder name, its config and the key columns it fills."""
+
+    table: str
+    name: str
+    config: RunConfig
+    labels: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def folder(self) -> str:
+        """Path of the run's results folder relative to ``D/runs``."""
+        return f"{self.table}/{self.name}"
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """What a worker reports: the run, its summary (None if it failed) and the error if any."""
+
+    run: GridRun
+    summary: dict | None
+    error: str = ""
+    attempts: int = 1
+    wall_time: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return self.summary is not None and not self.error
+
+
+# --- running -----------------------------------------------------------------------------------
+
+def execute(run: GridRun, runs_dir: Path, attempts: int = RUN_ATTEMPTS) -> RunOutcome:
+    """Run one grid entry over Zenoh (in-process agents); a worker task of :func:`run_grid`.
+
+    A run that raises or ends incomplete is tried again up to ``attempts`` times in all (a
+    transient cause such as a port taken between choosing and binding it goes away; a
+    deterministic one fails again and is reported).
+    """
+    from swarm.launch import launch
+
+    start = time.perf_counter()
+    error = ""
+    for attempt in range(1, attempts + 1):
+        try:
+            summary = launch(run.config, runs_dir / run.folder, in_process=True)
+        except (ValueError, RuntimeError, OSError) as exc:
+            error = f"{type(exc).__name__}: {exc}"
+            continue
+        if summary["complete"]:
+            return RunOutcome(run, summary, "", attempt, time.perf_counter() - start)
+        error = f"incomplete: {summary['reason']}"
+    return RunOutcome(run, None, error, attempts, time.perf_counter() - start)
+
+
+def run_grid(runs: list[GridRun], runs_dir: Path, workers: int | None = None,
+             progress: bool = True) -> list[RunOutcome]:
+    """Run ``runs`` in a process pool; return one outcome per run, in the order of ``runs``.
+
+    Parameters
+    ----------
+    runs : list of GridRun
+    runs_dir : Path
+        Each run writes ``runs_dir / run.folder``.
+    workers : int, optional
+        Pool size; default ``min(2, os.cpu_count())``.
+    progress : bool
+        Show a tqdm bar over completed runs (on a terminal).
+    """
+    from tqdm import tqdm
+
+    workers = workers or min(2, os.cpu_count() or 1)
+    outcomes: dict[str, RunOutcome] = {}
+    # spawn: workers start clean instead of inheriting this process's threads and sockets.
+    context = multiprocessing.get_context("spawn")
+    bar = tqdm(total=len(runs), unit="run", desc="experiment", disable=None if progress else True)
+    with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool, bar:
+        futures = {pool.submit(execute, run, runs_dir): run for run in runs}
+        try:
+            for future in as_completed(futures):
+                run = futures[future]
+                try:
+                    outcome = future.result()
+                except Exception as exc:  # a dead worker or an unexpected error: keep the rest
+                    outcome = RunOutcome(run, None, f"{type(exc).__name__}: {exc}")
+                outcomes[run.folder] = outcome
+                bar.update(1)
+                failed = sum(not o.ok for o in outcomes.values())
+                if failed:
+                    bar.set_postfix(failed=failed)
+        except KeyboardInterrupt:
+            # Cancel the queued runs while the pool is still referenced (a pool collected
+            # before its manager thread sees the request would go on running them all).
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
+    return [outcomes[run.folder] for run in runs]
+
+
+def write_table(path: Path, columns: tuple[str, ...], rows: list[dict]) -> None:
+    """Write ``rows`` as CSV with ``columns`` (NaN as an empty cell), atomically."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(columns)
+    for row in rows:
+        writer.writerow(["" if is_nan(row[c]) else (repr(row[c]) if isinstance(row[c], float)
+                                                      else row[c]) for c in columns])
+    write_atomic(path, buf.getvalue())
+
+
+def read_table(path: str | Path) -> list[dict]:
+    """Read a table back: numbers as int or float, empty cells as NaN, text as str."""
+    with open(path, newline="", encoding="utf-8") as fh:
+        return [{key: _parse_cell(value) for key, value in raw.items()}
+                for raw in csv.DictReader(fh)]
+
+
+def write_run_index(path: Path, outcomes: list[RunOutcome]) -> None:
+    """``runs.csv``: every run's folder, status, error, attempts and wall time."""
+    rows = [{"run": o.run.folder, "status": "ok" if o.ok else "failed", "error": o.error,
+             "attempts": o.attempts, "wall_time": round(o.wall_time, 3)} for o in outcomes]
+    write_table(path, ("run", "status", "error", "attempts", "wall_time"), rows)
+
+
+def _parse_cell(value: str) -> Any:
+    if value == "":
+        return math.nan
+    for kind in (int, float):
+        try:
+            return kind(value)
+        except ValueError:
+            pass
+    return value
+
+
+def number(value: Any) -> float:
+    return math.nan if value is None else float(value)
+
+
+def is_nan(value: Any) -> bool:
+    return isinstance(value, float) and math.isnan(value)
+
+
+# --- grids as axes -----------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Axis:
+    """One dimension of a grid: labelled option sets for ``RunConfig``.
+
+    ``values`` pairs each label (the table cell, e.g. ``1.28`` or ``"auto"``) with the options
+    it sets; ``fragment`` formats the label into the run's folder name (``"tc{:g}"``).
+    """
+
+    name: str
+    values: tuple[tuple[Any, dict[str, Any]], ...]
+    fragment: str = "{}"
+
+    @classmethod
+    def of_field(cls, name: str, values, fragment: str = "{}") -> Axis:
+        """An axis over one ``RunConfig`` field, labelled by its values."""
+        return cls(name, tuple((v, {name: v}) for v in values), fragment)
+
+
+def expand(table: str, base: RunConfig, axes: list[Axis],
+           labels: dict[str, Any] | None = None) -> list[GridRun]:
+    """Every combination of the axes' values, in order (the last axis varies fastest).
+
+    Each run is ``base`` with the options of its values applied, ``run_id`` ``<table>-<name>``,
+    where ``name`` joins the axes' fragments with ``-``; its labels are ``labels`` plus one per
+    axis. Raises ValueError (naming the option) for an invalid combination.
+    """
+    combos: list[tuple[list[str], dict[str, Any], dict[str, Any]]] = [([], dict(labels or {}), {})]
+    for axis in axes:
+        if not axis.values:
+            raise ValueError(f"axis {axis.name!r} has no values")
+        combos = [(parts + [axis.fragment.format(label)], {**lab, axis.name: label},
+                   {**opts, **options})
+                  for parts, lab, opts in combos for label, options in axis.values]
+    runs = []
+    for parts, lab, opts in combos:
+        name = re.sub(r"[^A-Za-z0-9_.-]", "_", "-".join(parts))
+        run_id = f"{table}-{name}"
+        if len(run_id) > 64:  # run ids are at most 64 characters: keep them unique
+            run_id = f"{run_id[:51]}-{hashlib.sha1(run_id.encode()).hexdigest()[:12]}"
+        runs.append(GridRun(table, name, base.replace(run_id=run_id, **opts), lab))
+    return runs
+
+
+def estimator_options(label: str) -> dict[str, Any]:
+    """Run options of an estimator label: ``edmd-<letter>`` is EDMD on that dictionary (with
+    GPS for d-g), any other label is an ``estimator`` value (a built-in name or
+    ``package.module:Name``)."""
+    if label.startswith("edmd-") and len(label) == 6 and label[5] in "abcdefg":
+        options = {"estimator": "edmd", "dictionary": label[5]}
+        return {**options, "gps": True} if label[5] in "defg" else options
+    return {"estimator": label}
+
+
+SUMMARY_COLUMNS = ("mean_required_range", "mean_persist_range", "ratio_to_persist",
+                   "mean_persist_range_noise_free", "mean_stay_range", "rmse", "fallback_ticks",
+                   "estimated_ticks")
+
+
+def summary_row(outcome: RunOutcome, follower: int = 1) -> dict[str, Any]:
+    """The run's labels and follower ``follower``'s metrics, with its required range over the
+    persist baseline of the same run (same noisy readings); NaN where the run failed."""
+    stats = outcome.summary["followers"][str(follower)] if outcome.ok else {}
+    row = dict(outcome.run.labels)
+    for column in SUMMARY_COLUMNS:
+        if column != "ratio_to_persist":
+            row[column] = number(stats.get(column))
+    persist = row["mean_persist_range"]
+    row["ratio_to_persist"] = row["mean_required_range"] / persist if persist else math.nan
+    row["run"] = outcome.run.folder
+    return row
+
+
+def mean_over(rows: list[dict], over: str, keys: tuple[str, ...]) -> list[dict]:
+    """Rows averaged over the values of column ``over`` (e.g. the seed), grouped by ``keys``;
+    the ratio to persist is the ratio of the means. ``n`` counts the runs that succeeded."""
+    groups: dict[tuple, list[dict]] = {}
+    for row in rows:
+        groups.setdefault(tuple(row[k] for k in keys), []).append(row)
+    out = []
+    for key, members in groups.items():
+        ok = [m for m in members if not is_nan(m["mean_required_range"])]
+        row = dict(zip(keys, key))
+        for column in SUMMARY_COLUMNS:
+            values = [m[column] for m in ok if not is_nan(m[column])]
+            row[column] = math.fsum(values) / len(values) if values else math.nan
+        persist = row["mean_persist_range"]
+        row["ratio_to_persist"] = (row["mean_required_range"] / persist
+                                   if persist and not is_nan(persist) else math.nan)
+        row["n"] = len(ok)
+        row[over] = " ".join(str(m[over]) for m in members)
+        out.append(row)
+    return out

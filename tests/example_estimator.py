@@ -1,0 +1,41 @@
+"""An estimator of one's own, loaded as ``--estimator tests.example_estimator:MeanStep``."""
+from __future__ import annotations
+
+import numpy as np
+
+from agents.policies import NotReady, Proposal, relative
+
+
+class MeanStep:
+    """Predict the leader's relative position by its mean change over the last ``n`` ticks."""
+
+    name = "mean-step"
+
+    def __init__(self, settings, n: int = 4) -> None:
+        self.n = n
+        self.history: list[np.ndarray] = []  # relative positions, oldest first (data only)
+
+    def propose(self, pre):  # a pure read of the state
+        if len(self.history) <= self.n:
+            raise NotReady(f"mean-step needs {self.n + 1} relative positions")
+        last, first = self.history[-1], self.history[-1 - self.n]
+        predicted = last + (last - first) / self.n
+        return Proposal(relative(pre) - predicted, tuple(predicted))
+
+    def record(self, settled, target):  # learn from the settled sensing
+        self.history = self.history[-self.n:] + [relative(settled)]
+        return tuple(self.history[-1])
+
+    def skip(self):  # a missed tick: the history no longer has a constant step
+        self.history = []
+
+
+def not_a_policy(settings):
+    """A factory that returns something without the streaming interface."""
+    return object()
+
+
+class LongName(MeanStep):
+    """A policy whose name is too long to travel in an observation."""
+
+    name = "x" * 200

@@ -1,0 +1,181 @@
+"""Contracts of the estimators (SPEC §6, issue 10): pure ``propose`` and replayable state,
+fallback to persist, honest baselines from the same noisy readings, the classical baselines,
+transparency of ``auto``. Run through the in-memory layout (same code as over Zenoh)."""
+from __future__ import annotations
+
+import csv
+
+import msgpack
+import numpy as np
+import pytest
+
+from agents.estimators import NotFitted
+from agents.policies import NotReady, Policy, make_policy
+from protocol.config import AgentSettings, RunConfig
+from protocol.messages import Observation, decode
+from swarm.local import run_local
+
+NOISY = dict(noise_range=0.02, noise_bearing=0.01)
+CONFIGS = {
+    "edmd-a": dict(dictionary="a", noise_velocity=0.01),
+    "edmd-b": dict(dictionary="b"),
+    "edmd-b-online-forget": dict(dictionary="b", online=True, forget=0.9, delays=1),
+    "edmd-c-estimated": dict(dictionary="c", velocity="estimated"),
+    "edmd-f": dict(dictionary="f", gps=True),
+    "cv": dict(estimator="cv"),
+    "kalman": dict(estimator="kalman"),
+    "arx": dict(estimator="arx"),
+    "gp": dict(estimator="gp"),
+    "auto": dict(estimator="auto"),
+}
+
+
+class ReplayChecker(Policy):
+    """Wraps a policy; at every tick checks that ``propose`` is a pure read (same answer
+    twice) and that a fresh policy fed the logged ``record``/``skip`` calls proposes the same
+    (the follower's state is that log)."""
+
+    def __init__(self, settings: AgentSettings) -> None:
+        self.settings = settings
+        self.policy = make_policy(settings)
+        self.name = self.policy.name
+        self.log: list[tuple] = []
+        self.checked = 0
+
+    def propose(self, pre):
+        first = _attempt(self.policy, pre)
+        assert _same(first, _attempt(self.policy, pre)), "propose changed the policy's state"
+        fresh = make_policy(self.settings)
+        for call in self.log:
+            getattr(fresh, call[0])(*call[1:])
+        assert _same(first, _attempt(fresh, pre)), "replaying the log gives another policy"
+        self.checked += 1
+        if isinstance(first, Exception):
+            raise first
+        return first
+
+    def record(self, settled, target):
+        self.log.append(("record", settled, None if target is None else np.array(target)))
+        return self.policy.record(settled, target)
+
+    def skip(self):
+        self.log.append(("skip",))
+        self.policy.skip()
+
+
+def _attempt(policy, pre):
+    try:
+        return policy.propose(pre)
+    except NotFitted as exc:
+        return exc
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, Exception) or isinstance(b, Exception):
+        return type(a) is type(b)
+    return (np.array_equal(a.offset, b.offset) and a.prediction == b.prediction
+            and a.followed == b.followed and a.fallback == b.fallback)
+
+
+@pytest.mark.parametrize("name", sorted(CONFIGS))
+def test_propose_is_pure_and_state_is_the_call_log(name):
+    """Noise and a finite sensing range (lost ticks, bridged by predictions) included."""
+    checkers = []
+
+    def factory(settings):
+        checkers.append(ReplayChecker(settings))
+        return checkers[-1]
+
+    cfg = RunConfig(surface="wavy", ticks=16, sensing_range=0.03, seed=2, noise_range=0.005,
+                    noise_bearing=0.002, **CONFIGS[name])
+    _, rows = run_local(cfg, policy_factory=factory)
+    _, plain_rows = run_local(cfg)
+    assert rows == plain_rows  # the checks themselves change nothing
+    assert checkers[0].checked == cfg.ticks
+    assert any(call[0] == "record" and call[2] is None for call in checkers[0].log), "no lost tick"
+
+
+def test_not_ready_policy_falls_back_to_persist_and_is_counted(tmp_path):
+    """--delays 10: the first ticks are persist's, flagged, counted, not called estimated."""
+    base = dict(surface="elliptic", ticks=24)
+    summary, rows = run_local(RunConfig(delays=10, **base), out_dir=tmp_path / "d10")
+    persist, persist_rows = run_local(RunConfig(estimator="persist", **base))
+    s = summary["followers"]["1"]
+    # delays=10 needs 12 samples: ticks 4..11 fall back.
+    assert s["fallback_ticks"] == 8 and s["estimated_ticks"] == 20 - 8
+    mine = {r["tick"]: r for r in rows if r["agent"] == 1}
+    theirs = {r["tick"]: r for r in persist_rows if r["agent"] == 1}
+    for j in range(4, 12):
+        assert mine[j]["required_range"] == pytest.approx(theirs[j]["required_range"], abs=1e-12)
+    with open(tmp_path / "d10" / "observations.csv", newline="") as fh:
+        obs = [r for r in csv.DictReader(fh) if r["agent"] == "1"]
+    assert [r["fallback"] for r in obs[4:13]] == ["1"] * 8 + ["0"]
+    assert [r["followed"] for r in obs[11:13]] == ["persist", "edmd-b"]
+
+    never, _ = run_local(RunConfig(delays=1000, **base))
+    n = never["followers"]["1"]
+    assert n["fallback_ticks"] == 20 and n["estimated_ticks"] == 0
+    assert n["mean_required_range"] == pytest.approx(
+        persist["followers"]["1"]["mean_required_range"], rel=1e-12)
+
+
+def test_persist_baseline_comes_from_the_same_noisy_readings():
+    """In a noisy run the world's persist column is what the persist estimator achieves."""
+    cfg = RunConfig(surface="wavy", estimator="persist", ticks=20, seed=1, **NOISY)
+    summary, rows = run_local(cfg)
+    estimated = [r for r in rows if r["agent"] == 1 and r.get("required_range") is not None]
+    assert len(estimated) == 16
+    for r in estimated:
+        assert r["persist_range"] == pytest.approx(r["required_range"], rel=1e-9, abs=1e-12)
+    s = summary["followers"]["1"]
+    # ... while the noise-free counterfactual, named as such, is another number.
+    assert abs(s["mean_persist_range_noise_free"] - s["mean_persist_range"]) > 1e-3
+    clean, _ = run_local(cfg.replace(noise_range=0.0, noise_bearing=0.0))
+    c = clean["followers"]["1"]
+    assert c["mean_persist_range_noise_free"] == pytest.approx(c["mean_persist_range"], rel=1e-12)
+
+
+@pytest.mark.parametrize("estimator", ["cv", "kalman", "arx", "gp"])
+def test_classical_baselines_exact_on_tilted_plane(estimator):
+    """On a plane the relative position is constant: every tracker predicts it exactly."""
+    cfg = RunConfig(surface="plane", leader_start=(0.0, 0.0, 1.0, 0.3), ticks=12,
+                    estimator=estimator)
+    summary, _ = run_local(cfg)
+    s = summary["followers"]["1"]
+    assert s["mean_required_range"] < 1e-9 < s["mean_stay_range"]
+    assert s["fallback_ticks"] == 0 and s["followed"] == {estimator: 1.0}
+
+
+def test_classical_baselines_beat_persist_where_the_formation_turns():
+    for estimator in ("cv", "kalman", "arx", "gp"):
+        s = run_local(RunConfig(surface="elliptic", estimator=estimator))[0]["followers"]["1"]
+        assert s["mean_required_range"] < 0.5 * s["mean_persist_range"], estimator
+
+
+def test_auto_records_what_it_followed(tmp_path):
+    summary, _ = run_local(RunConfig(surface="wavy", estimator="auto", ticks=20),
+                           out_dir=tmp_path)
+    shares = summary["followers"]["1"]["followed"]
+    names = {c.name for c in make_policy(AgentSettings.from_config(
+        RunConfig(estimator="auto"))).policy.candidates}
+    assert set(shares) <= names and sum(shares.values()) == pytest.approx(1.0)
+    with open(tmp_path / "observations.csv", newline="") as fh:
+        followed = [r["followed"] for r in csv.DictReader(fh) if int(r["tick"]) >= 4]
+    assert len(followed) == 16 and set(followed) == set(shares)
+    for name, share in shares.items():
+        assert followed.count(name) / 16 == pytest.approx(share)
+
+
+def test_observation_without_the_new_fields_still_decodes():
+    old = msgpack.packb({"v": 1, "type": "obs", "tick": 3, "estimator": "edmd-b",
+                         "measurement": [1.0, 2.0], "prediction": None, "lost": False})
+    msg = decode(old, Observation)
+    assert msg.followed == "" and msg.fallback is False
+    bad = msgpack.packb({"v": 1, "type": "obs", "tick": 3, "estimator": "x", "measurement": None,
+                         "prediction": None, "lost": False, "fallback": "yes"})
+    with pytest.raises(ValueError, match="fallback"):
+        decode(bad, Observation)
+
+
+def test_not_ready_is_the_not_fitted_exception():
+    assert NotReady is NotFitted and issubclass(NotFitted, RuntimeError)

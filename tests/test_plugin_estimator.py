@@ -1,0 +1,55 @@
+"""``--estimator package.module:Name`` (SPEC §6): loaded by the follower process only, run over
+Zenoh with agents as processes, its name recorded, its not-ready ticks counted as fallbacks."""
+from __future__ import annotations
+
+import csv
+import json
+import sys
+
+import pytest
+
+from agents.policies import load_estimator, make_policy
+from protocol.config import AgentSettings, RunConfig
+from swarm.launch import launch
+from swarm.local import run_local
+
+SPEC = "tests.example_estimator:MeanStep"
+
+
+def test_plugin_runs_over_zenoh_as_processes(tmp_path):
+    config = RunConfig(run_id="plugin", surface="elliptic", ticks=12, estimator=SPEC,
+                       agent_timeout=20.0)
+    sys.modules.pop("tests.example_estimator", None)
+    summary = launch(config, tmp_path / "procs", in_process=False)
+    # Only the follower process imported it, never the world (this process).
+    assert "tests.example_estimator" not in sys.modules
+    assert summary["complete"] and summary["estimator"] == SPEC
+    s = summary["followers"]["1"]
+    assert s["fallback_ticks"] == 1 and s["estimated_ticks"] == 7  # tick 4 needs 5 samples
+    assert s["followed"] == pytest.approx({"mean-step": 7 / 8, "persist": 1 / 8})
+    with open(tmp_path / "procs" / "observations.csv", newline="") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["agent"] == "1"]
+    assert {r["estimator"] for r in rows} == {"mean-step"}
+    with open(tmp_path / "procs" / "ticks.csv", newline="") as fh:
+        assert {r["estimator"] for r in csv.DictReader(fh) if r["agent"] == "1"} == {SPEC}
+    # The in-memory layout gives the same numbers.
+    run_local(config, tmp_path / "local")
+    assert (tmp_path / "local" / "ticks.csv").read_text() == (tmp_path / "procs" / "ticks.csv").read_text()
+    on_disk = json.loads((tmp_path / "procs" / "summary.json").read_text())
+    assert on_disk["followers"]["1"]["mean_required_range"] < on_disk["followers"]["1"]["mean_persist_range"]
+
+
+def test_plugin_errors_name_the_problem():
+    settings = AgentSettings.from_config(RunConfig())
+    with pytest.raises(ValueError, match="cannot import 'tests.nowhere'"):
+        load_estimator("tests.nowhere:X", settings)
+    with pytest.raises(ValueError, match="has no class or factory 'Missing'"):
+        load_estimator("tests.example_estimator:Missing", settings)
+    with pytest.raises(ValueError, match="does not implement propose, record, skip"):
+        load_estimator("tests.example_estimator:not_a_policy", settings)
+    with pytest.raises(ValueError, match="name must be at most 128 characters"):
+        load_estimator("tests.example_estimator:LongName", settings)
+    with pytest.raises(ValueError, match="estimator must be one of"):
+        RunConfig(estimator="no colon")
+    policy = make_policy(AgentSettings.from_config(RunConfig(estimator=SPEC)))
+    assert policy.name == "mean-step"
