@@ -1,61 +1,181 @@
-"""A follower's own checkpoint of its estimator state, so a killed process loses no history.
+"""A follower's own state as data: a replay log of what its policy learnt from, tick by tick.
 
-After every tick the follower pickles its policy (all estimator history) with the run id, its
-id and the tick, to ``<state_dir>/agent-<id>.ckpt`` via a temporary file and a rename. A
-restarted follower with the same id loads it and goes on. The file is the agent's own: it is
-never read from anywhere else (pickle must not load untrusted files).
+Policies change state only in ``record(settled, target)`` and ``skip()`` and are deterministic
+functions of that call sequence (``propose`` is a pure read). So instead of saving estimator
+internals, a follower appends one line per tick to ``<state_dir>/agent-<id>.state`` — the
+settled sensing it recorded, the target, and how many ticks it skipped before — and a
+restarted follower rebuilds its policy by replaying the lines. Nothing in the file is code:
+it is JSON, every sensing map is validated by the protocol codec, and nothing is ever
+unpickled. Replaying also lets the follower roll back to any earlier tick, which is what
+transparent recovery needs when the world restarts a tick (SPEC §4).
+
+The file is JSON lines. The first line is the header ``{"schema", "run_id", "agent",
+"start"}``; ``start`` is the world's per-start nonce, so a file from another start of the same
+run id is refused. Every line carries ``"sum"``, the first 16 hex digits of the SHA-256 of its
+canonical JSON without that key. A torn last line (a crash in the middle of an append: no
+final newline) is dropped, since its tick was never reported to anyone; any other defect
+refuses the whole file with one line naming the file and the reason (:class:`StateError`).
 """
 from __future__ import annotations
 
+import hashlib
+import json
+import math
 import os
-import pickle
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from agents.policies import Policy
+import numpy as np
+
+from protocol.config import write_atomic
+from protocol.messages import ProtocolError, Sensing, from_body, to_body
+
+SCHEMA = 1
+MAX_LINE = 8192  # bytes; a real line is a few hundred
 
 
-@dataclass
-class Checkpoint:
-    run_id: str
-    agent: int
+class StateError(RuntimeError):
+    """A state file this follower refuses to use; the message names the file and why."""
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One tick of a follower's history: ``skips`` ticks passed without it before ``tick``;
+    at ``tick`` it recorded ``settled`` with ``target`` (both None: it missed the tick)."""
+
     tick: int
-    policy: Policy
+    skips: int
+    settled: Sensing | None
+    target: tuple[float, float] | None
+
+    def body(self) -> dict:
+        return {"tick": self.tick, "skips": self.skips,
+                "settled": None if self.settled is None else to_body(self.settled),
+                "target": None if self.target is None else [float(x) for x in self.target]}
 
 
-def checkpoint_path(state_dir: str | os.PathLike[str], agent: int) -> Path:
-    return Path(state_dir) / f"agent-{agent}.ckpt"
+def state_path(state_dir: str | os.PathLike[str], agent: int) -> Path:
+    return Path(state_dir) / f"agent-{agent}.state"
 
 
-def save(state_dir: str | os.PathLike[str], ckpt: Checkpoint) -> None:
-    """Write ``ckpt`` atomically."""
-    path = checkpoint_path(state_dir, ckpt.agent)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            pickle.dump(ckpt, fh, protocol=pickle.HIGHEST_PROTOCOL)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+def _checksum(body: dict) -> str:
+    canonical = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 
 
-def load(state_dir: str | os.PathLike[str], run_id: str, agent: int) -> Checkpoint | None:
-    """The agent's checkpoint for this run, or None (none yet, or another run's)."""
-    path = checkpoint_path(state_dir, agent)
-    try:
-        with path.open("rb") as fh:
-            ckpt = pickle.load(fh)
-    except FileNotFoundError:
-        return None
-    except (OSError, pickle.UnpicklingError, EOFError, AttributeError) as exc:
-        raise RuntimeError(f"checkpoint {path} is unreadable ({exc}); remove it to start afresh") from None
-    if not isinstance(ckpt, Checkpoint) or ckpt.run_id != run_id or ckpt.agent != agent:
-        return None
-    return ckpt
+def _line(body: dict) -> str:
+    return json.dumps({**body, "sum": _checksum(body)}, allow_nan=False) + "\n"
 
 
-def remove(state_dir: str | os.PathLike[str], agent: int) -> None:
-    checkpoint_path(state_dir, agent).unlink(missing_ok=True)
+class StateLog:
+    """The replay log of follower ``agent`` in run ``run_id``, start ``start``.
+
+    Use :meth:`open` (validates an existing file, or starts a new one).
+    """
+
+    def __init__(self, path: Path, header: dict) -> None:
+        self.path, self.header = path, header
+
+    @classmethod
+    def open(cls, state_dir: str | os.PathLike[str], run_id: str, agent: int,
+             start: str) -> tuple[StateLog, list[Entry]]:
+        """The log and its entries (none for a new file). Raises :class:`StateError`."""
+        path = state_path(state_dir, agent)
+        header = {"schema": SCHEMA, "run_id": run_id, "agent": agent, "start": start}
+        log = cls(path, header)
+        try:
+            raw = path.read_bytes()
+        except FileNotFoundError:
+            log.rewrite([])
+            return log, []
+        except OSError as exc:
+            raise StateError(f"state file {path}: cannot read it ({exc.strerror})") from None
+        return log, log._parse(raw)
+
+    def _refuse(self, why: str) -> StateError:
+        return StateError(f"state file {self.path}: {why}; refusing it (remove the file to "
+                          "start this follower afresh, losing its history)")
+
+    def _parse(self, raw: bytes) -> list[Entry]:
+        lines = raw.split(b"\n")
+        if lines[-1]:  # a torn last append: that tick was never reported, forget it
+            lines = lines[:-1]
+        lines = lines[:-1] if lines and lines[-1] == b"" else lines
+        if not lines:
+            raise self._refuse("it is empty (no header)")
+        bodies = []
+        for number, line in enumerate(lines, start=1):
+            if len(line) > MAX_LINE:
+                raise self._refuse(f"line {number} is longer than {MAX_LINE} bytes")
+            try:
+                body = json.loads(line.decode("utf-8"), parse_constant=_no_constant)
+            except (UnicodeDecodeError, ValueError) as exc:
+                raise self._refuse(f"line {number} is not JSON ({exc})") from None
+            if not isinstance(body, dict) or not isinstance(body.get("sum"), str):
+                raise self._refuse(f"line {number} is not a checksummed map")
+            given = body.pop("sum")
+            if _checksum(body) != given:
+                raise self._refuse(f"line {number} fails its checksum (corrupt or edited)")
+            bodies.append(body)
+        header = bodies[0]
+        for key in ("schema", "run_id", "agent", "start"):
+            if header.get(key) != self.header[key]:
+                raise self._refuse(f"its {key} is {header.get(key)!r}, this follower's is "
+                                   f"{self.header[key]!r} (a file of another run, start or agent)")
+        entries: list[Entry] = []
+        for number, body in enumerate(bodies[1:], start=2):
+            try:
+                entry = _entry(body)
+            except (ProtocolError, ValueError, TypeError) as exc:
+                raise self._refuse(f"line {number}: {exc}") from None
+            if entries and entry.tick <= entries[-1].tick:
+                raise self._refuse(f"line {number}: tick {entry.tick} after tick "
+                                   f"{entries[-1].tick}")
+            entries.append(entry)
+        return entries
+
+    def append(self, entry: Entry) -> None:
+        """Add one tick (written and flushed before the tick is reported to anyone)."""
+        with open(self.path, "a", encoding="utf-8") as fh:
+            fh.write(_line(entry.body()))
+            fh.flush()
+
+    def rewrite(self, entries: list[Entry]) -> None:
+        """Replace the file atomically with the header and ``entries`` (a rollback)."""
+        write_atomic(self.path, _line(self.header) + "".join(_line(e.body()) for e in entries))
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not a number here")
+
+
+def _entry(body: dict) -> Entry:
+    if set(body) != {"tick", "skips", "settled", "target"}:
+        raise ValueError(f"fields {sorted(body)} are not tick, skips, settled, target")
+    tick, skips = body["tick"], body["skips"]
+    for name, value in (("tick", tick), ("skips", skips)):
+        if type(value) is not int or not 0 <= value <= 10_000_000:
+            raise ValueError(f"{name} must be an integer in 0..1e7, got {value!r}")
+    settled = None if body["settled"] is None else from_body(body["settled"], Sensing)
+    target = body["target"]
+    if target is not None:
+        if (not isinstance(target, list) or len(target) != 2
+                or not all(type(x) is float and math.isfinite(x) for x in target)):
+            raise ValueError(f"target must be two finite floats, got {target!r}")
+        target = (target[0], target[1])
+    if settled is None and target is not None:
+        raise ValueError("a target without a settled sensing")
+    return Entry(tick=tick, skips=skips, settled=settled, target=target)
+
+
+def replay(policy, entries: list[Entry]) -> None:
+    """Feed ``entries`` to a fresh ``policy``: it ends in the state it had after the last one."""
+    for entry in entries:
+        for _ in range(entry.skips):
+            policy.skip()
+        if entry.settled is not None:
+            target = None if entry.target is None else np.asarray(entry.target, dtype=float)
+            policy.record(entry.settled, target)

@@ -9,23 +9,34 @@ from __future__ import annotations
 
 import logging
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import zenoh
 
-from agents import checkpoint
+from agents.checkpoint import Entry, StateLog, replay
 from agents.cli import parser, run_cli
-from agents.link import QUERY_TIMEOUT_S, AgentLink, RunFinished, TickMissed
+from agents.link import QUERY_TIMEOUT_S, AgentAbort, AgentLink, RunFinished, TickMissed
 from agents.policies import NotReady, Policy, make_policy
 from protocol.config import AgentSettings
-from protocol.messages import ActRequest, Observation
+from protocol.messages import ActRequest, Observation, Sensing
 
 log = logging.getLogger(__name__)
 
 
-def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick: int) -> Observation:
-    """Run one tick of the follower; returns the observation it publishes."""
+@dataclass(frozen=True)
+class TickOutcome:
+    """What one follower tick produced: the observation it publishes, and what its policy
+    learnt from (the settled sensing and the target), which the replay log keeps."""
+
+    observation: Observation
+    settled: Sensing
+    target: np.ndarray | None
+
+
+def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick: int) -> TickOutcome:
+    """Run one tick of the follower."""
     pre = link.sense(tick, "pre")
     try:  # during the initial ticks the prediction is only scored, not followed
         proposal = policy.propose(pre)
@@ -42,50 +53,95 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
     settled = link.sense(tick, "settled")
     target = None if lost or rod is None else offset + np.asarray(rod)
     measurement = policy.record(settled, target)
-    return Observation(tick=tick, estimator=policy.name, measurement=measurement,
-                       prediction=prediction, lost=lost, followed=followed, fallback=fallback)
+    observation = Observation(tick=tick, estimator=policy.name, measurement=measurement,
+                              prediction=prediction, lost=lost, followed=followed,
+                              fallback=fallback)
+    return TickOutcome(observation, settled, target)
+
+
+def _restore(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Policy,
+             state_dir: str | Path | None) -> tuple[StateLog | None, int]:
+    """Join the run, rebuild ``policy`` from the state log, roll back what the world has not
+    recorded; return the log (None without a state dir) and the last tick this agent is through.
+
+    The world says where it stands (tick W; whether it has this agent through W; whether the
+    agent may act at W now). Log entries past that point describe a tick the world will run
+    again (it restarted, or this agent died before reporting), so they are dropped and the tick
+    is redone from the same state: the numbers are those of an uninterrupted run.
+    """
+    joined = link.join(settings.start_timeout)
+    through = joined.tick if joined.settled else joined.tick - 1
+    state = None
+    if state_dir:
+        state, entries = StateLog.open(state_dir, settings.run_id, agent_id, joined.start)
+        kept = [e for e in entries if e.tick <= through]
+        if len(kept) != len(entries):
+            log.info("follower %d: rolling back to tick %d (the world redoes tick %d)",
+                     agent_id, through, through + 1)
+            state.rewrite(kept)
+        replay(policy, kept)
+        last = kept[-1].tick if kept else -1
+        if entries:
+            log.info("follower %d: restored %d ticks of history from %s", agent_id, len(kept),
+                     state.path)
+    else:
+        last = -1
+    if joined.ready and not joined.settled:
+        link.advance(joined.tick)
+    return state, max(last, through) if joined.settled else last
 
 
 def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
                  state_dir: str | Path | None = None) -> None:
     """Lockstep/realtime follower loop; returns by raising RunFinished when the world is done.
 
-    With ``state_dir`` the policy is checkpointed after every tick and restored at start, so
-    a follower killed and restarted with the same id continues with its whole history; ticks
-    it missed meanwhile are bridged by the policy's own predictions (``Policy.skip``).
+    With ``state_dir`` every tick is appended to the follower's replay log
+    (:mod:`agents.checkpoint`) before it is reported, and a restarted follower rebuilds its
+    policy from it, so it continues with its whole history; ticks it missed meanwhile are
+    bridged by the policy's own predictions (``Policy.skip``). The log is deleted once the run
+    is complete.
     """
     if not 1 <= agent_id <= settings.followers:
         raise ValueError(f"--id must be in 1..{settings.followers} for this run, got {agent_id}")
-    saved = checkpoint.load(state_dir, settings.run_id, agent_id) if state_dir else None
-    policy = saved.policy if saved else make_policy(settings)
-    last = saved.tick if saved else -1
+    policy = make_policy(settings)
     link = AgentLink(session, settings.run_id, agent_id, agent_id - 1,
                      query_timeout=max(settings.agent_timeout, QUERY_TIMEOUT_S))
+    state = None
     try:
+        state, last = _restore(link, settings, agent_id, policy, state_dir)
         tick, timeout = last, settings.start_timeout
         while True:
             tick = link.wait_step(tick, timeout)
             timeout = settings.step_timeout
-            for _ in range(tick - last - 1):
+            skips = tick - last - 1
+            if tick >= settings.ticks:
+                raise AgentAbort(f"tick {tick} is past this run's {settings.ticks} ticks")
+            for _ in range(skips):
                 policy.skip()
             last = tick
             try:
-                obs = follower_tick(link, policy, settings, tick)
+                outcome = follower_tick(link, policy, settings, tick)
             except TickMissed:
-                continue
-            if state_dir:
+                entry = Entry(tick=tick, skips=skips, settled=None, target=None)
+                outcome = None
+            else:
+                target = outcome.target
+                entry = Entry(tick=tick, skips=skips, settled=outcome.settled,
+                              target=None if target is None else (float(target[0]),
+                                                                  float(target[1])))
+            if state is not None:
                 try:
-                    checkpoint.save(state_dir, checkpoint.Checkpoint(settings.run_id, agent_id,
-                                                                     tick, policy))
+                    state.append(entry)
                 except OSError as exc:  # a run must not die for its safety net
-                    log.error("follower %d: cannot write its checkpoint (%s); going on without",
-                              agent_id, exc)
-                    state_dir = None
-            link.publish_obs(obs)
-            link.publish_rod(tick, settings.spacing, settings.side)
-    except RunFinished:
-        if state_dir:
-            checkpoint.remove(state_dir, agent_id)
+                    log.error("follower %d: cannot write its state file %s (%s); going on "
+                              "without", agent_id, state.path, exc.strerror)
+                    state = None
+            if outcome is not None:
+                link.publish_obs(outcome.observation)
+                link.publish_rod(tick, settings.spacing, settings.side)
+    except RunFinished as end:
+        if state is not None and end.complete:
+            state.remove()
         raise
     finally:
         link.close()
@@ -94,7 +150,7 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
 def main(argv: list[str] | None = None) -> int:
     p = parser("Follower agent of a column-formation run.")
     p.add_argument("--id", type=int, required=True, help="follower id K (1 = behind the leader)")
-    p.add_argument("--state-dir", help="where to keep this follower's checkpoint "
+    p.add_argument("--state-dir", help="where to keep this follower's state (replay log) "
                                         "(default: <config dir>/state; 'none' disables)")
     args = p.parse_args(argv)
     state = args.state_dir or str(Path(args.config).resolve().parent / "state")

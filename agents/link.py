@@ -15,13 +15,14 @@ import zenoh
 
 from protocol import keys
 from protocol.messages import (
-    ActRequest, ActResult, Done, ErrorReply, Message, Missed, Observation, ProtocolError, Rod,
-    Sensing, SenseRequest, TickStart, decode, encode,
+    ActRequest, ActResult, Done, ErrorReply, Joined, JoinRequest, Message, Missed, Observation,
+    ProtocolError, Rod, Sensing, SenseRequest, TickStart, decode, encode,
 )
 
 log = logging.getLogger(__name__)
 
 QUERY_TIMEOUT_S = 10.0  # the least time an agent waits for the world's reply to a query
+WAIT_RETRY_S = 0.002  # pause before asking again after a ``wait`` refusal
 
 
 class AgentAbort(RuntimeError):
@@ -29,7 +30,11 @@ class AgentAbort(RuntimeError):
 
 
 class RunFinished(AgentAbort):
-    """``world/done`` arrived: a normal end."""
+    """``world/done`` arrived: a normal end (``complete`` False: the run ended early)."""
+
+    def __init__(self, message: str, complete: bool = True) -> None:
+        super().__init__(message)
+        self.complete = complete
 
 
 class TickMissed(RuntimeError):
@@ -57,6 +62,7 @@ class AgentLink:
         self.query_timeout = query_timeout
         self._cond = threading.Condition()
         self._latest = -1  # newest tick announced by whatever this agent waits for
+        self._world_tick = -1  # newest tick the world announced
         self._done: Done | None = None
         self._world_alive = False
         self._world_seen = False
@@ -64,10 +70,11 @@ class AgentLink:
         if self._id_in_use():
             raise AgentAbort(f"agent id {agent_id} is already live in run {run_id}: refusing to start")
         self.follow = follow
-        source = keys.tick(run_id) if follow is None else keys.rod(run_id, follow)
-        kind = TickStart if follow is None else Rod
-        self._declared.append(session.declare_subscriber(source, lambda s: self._on_step(s, kind)))
-        if follow is not None:  # a leader that missed its tick counts as settled where it stands
+        self._declared.append(session.declare_subscriber(keys.tick(run_id), self._on_tick))
+        if follow is not None:
+            self._declared.append(session.declare_subscriber(keys.rod(run_id, follow),
+                                                             self._on_rod))
+            # a leader that missed its tick counts as settled where it stands
             self._declared.append(session.declare_subscriber(keys.missed(run_id), self._on_missed))
         self._declared.append(session.declare_subscriber(keys.done(run_id), self._on_done))
         self._declared.append(session.liveliness().declare_subscriber(
@@ -104,17 +111,38 @@ class AgentLink:
             log.warning("agent %d: dropped bad sample on %s: %s", self.agent_id, sample.key_expr, exc)
             return None
 
-    def _on_step(self, sample: zenoh.Sample, kind: type[Message]) -> None:
-        msg = self._decode(sample, kind)
+    def _on_tick(self, sample: zenoh.Sample) -> None:
+        msg = self._decode(sample, TickStart)
+        if msg is None:
+            return
+        with self._cond:
+            self._world_tick = max(self._world_tick, msg.tick)
+        if self.follow is None:  # the leader's step is the world's tick
+            self.advance(msg.tick)
+
+    def _on_rod(self, sample: zenoh.Sample) -> None:
+        msg = self._decode(sample, Rod)
         if msg is not None:
-            self._advance(msg.tick)
+            self._predecessor_through(msg.tick, sample)
 
     def _on_missed(self, sample: zenoh.Sample) -> None:
         msg = self._decode(sample, Missed)
         if msg is not None and msg.agent == self.follow:
-            self._advance(msg.tick)
+            self._predecessor_through(msg.tick, sample)
 
-    def _advance(self, tick: int) -> None:
+    def _predecessor_through(self, tick: int, sample: zenoh.Sample) -> None:
+        """The predecessor got through ``tick``; a tick more than one ahead of the world's
+        newest (which may arrive just after the rod) is not believed (SPEC §8)."""
+        with self._cond:
+            ahead = tick > self._world_tick + 1
+        if ahead:
+            log.warning("agent %d: dropped sample on %s for tick %d: the world is at tick %d",
+                        self.agent_id, sample.key_expr, tick, self._world_tick)
+            return
+        self.advance(tick)
+
+    def advance(self, tick: int) -> None:
+        """This agent may act at ``tick`` (announced by its step source, or by a join)."""
         with self._cond:
             if tick > self._latest:
                 self._latest = tick
@@ -147,7 +175,8 @@ class AgentLink:
                 if self._latest > after:
                     return self._latest
                 if self._done is not None:
-                    raise RunFinished(f"run finished: results in {self._done.results}")
+                    raise RunFinished(f"run finished: results in {self._done.results}",
+                                      complete=self._done.complete)
                 if self._world_seen and not self._world_alive:
                     raise AgentAbort("the world process disappeared")
                 left = deadline - time.monotonic()
@@ -159,19 +188,53 @@ class AgentLink:
     # --- world requests ------------------------------------------------------------------------
 
     def _query(self, key: str, request: Message, expected: type[Message]) -> Message:
-        replies = self.session.get(key, payload=encode(request), timeout=self.query_timeout)
-        for reply in replies:
-            if reply.ok is None:
+        """The world's reply; a ``wait`` refusal (the world has not yet seen what this agent
+        reacted to, e.g. its predecessor's rod) is asked again shortly, up to the timeout."""
+        deadline = time.monotonic() + self.query_timeout
+        payload = encode(request)
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            for reply in self.session.get(key, payload=payload, timeout=left):
+                if reply.ok is not None:
+                    return decode(reply.ok.payload.to_bytes(), expected)
                 try:
                     error = decode(reply.err.payload.to_bytes(), ErrorReply)
                     problem, code = error.error, error.code
                 except ProtocolError:  # not the world's: zenoh's own (e.g. a query timeout)
-                    problem, code = reply.err.payload.to_bytes()[:200].decode(errors="replace"), "bad-request"
+                    problem = reply.err.payload.to_bytes()[:200].decode(errors="replace")
+                    code = "bad-request"
                 if code == "missed":
                     raise TickMissed(problem)
-                raise AgentAbort(f"the world refused {request.TYPE} at tick {request.tick}: {problem}")
-            return decode(reply.ok.payload.to_bytes(), expected)
+                if code != "wait":
+                    raise AgentAbort(f"the world refused {request.TYPE} at tick {request.tick}: "
+                                     f"{problem}")
+                break
+            else:
+                break  # no reply at all within the time left
+            time.sleep(WAIT_RETRY_S)
         raise AgentAbort(f"no reply from the world on {key} within {self.query_timeout} s")
+
+    def join(self, timeout: float) -> Joined:
+        """Wait (up to ``timeout`` s) for the world, then ask it where the run stands (the
+        first thing an agent process does)."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while not self._world_alive:
+                if self._done is not None:
+                    raise RunFinished(f"run finished: results in {self._done.results}",
+                                      complete=self._done.complete)
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise AgentAbort(f"agent {self.agent_id}: no world for run {self.run_id} "
+                                     f"within {timeout:.1f} s (is the world running?)")
+                self._cond.wait(left)
+        joined = self._query(self._act_key, JoinRequest(tick=0), Joined)
+        with self._cond:
+            self._world_tick = max(self._world_tick, joined.tick if joined.ready or joined.settled
+                                   else joined.tick - 1)
+        return joined
 
     def sense(self, tick: int, phase: str) -> Sensing:
         return self._query(self._sense_key, SenseRequest(tick=tick, phase=phase), Sensing)

@@ -127,7 +127,7 @@ _KINDS = {
     "vec?": _optional(_vector(None)),
     "phase": _choice("pre", "moved", "settled"),
     "action": _choice("drive", "move", "snap"),
-    "error-code": _choice("bad-request", "missed", "ended"),
+    "error-code": _choice("bad-request", "missed", "ended", "wait"),
 }
 
 
@@ -207,6 +207,29 @@ class ActRequest(Message):
 
 
 @dataclass(frozen=True)
+class JoinRequest(Message):
+    """Query to ``world/act/<id>`` when an agent process starts: where does the run stand?
+
+    ``tick`` is ignored (0); the reply is :class:`Joined`.
+    """
+
+    TYPE: ClassVar[str] = "join"
+
+
+@dataclass(frozen=True)
+class Joined(Message):
+    """Reply to :class:`JoinRequest`: the world is at ``tick``; ``settled``: it has this agent
+    through that tick (its rod, or a miss, is recorded); ``ready``: the agent may act at
+    ``tick`` now (the tick has started and, for a follower, its predecessor is through);
+    ``start``: the run's start nonce, which the agent's state file must carry."""
+
+    TYPE: ClassVar[str] = "joined"
+    settled: bool = _kind("flag", False)
+    ready: bool = _kind("flag", False)
+    start: str = _kind("text", "")
+
+
+@dataclass(frozen=True)
 class ActResult(Message):
     """Reply of ``world/act/<id>``: ``moved`` is False when a snap found no visible rod end."""
 
@@ -263,7 +286,8 @@ class Done(Message):
 @dataclass(frozen=True)
 class ErrorReply(Message):
     """Error reply of a queryable: ``error`` names the problem; ``code`` classifies it
-    (``bad-request``, ``missed``: the agent missed this tick, ``ended``: the run is over)."""
+    (``bad-request``, ``missed``: the agent missed this tick, ``ended``: the run is over,
+    ``wait``: not yet, ask again shortly)."""
 
     TYPE: ClassVar[str] = "error"
     error: str = _kind("text", "")
@@ -273,8 +297,8 @@ class ErrorReply(Message):
 _KINDS["finite?"] = _optional(_finite)
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE: cls
-    for cls in (TickStart, SenseRequest, Sensing, ActRequest, ActResult, Rod, Observation, Missed,
-                Done, ErrorReply)
+    for cls in (TickStart, SenseRequest, Sensing, ActRequest, JoinRequest, Joined, ActResult, Rod,
+                Observation, Missed, Done, ErrorReply)
 }
 
 
@@ -372,3 +396,15 @@ def error_payload(tick: int, problem: str, code: str = "bad-request") -> bytes:
     """An encoded :class:`ErrorReply` (tick clamped into range so it always encodes)."""
     tick = tick if isinstance(tick, int) and 0 <= tick <= MAX_TICK else 0
     return encode(ErrorReply(tick=tick, error=problem[:MAX_TEXT], code=code))
+
+
+def to_body(msg: Message) -> dict[str, Any]:
+    """``msg`` as the plain map the codec sends (JSON-ready: lists, floats, str, bool, None)."""
+    return msgpack.unpackb(encode(msg), raw=False)
+
+
+def from_body(body: Any, expected: type[Message]) -> Message:
+    """The message of a plain map made by :func:`to_body`, validated like :func:`decode`."""
+    if not isinstance(body, dict):
+        raise ProtocolError(f"expected a map, got {type(body).__name__}")
+    return decode(msgpack.packb(body, use_bin_type=True), expected)

@@ -71,11 +71,13 @@ def _rule(rule_id: str, flow: str, messages: list[str], key_exprs: list[str]) ->
 
 
 def _agent_needs(run_id: str, agent: int) -> list[str]:
-    """What agent ``agent`` subscribes to (agents/link.py): the leader world ticks, a follower
-    its predecessor's rod and the world's missed-tick notices; both ``world/done``."""
+    """What agent ``agent`` subscribes to (agents/link.py): world ticks and ``world/done``; a
+    follower also its predecessor's rod (a rod more than one tick ahead of the world's is
+    dropped) and the world's missed-tick notices."""
     if agent == 0:
         return [keys.tick(run_id), keys.done(run_id)]
-    return [keys.rod(run_id, agent - 1), keys.missed(run_id), keys.done(run_id)]
+    return [keys.rod(run_id, agent - 1), keys.tick(run_id), keys.missed(run_id),
+            keys.done(run_id)]
 
 
 def access_control(run_id: str, followers: int, *, cert_names: bool = False) -> dict:

@@ -57,12 +57,16 @@ def run_local(config: RunConfig, out_dir: str | Path | None = None,
     policies = [policy_factory(settings) for _ in range(config.followers)]
     links = [LocalLink(sim, k) for k in range(1, config.followers + 1)]
     recorder = RunRecorder(out_dir, config)
+    if out_dir is not None:
+        recorder.open()
     for tick in range(config.ticks):
+        observations = []
         sim.start_tick(tick)
         sim.drive(0, tick, sim.time_of(tick))
         for k, (link, policy) in enumerate(zip(links, policies), start=1):
-            recorder.add_observation(k, follower_tick(link, policy, settings, tick))
-        recorder.add_tick(sim.finish_tick())
+            observations.append((k, follower_tick(link, policy, settings, tick).observation))
+        recorder.add_tick(sim.finish_tick(), observations)
     if out_dir is not None:
-        recorder.write(complete=True)
+        recorder.write_summary(complete=True)
+        recorder.close()
     return recorder.summary(complete=True), recorder.rows

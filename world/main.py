@@ -11,6 +11,7 @@ import zenoh
 
 from protocol.config import RunConfig, dump_config, load_config
 from protocol.session import add_credential_flags, credentials, tls_options, zenoh_config
+from world import checkpoint
 from world.service import WorldService
 from world.sim import resolve_leader_start
 from world.surfaces import Surface, make_surface
@@ -34,22 +35,22 @@ def default_out(config: RunConfig) -> Path:
 def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
               on_tick: Callable[[int], None] | None = None,
               on_ready: Callable[[WorldService], None] | None = None,
-              resume: bool = False, crash_after_tick: int | None = None) -> dict:
+              resume: bool = False, force: bool = False) -> dict:
     """Run one world on a new session built from ``conf``; return the summary.
 
     Writes ``config.toml`` (resolved) before the first tick. ``on_ready`` gets the service once
     its queryables and token are declared (launchers start agents then, and may ``abort`` it).
-    ``resume`` continues the run in ``out_dir`` from its last complete tick;
-    ``crash_after_tick`` kills the process abruptly after that tick (fault injection).
+    ``resume`` continues the run in ``out_dir`` from its last complete tick. A fresh run
+    refuses a folder that holds results already, unless ``force`` (which replaces them).
     """
     config, surface = resolve_with_surface(config)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if not resume:
+        checkpoint.claim(out_dir, config.run_id, force)
         dump_config(config, out_dir / "config.toml")
     with zenoh.open(conf) as session:
-        service = WorldService(session, config, surface, out_dir, on_tick=on_tick, resume=resume,
-                               crash_after_tick=crash_after_tick)
+        service = WorldService(session, config, surface, out_dir, on_tick=on_tick, resume=resume)
         try:
             if on_ready is not None:
                 on_ready(service)
@@ -72,7 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", help="results folder (default runs/<run_id>)")
     add_credential_flags(p)
     p.add_argument("--log-level", default="WARNING")
-    p.add_argument("--crash-after-tick", type=int, help=argparse.SUPPRESS)  # fault injection
+    p.add_argument("--force", action="store_true",
+                   help="replace the results already in --out (default: refuse)")
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
     try:
@@ -86,8 +88,7 @@ def main(argv: list[str] | None = None) -> int:
                                 user=user, password=password, extra=args.cfg,
                                 **tls_options(args))
         out = args.resume or args.out or default_out(config)
-        summary = run_world(config, conf, out, resume=bool(args.resume),
-                            crash_after_tick=args.crash_after_tick)
+        summary = run_world(config, conf, out, resume=bool(args.resume), force=args.force)
     except (ValueError, RuntimeError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

@@ -6,9 +6,7 @@
 """
 from __future__ import annotations
 
-import json
 import logging
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -19,19 +17,24 @@ import zenoh
 from protocol import keys
 from protocol.config import RunConfig
 from protocol.messages import (
-    ActRequest, ActResult, Done, Missed, Observation, ProtocolError, Rod, SenseRequest, TickStart,
-    decode, encode, error_payload,
+    ActRequest, ActResult, Done, Joined, JoinRequest, Missed, Observation, ProtocolError, Rod,
+    SenseRequest, TickStart, decode, encode, error_payload,
 )
-from protocol.config import write_atomic
-from world.results import RunRecorder, read_observations, read_ticks
+from protocol.messages import safe_text
+from world import checkpoint
+from world.results import RunRecorder
 from world.sim import RequestError, RunEnded, TickMissed, WorldSim
 from world.surfaces import Surface
 from world.view import ViewPublisher
 
 log = logging.getLogger(__name__)
 
-STATE_FILE = "world_state.json"
-CRASH_EXIT = 70
+STATE_FILE = checkpoint.STATE_FILE
+
+
+class NotYet(RequestError):
+    """A follower's request before the world has its predecessor through the tick (the rod
+    reached the follower first): answered with code ``wait``, the follower asks again."""
 
 
 class WorldService:
@@ -53,24 +56,36 @@ class WorldService:
 
     def __init__(self, session: zenoh.Session, config: RunConfig, surface: Surface,
                  out_dir: str | Path, on_tick: Callable[[int], None] | None = None,
-                 resume: bool = False, crash_after_tick: int | None = None) -> None:
+                 resume: bool = False) -> None:
         self.session, self.config = session, config
+        run = config.run_id
+        if self._world_live(session, run):
+            raise RuntimeError(f"run id {run!r} is already live: another world serves it "
+                               "(refusing to join it)")
         self.sim = WorldSim(config, surface)
         self.recorder = RunRecorder(out_dir, config)
-        self.view = ViewPublisher(session, config, surface, self.sim.ideal, out_dir)
-        if resume:
-            self._resume()
-        self.on_tick = on_tick
-        self.crash_after_tick = crash_after_tick
+        self.out_dir = self.recorder.out_dir
         self._cond = threading.Condition()
         self._done: set[int] = set()  # agents through the current tick: settled or missed
+        self._obs: dict[int, Observation] = {}  # the current tick's observations by follower
+        self._rods: set[int] = set()  # agents whose rod for the current tick arrived
         self._settled_at: dict[int, float] = {}  # when each of them got through
         self._tick_started = 0.0
         self._alive: set[int] = set()
         self._ended: str | None = None
         self._rejected = 0
-        run = config.run_id
+        self._wall_before = 0.0  # wall time of earlier starts of this run (resume)
+        self._started = time.monotonic()
+        if resume and checkpoint.has_progress(self.out_dir):
+            self._resume()
+        else:
+            self.start = checkpoint.new_start()
+            self.recorder.open()
+            self._save_state(0.0)  # a world killed before tick 0 completes resumes from here
+        self.on_tick = on_tick
+        self.view = ViewPublisher(session, config, surface, self.sim.ideal, out_dir)
         self._declared = [
+            self.view,
             session.declare_queryable(keys.sense(run), self._on_sense),
             session.declare_queryable(keys.act(run), self._on_act),
             session.declare_subscriber(keys.rod(run), self._on_rod),
@@ -82,25 +97,30 @@ class WorldService:
         self._missed_pub = session.declare_publisher(keys.missed(run))
         self._done_pub = session.declare_publisher(keys.done(run))
         self._token = session.liveliness().declare_token(keys.alive(run, "world"))
-        self._declared += [self._tick_pub, self._missed_pub, self._done_pub, self._token, self.view]
+        self._declared += [self._tick_pub, self._missed_pub, self._done_pub, self._token]
+
+    @staticmethod
+    def _world_live(session: zenoh.Session, run: str) -> bool:
+        replies = session.liveliness().get(keys.alive(run, "world"), timeout=0.5)
+        return any(reply.ok is not None for reply in replies)
 
     def _resume(self) -> None:
-        """Continue from the results folder's checkpoint (the last complete tick)."""
-        out = self.recorder.out_dir
+        """Continue from the checkpoint: the state after the last complete tick, the CSV files
+        cut back to that tick, every agent counted through it (restarted agents redo the next)."""
+        state = checkpoint.load(self.out_dir, self.config.run_id)
         try:
-            state = json.loads((out / STATE_FILE).read_text())
-            rows = read_ticks(out / "ticks.csv")
-        except (OSError, ValueError, KeyError) as exc:
-            raise ValueError(f"cannot resume from {out}: {exc}") from None
-        self.sim.restore(state)
-        done = self.sim.tick + 1
-        self.recorder.restore(
-            [r for r in rows if r["tick"] < done],
-            [o for o in read_observations(out / "observations.csv") if o["tick"] < done],
-            {int(k): v for k, v in state.get("missed_counts", {}).items()})
-        if self.recorder.ticks_done != done:
-            raise ValueError(f"cannot resume from {out}: ticks.csv has {self.recorder.ticks_done} "
-                             f"complete ticks but the checkpoint {done}")
+            self.sim.restore(state["sim"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise checkpoint.StateError(f"checkpoint {self.out_dir / STATE_FILE}: bad simulation "
+                                        f"state ({exc}); refusing it") from None
+        self.recorder.open(resume_offsets=state["offsets"])
+        if self.recorder.ticks_done != self.sim.tick + 1:
+            raise checkpoint.StateError(
+                f"cannot resume {self.out_dir}: ticks.csv holds {self.recorder.ticks_done} ticks, "
+                f"the checkpoint {self.sim.tick + 1}")
+        self.start, self._wall_before = state["start"], state["wall_time"]
+        self._done = set(range(self.sim.n_agents)) if self.sim.tick >= 0 else set()
+        log.warning("world: resuming run %s after tick %d", self.config.run_id, self.sim.tick)
 
     def close(self) -> None:
         for handle in reversed(self._declared):
@@ -109,6 +129,7 @@ class WorldService:
             except zenoh.ZError:
                 pass
         self._declared.clear()
+        self.recorder.close()
 
     @property
     def rejected(self) -> int:
@@ -126,6 +147,9 @@ class WorldService:
             return
         except TickMissed as exc:
             problem, code = str(exc), "missed"
+        except NotYet as exc:  # not a refusal: the agent asks again
+            query.reply_err(error_payload(self.sim.tick, str(exc), "wait"))
+            return
         except (ProtocolError, RequestError, ValueError) as exc:
             problem = str(exc)
         except RunEnded as exc:
@@ -135,19 +159,42 @@ class WorldService:
         log.info("world: refused %s: %s", query.key_expr, problem)
         query.reply_err(error_payload(self.sim.tick, problem, code))
 
+    def _check_turn(self, agent: int, tick: int) -> None:
+        """(Lock held.) A follower acts at the current tick only once the world has its
+        predecessor through it: a predecessor that vanished before its rod reached the world
+        is rolled back, and its successor must not have seen it moved."""
+        if 0 < agent < self.sim.n_agents and tick == self.sim.tick and agent - 1 not in self._done:
+            raise NotYet(f"agent {agent - 1} is not through tick {tick} yet")
+
     def _on_sense(self, query: zenoh.Query) -> None:
         def handle(agent: int, payload: bytes) -> bytes:
             req = decode(payload, SenseRequest)
             with self._cond:
+                self._check_turn(agent, req.tick)
                 # the agent validates it on decode; its numbers are the world's own
                 return encode(self.sim.sense(agent, req.tick, req.phase), check=False)
         self._answer(query, handle)
 
+    def _joined(self, agent: int) -> Joined:
+        """(Lock held.) Where the run stands for a starting agent process."""
+        if not 0 <= agent < self.sim.n_agents:
+            raise RequestError(f"unknown agent id {agent} (this run has agents "
+                               f"0..{self.sim.n_agents - 1})")
+        tick = self.sim.tick
+        if tick < 0:
+            return Joined(tick=0, settled=False, ready=False, start=self.start)
+        settled = agent in self._done
+        ready = not settled and (agent == 0 or agent - 1 in self._done)
+        return Joined(tick=tick, settled=settled, ready=ready, start=self.start)
+
     def _on_act(self, query: zenoh.Query) -> None:
         def handle(agent: int, payload: bytes) -> bytes:
-            req = decode(payload, ActRequest)
+            req = decode(payload, (ActRequest, JoinRequest))
             moved = True
             with self._cond:
+                if isinstance(req, JoinRequest):
+                    return encode(self._joined(agent))
+                self._check_turn(agent, req.tick)
                 if req.action == "drive":
                     if req.t is None:
                         raise RequestError("drive needs the time t")
@@ -174,11 +221,18 @@ class WorldService:
                     raise ValueError(f"agent {agent} published a rod without settling")
                 if abs(msg.length - self.config.spacing) > 1e-12 or msg.side != self.config.side_sign:
                     raise ValueError(f"agent {agent}'s rod does not match the run's length/side")
-                self._done.add(agent)
-                self._settled_at[agent] = time.monotonic()
-                self._cond.notify_all()
+                self._rods.add(agent)
+                self._through_if_reported(agent)
         except (ProtocolError, ValueError) as exc:
             self._drop("rod sample", sample, exc)
+
+    def _through_if_reported(self, agent: int) -> None:
+        """(Lock held.) An agent is through the tick once the world has its rod and, for a
+        follower, its observation (the two samples may arrive in either order)."""
+        if agent in self._rods and (agent == 0 or agent in self._obs):
+            self._done.add(agent)
+            self._settled_at[agent] = time.monotonic()
+            self._cond.notify_all()
 
     def _on_obs(self, sample: zenoh.Sample) -> None:
         try:
@@ -186,8 +240,16 @@ class WorldService:
             msg = decode(sample.payload.to_bytes(), Observation)
             if not 1 <= agent < self.sim.n_agents:
                 raise ValueError(f"unknown follower id {agent}")
-            with self._cond:
-                self.recorder.add_observation(agent, msg)
+            with self._cond:  # one per follower and tick, for the tick in progress (SPEC §8)
+                if msg.tick != self.sim.tick:
+                    raise ValueError(f"observation for tick {msg.tick} while the world is at "
+                                     f"{self.sim.tick}")
+                if agent in self._obs or agent in self._done:
+                    raise ValueError(f"follower {agent} already reported tick {msg.tick}")
+                if not self.sim.is_settled(agent):
+                    raise ValueError(f"follower {agent} reported tick {msg.tick} before settling")
+                self._obs[agent] = msg
+                self._through_if_reported(agent)
         except (ProtocolError, ValueError) as exc:
             self._drop("observation", sample, exc)
 
@@ -210,7 +272,14 @@ class WorldService:
             else:
                 self._alive.discard(agent)
                 if 0 <= self.sim.tick and agent < self.sim.n_agents and agent not in self._done:
-                    self._mark_missed(agent, "its process vanished")
+                    if self.config.mode == "realtime":
+                        self._mark_missed(agent, "its process vanished")
+                    else:  # lockstep: it redoes the tick when it is back (SPEC §4)
+                        log.warning("world: agent %d vanished during tick %d; its tick is rolled "
+                                    "back until it is back", agent, self.sim.tick)
+                        self.sim.rollback(agent)
+                        self._obs.pop(agent, None)
+                        self._rods.discard(agent)
             self._cond.notify_all()
 
     # --- the run -------------------------------------------------------------------------------
@@ -274,11 +343,16 @@ class WorldService:
                     return reason
             self.sim.start_tick(tick)
             self._done.clear()
+            self._obs.clear()
+            self._rods.clear()
             self._settled_at = {}
             self._tick_started = time.monotonic()
         self._tick_pub.put(encode(TickStart(tick=tick, t=self.sim.time_of(tick))))
         limit = self.config.agent_timeout
         with self._cond:
+            if realtime:  # a dead agent misses at once: those behind it keep their time budget
+                for agent in sorted(set(range(self.sim.n_agents)) - self._alive):
+                    self._mark_missed(agent, "its process is not live")
             while (waiting := self._first_pending()) is not None and self._ended is None:
                 # the clock restarts whenever some agent gets through the tick
                 deadline = max(self._settled_at.values(), default=self._tick_started) + limit
@@ -295,7 +369,9 @@ class WorldService:
             if self._ended is not None:
                 return self._ended
             rows = self.sim.finish_tick()
-            self.recorder.add_tick(rows)
+            self.recorder.add_tick(rows, sorted(self._obs.items()))
+            self._save_state(self._wall())
+            self.recorder.write_summary(complete=False, reason="running", wall_time=self._wall())
             self.view.publish_tick(rows)
             if realtime:  # pace by the wall clock
                 next_start = self._tick_started + self.period
@@ -308,15 +384,27 @@ class WorldService:
         """Wall-clock seconds per tick in realtime mode."""
         return self.config.comm_period * self.config.time_scale
 
+    def _wall(self) -> float:
+        """Wall time of the run so far, earlier starts included."""
+        return self._wall_before + (time.monotonic() - self._started)
+
+    def _save_state(self, wall_time: float) -> None:
+        """(Lock held.) The checkpoint after the last complete tick (its rows are on disk)."""
+        checkpoint.save(self.out_dir, run_id=self.config.run_id, start=self.start,
+                        sim=self.sim.state(), offsets=self.recorder.offsets,
+                        wall_time=float(wall_time))
+
     def run(self) -> dict:
         """Wait for the agents, run every tick, write the results; return the summary.
 
-        Results and the world's checkpoint are rewritten after every tick, so a crashed world
-        continues with ``python -m world --resume RUN_DIR``. The run ends early (result
-        written with ``complete: false``) when an agent stops settling (lockstep), does not
-        come back after vanishing, or the swarm leaves the surface's domain.
+        Each complete tick is appended to the results and then checkpointed, so a world killed
+        at any moment continues with ``python -m world --resume RUN_DIR`` from the last
+        complete tick. The run ends early (result written with ``complete: false``, the
+        checkpoint kept for a resume) when an agent stops settling (lockstep), does not come
+        back after vanishing, or the swarm leaves the surface's domain. Once the run is
+        complete the checkpoint is deleted.
         """
-        started = time.monotonic()
+        self._started = time.monotonic()
         self.wait_for_agents(self.config.start_timeout)
         self.view.publish_map(force=True)
         reason = ""
@@ -326,35 +414,25 @@ class WorldService:
                 if ended is not None:
                     reason = ended
                     break
-                with self._cond:
-                    self._checkpoint(complete=False, reason="running",
-                                     wall_time=time.monotonic() - started)
-                if self.crash_after_tick is not None and tick >= self.crash_after_tick:
-                    os._exit(CRASH_EXIT)  # fault injection for tests: no clean-up at all
                 if self.on_tick is not None:
                     self.on_tick(tick)
         except BaseException:
             with self._cond:
-                self.recorder.write(complete=False, reason="interrupted",
-                                    wall_time=time.monotonic() - started)
+                self.recorder.write_summary(complete=False, reason="interrupted",
+                                            wall_time=self._wall())
             raise
         complete = not reason
         if reason:
             log.error("world: run ended early: %s", reason)
         with self._cond:
-            self._checkpoint(complete=complete, reason=reason, wall_time=time.monotonic() - started)
+            self.recorder.write_summary(complete=complete, reason=reason, wall_time=self._wall())
         self._done_pub.put(encode(Done(tick=max(self.recorder.ticks_done - 1, 0),
-                                       results=str(self.recorder.out_dir), complete=complete,
-                                       reason=reason)))
+                                       results=str(self.out_dir), complete=complete,
+                                       reason=safe_text(reason))))
         self._wait_agents_gone(timeout=5.0)
-        return self.recorder.summary(complete=complete, reason=reason,
-                                     wall_time=time.monotonic() - started)
-
-    def _checkpoint(self, **status) -> None:
-        """(Lock held.) Results so far and the world's state after the last complete tick."""
-        self.recorder.write(**status)
-        state = {**self.sim.state(), "missed_counts": self.recorder.missed}
-        write_atomic(self.recorder.out_dir / STATE_FILE, json.dumps(state))
+        if complete:  # a world killed before this resumes into the end phase again
+            checkpoint.discard(self.out_dir)
+        return self.recorder.summary(complete=complete, reason=reason, wall_time=self._wall())
 
     def _wait_agents_gone(self, timeout: float) -> None:
         """Give agents time to see ``world/done`` and leave before the session closes."""

@@ -110,6 +110,21 @@ class WorldSim:
         self._rod_cache.clear()
         for agent in self.agents:
             agent.estimate, agent.acted, agent.lost, agent.missed = None, "", False, False
+        self._tick_start = ([(a.pos.copy(), a.heading.copy()) for a in self.agents],
+                            self.leader_velocity.copy(), self.leader_time)
+
+    def rollback(self, agent: int) -> None:
+        """Undo whatever ``agent`` did in the current tick (its process vanished before it
+        settled): it will redo the tick from the pose it had when the tick started, and draw the
+        same noise, so the tick's numbers are those of an uninterrupted run."""
+        poses, velocity, leader_time = self._tick_start
+        state = self.agents[agent]
+        state.pos, state.heading = poses[agent][0].copy(), poses[agent][1].copy()
+        state.settled.pop(self.tick, None)
+        state.estimate, state.acted, state.lost, state.missed = None, "", False, False
+        if agent == 0:
+            self.leader_velocity, self.leader_time = velocity.copy(), leader_time
+        self._rod_cache.pop(agent + 1, None)
 
     def is_settled(self, agent: int, tick: int | None = None) -> bool:
         return (self.tick if tick is None else tick) in self.agents[agent].settled
@@ -129,7 +144,8 @@ class WorldSim:
             if j not in state.settled:
                 raise RuntimeError(f"agent {k} has not settled at tick {j}")
             pos = state.settled[j]
-            row = {"tick": j, "t": self.time_of(j), "agent": k, "pos_x": pos[0], "pos_y": pos[1]}
+            row = {"tick": j, "t": self.time_of(j), "agent": k, "pos_x": pos[0], "pos_y": pos[1],
+                   "missed": int(state.missed)}
             if k > 0:
                 ideal = self._leader_rod(k)[0]
                 prev = state.settled.get(j - 1, pos)
@@ -141,7 +157,7 @@ class WorldSim:
                     stay_range=_dist(prev, ideal),
                     persist_range=_dist(self._sensed_persist(k, j), ideal),
                     persist_range_noise_free=_dist(persist_noise_free, ideal),
-                    lost=int(state.lost), missed=int(state.missed),
+                    lost=int(state.lost),
                     formation_error=_finite_or_none(_dist(pos, self.ideal[k, j])),
                 )
                 if state.estimate is not None:

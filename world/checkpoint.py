@@ -1,0 +1,112 @@
+"""The world's checkpoint: ``world_state.json``, describing only complete ticks (SPEC §4).
+
+After every complete tick the world first appends the tick to ``ticks.csv`` and
+``observations.csv``, then replaces this file atomically. It holds the simulation state after
+that tick, the two CSV files' lengths at that point, the run id, the run's *start nonce*
+(random per fresh start, kept across resumes: agents' state files must carry the same one) and a
+SHA-256 checksum. A world killed at any moment — even halfway through appending a tick — resumes
+from the last tick this file describes, cutting the CSV files back to the lengths it records.
+The file is deleted once the run is complete.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import secrets
+from pathlib import Path
+
+from protocol.config import write_atomic
+from world.results import RESULT_FILES, SUMMARY_FILE
+
+STATE_FILE = "world_state.json"
+SCHEMA = 1
+
+
+class StateError(ValueError):
+    """A checkpoint or results folder the world refuses; the message names the file and why."""
+
+
+class AlreadyComplete(StateError):
+    """``--resume`` of a run that completed: nothing is left to do."""
+
+
+def new_start() -> str:
+    """A fresh start nonce."""
+    return secrets.token_hex(8)
+
+
+def _checksum(body: dict) -> str:
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":"),
+                                     allow_nan=False).encode()).hexdigest()
+
+
+def save(out_dir: Path, *, run_id: str, start: str, sim: dict, offsets: dict[str, int],
+         wall_time: float) -> None:
+    """Replace the checkpoint atomically (after the tick's rows are on disk)."""
+    body = {"schema": SCHEMA, "run_id": run_id, "start": start, "sim": sim,
+            "offsets": offsets, "wall_time": wall_time}
+    write_atomic(out_dir / STATE_FILE, json.dumps({**body, "sha256": _checksum(body)}) + "\n")
+
+
+def load(out_dir: Path, run_id: str) -> dict:
+    """The checkpoint of run ``run_id`` in ``out_dir``, validated (StateError otherwise)."""
+    path = out_dir / STATE_FILE
+    if not path.exists():
+        if (out_dir / SUMMARY_FILE).exists():
+            try:
+                done = json.loads((out_dir / SUMMARY_FILE).read_text()).get("complete")
+            except (OSError, ValueError):
+                done = False
+            if done:
+                raise AlreadyComplete(f"nothing to resume in {out_dir}: the run is complete")
+        raise StateError(f"cannot resume {out_dir}: no {STATE_FILE} (nothing to resume from)")
+    try:
+        text = path.read_text(encoding="utf-8")
+        body = json.loads(text)
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise StateError(f"checkpoint {path} is unreadable ({exc}); refusing it") from None
+    if not isinstance(body, dict) or not isinstance(body.get("sha256"), str):
+        raise StateError(f"checkpoint {path} is not a checksummed map; refusing it")
+    given = body.pop("sha256")
+    if _checksum(body) != given:
+        raise StateError(f"checkpoint {path} fails its checksum (corrupt or edited); refusing it")
+    if body.get("schema") != SCHEMA:
+        raise StateError(f"checkpoint {path} has schema {body.get('schema')!r}, this build "
+                         f"reads {SCHEMA}; refusing it")
+    if body.get("run_id") != run_id:
+        raise StateError(f"checkpoint {path} belongs to run {body.get('run_id')!r}, not "
+                         f"{run_id!r}; refusing it")
+    for key, kind in (("start", str), ("sim", dict), ("offsets", dict), ("wall_time", float)):
+        if not isinstance(body.get(key), kind):
+            raise StateError(f"checkpoint {path}: {key!r} missing or not a {kind.__name__}")
+    return body
+
+
+def has_progress(out_dir: Path) -> bool:
+    """Whether ``out_dir`` holds a start of a run to resume. A world killed before it wrote its
+    first checkpoint recorded nothing, so resuming it is starting it afresh."""
+    return (out_dir / STATE_FILE).exists() or (out_dir / SUMMARY_FILE).exists()
+
+
+def claim(out_dir: Path, run_id: str, force: bool = False) -> None:
+    """Make sure a fresh run may write into ``out_dir``: refuse a folder that holds another
+    run's (or an earlier start's) results unless ``force``, which deletes them."""
+    present = [name for name in (*RESULT_FILES, STATE_FILE) if (out_dir / name).exists()]
+    if not present:
+        return
+    if not force:
+        owner = ""
+        try:
+            owner = json.loads((out_dir / SUMMARY_FILE).read_text()).get("run_id", "")
+        except (OSError, ValueError, AttributeError):
+            pass
+        whose = f"run {owner!r}" if owner else "a run"
+        raise StateError(f"{out_dir} already holds results of {whose} ({', '.join(present)}): "
+                         "use --resume to continue it, another --out, or --force to replace them")
+    for name in present:
+        (out_dir / name).unlink()
+
+
+def discard(out_dir: Path) -> None:
+    """The run is complete: its checkpoint is no longer needed."""
+    (out_dir / STATE_FILE).unlink(missing_ok=True)
