@@ -6,7 +6,11 @@ import math
 import sys
 from pathlib import Path
 
+from protocol.cli import EXPECTED_FAILURES, add_log_level_flag, check_out_dir, describe, setup_logging
 from protocol.config import RunConfig, config_from_dict, load_config
+
+EXIT_NOTHING_ESTIMATED = 3
+"""``swarm run``'s status for a run that completed but in which a follower estimated nothing."""
 
 # CLI flag -> (config field, argparse kwargs). Flags left unset do not override the file.
 RUN_FLAGS: dict[str, tuple[str, dict]] = {
@@ -94,28 +98,44 @@ def _num(x: float | None) -> str:
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.4f}"
 
 
+def empty_followers(summary: dict, init_ticks: int) -> list[str]:
+    """One line per follower that estimated no tick (a run that only looks complete)."""
+    lines = []
+    for k, s in summary["followers"].items():
+        if s["estimated_ticks"] == 0:
+            lines.append(f"follower {k} estimated no tick: it missed {s['missed_ticks']} of "
+                         f"{summary['ticks_completed']} ticks, and estimation starts at tick "
+                         f"{init_ticks}")
+    return lines
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from swarm.launch import launch
 
+    setup_logging(args.log_level)
     try:
         config = config_from_args(args)
+        out = Path(args.out) if args.out else Path("runs") / config.run_id
+        if (out / "summary.json").exists():
+            raise ValueError(f"{out} already holds a run's results; choose another --out "
+                             "(nothing was overwritten)")
+        check_out_dir(out)
     except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    out = Path(args.out) if args.out else Path("runs") / config.run_id
-    if (out / "summary.json").exists():
-        print(f"error: {out} already holds a run's results; choose another --out "
-              "(nothing was overwritten)", file=sys.stderr)
+        print(f"error: {describe(exc)}", file=sys.stderr)
         return 2
     bar = tqdm(total=config.ticks, desc=f"{config.surface} {config.estimator}", unit="tick",
                disable=None)
     try:
         summary = launch(config, out, in_process=args.in_process, on_tick=lambda j: bar.update(1))
-    except (ValueError, RuntimeError) as exc:
+    except OSError as exc:  # the results disk failed during the run (read-only, full)
         bar.close()
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: cannot write the results in {out}: {describe(exc)}", file=sys.stderr)
+        return 1
+    except EXPECTED_FAILURES as exc:
+        bar.close()
+        print(f"error: {describe(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         bar.close()
@@ -129,7 +149,12 @@ def cmd_run(args: argparse.Namespace) -> int:
 
         for path in plot_run(out):
             print(f"figure: {path}")
-    return 0 if summary["complete"] else 1
+    empty = empty_followers(summary, config.init_ticks)
+    for line in empty:
+        print(f"warning: {line}", file=sys.stderr)
+    if not summary["complete"]:
+        return 1
+    return EXIT_NOTHING_ESTIMATED if empty else 0
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
@@ -187,6 +212,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="agents as sessions in this process")
     run.add_argument("--out", help="results folder (default runs/<run_id>)")
     run.add_argument("--plot", action="store_true", help="draw the run's figures at the end")
+    add_log_level_flag(run)
     run.set_defaults(func=cmd_run, in_process=False)
     experiment = sub.add_parser("experiment", help="regenerate the paper's tables, figures and report")
     experiment.add_argument("name", choices=("paper",), help="which experiment")
