@@ -10,7 +10,8 @@ from protocol.cli import EXPECTED_FAILURES, add_log_level_flag, check_out_dir, d
 from protocol.config import RunConfig, config_from_dict, load_config
 
 EXIT_NOTHING_ESTIMATED = 3
-"""``swarm run``'s status for a run that completed but in which a follower estimated nothing."""
+"""``swarm run``'s status for a run that completed but in which a follower missed every tick
+or estimated none."""
 
 # CLI flag -> (config field, argparse kwargs). Flags left unset do not override the file.
 RUN_FLAGS: dict[str, tuple[str, dict]] = {
@@ -99,13 +100,16 @@ def _num(x: float | None) -> str:
 
 
 def empty_followers(summary: dict, init_ticks: int) -> list[str]:
-    """One line per follower that estimated no tick (a run that only looks complete)."""
-    lines = []
+    """One line per follower that missed every tick or estimated none (a run that only
+    looks complete)."""
+    lines, n = [], summary["ticks_completed"]
     for k, s in summary["followers"].items():
-        if s["estimated_ticks"] == 0:
-            lines.append(f"follower {k} estimated no tick: it missed {s['missed_ticks']} of "
-                         f"{summary['ticks_completed']} ticks, and estimation starts at tick "
-                         f"{init_ticks}")
+        if n and s["missed_ticks"] >= n:
+            lines.append(f"follower {k} missed every tick ({s['missed_ticks']} of {n}): "
+                         "it never settled in time, its numbers measure nothing it did")
+        elif s["estimated_ticks"] == 0:
+            lines.append(f"follower {k} estimated no tick: estimation starts at tick "
+                         f"{init_ticks} and the run has {n} ticks ({s['missed_ticks']} missed)")
     return lines
 
 
