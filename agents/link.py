@@ -74,8 +74,12 @@ class AgentLink:
             keys.alive(run_id, "world"), self._on_world_liveliness, history=True))
         self._sense_key = keys.sense(run_id, agent_id)
         self._act_key = keys.act(run_id, agent_id)
-        self._rod_pub = session.declare_publisher(keys.rod(run_id, agent_id))
-        self._obs_pub = session.declare_publisher(keys.obs(run_id, agent_id))
+        # BLOCK: a rod or observation is never dropped when a link is congested (a peer may
+        # flood it with data); lockstep would stall waiting for it.
+        self._rod_pub = session.declare_publisher(
+            keys.rod(run_id, agent_id), congestion_control=zenoh.CongestionControl.BLOCK)
+        self._obs_pub = session.declare_publisher(
+            keys.obs(run_id, agent_id), congestion_control=zenoh.CongestionControl.BLOCK)
         self._declared += [self._rod_pub, self._obs_pub]
         # Declared last: when the world sees it, every subscription above is in place.
         self._token = session.liveliness().declare_token(keys.alive(run_id, agent_id))

@@ -296,7 +296,8 @@ def encode(msg: Message, *, check: bool = True) -> bytes:
     """Serialise ``msg`` to msgpack, validating it first (a bad message is never sent).
 
     ``check=False`` skips that sender-side check, for hot paths whose receiver decodes with
-    full validation anyway (the world's sensing replies).
+    full validation anyway (the world's sensing replies). A message over the size limit is
+    refused either way.
     """
     if not isinstance(msg, Message) or type(msg) not in MESSAGE_TYPES.values():
         raise ProtocolError(f"cannot encode {type(msg).__name__}: not a protocol message")
@@ -306,7 +307,11 @@ def encode(msg: Message, *, check: bool = True) -> bytes:
         body[name] = list(value) if isinstance(value, tuple) else value
     if check:
         _validate(type(msg), body)
-    return msgpack.packb(body, use_bin_type=True)
+    data = msgpack.packb(body, use_bin_type=True)
+    if len(data) > MAX_PAYLOAD_BYTES:  # every receiver would refuse it
+        raise ProtocolError(f"{msg.TYPE}: encodes to {len(data)} bytes, over the "
+                            f"{MAX_PAYLOAD_BYTES}-byte limit")
+    return data
 
 
 def decode(
@@ -371,7 +376,8 @@ def _unpack_problem(exc: ValueError) -> str:
         if bound in text:
             what = bound.removeprefix("max_").removesuffix("_len")
             return f"payload exceeds the protocol's {what} length bound ({limit})"
-    return f"payload is not valid msgpack ({type(exc).__name__})"
+    detail = text.removeprefix("Unpack failed: ")[:60] or type(exc).__name__
+    return f"payload is not valid msgpack ({detail})"
 
 
 def _check_depth(body: dict) -> None:

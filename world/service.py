@@ -76,9 +76,14 @@ class WorldService:
             session.liveliness().declare_subscriber(keys.alive(run, "*"), self._on_alive,
                                                     history=True),
         ]
-        self._tick_pub = session.declare_publisher(keys.tick(run))
-        self._missed_pub = session.declare_publisher(keys.missed(run))
-        self._done_pub = session.declare_publisher(keys.done(run))
+        # BLOCK: a tick, miss or done is never dropped when a link is congested (a peer may
+        # flood it with data); the agents would wait for it in vain.
+        self._tick_pub = session.declare_publisher(
+            keys.tick(run), congestion_control=zenoh.CongestionControl.BLOCK)
+        self._missed_pub = session.declare_publisher(
+            keys.missed(run), congestion_control=zenoh.CongestionControl.BLOCK)
+        self._done_pub = session.declare_publisher(
+            keys.done(run), congestion_control=zenoh.CongestionControl.BLOCK)
         self._token = session.liveliness().declare_token(keys.alive(run, "world"))
         self._declared += [self._tick_pub, self._missed_pub, self._done_pub, self._token]
 

@@ -1,0 +1,249 @@
+"""Bounded inputs (SPEC §8 limits): payloads over 4 KiB refused before decoding, bounded msgpack
+lengths and nesting, text that cannot carry control characters or spreadsheet formulas, and a
+live run under a barrage of 8-10 MB and deeply nested payloads whose numbers do not change."""
+from __future__ import annotations
+
+import threading
+
+import msgpack
+import pytest
+import zenoh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from protocol import keys, limits
+from protocol import messages as messages_module
+from protocol.config import RunConfig
+from protocol.messages import (
+    MESSAGE_TYPES, ActRequest, Done, ErrorReply, Observation, ProtocolError, Rod, SenseRequest,
+    Sensing, decode, encode, error_payload, safe_text,
+)
+from protocol.session import free_tcp_endpoint, zenoh_config
+from swarm.launch import launch
+from world.results import _cell
+
+ALL_TYPES = tuple(MESSAGE_TYPES.values())
+BIG = 9 * 1024 * 1024  # the issue's attack: 8-10 MB of msgpack
+
+
+def _raw(**body) -> bytes:
+    return msgpack.packb(body, use_bin_type=True)
+
+
+def nested_payload(size: int) -> bytes:
+    """``size`` bytes of msgpack: one-element arrays nested all the way down to a nil."""
+    return b"\x91" * (size - 1) + b"\xc0"
+
+
+def huge_map_payload(size: int) -> bytes:
+    """A well-formed map that starts like a rod sample and carries ``size`` bytes of text."""
+    return _raw(v=1, type="rod", tick=0, length=1.0, side=1, pad="x" * size)
+
+
+GOOD_ROD = {"v": 1, "type": "rod", "tick": 2, "length": 3.57, "side": 1}
+
+
+# --- size, before decoding --------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("payload", [nested_payload(BIG), huge_map_payload(BIG),
+                                     b"\x00" * (limits.MAX_PAYLOAD_BYTES + 1)],
+                         ids=["nested", "map", "one-byte-over"])
+def test_oversized_payload_refused_before_decoding(payload, monkeypatch):
+    def unpack_must_not_run(*args, **kwargs):
+        raise AssertionError("msgpack.unpackb was called on an oversized payload")
+
+    monkeypatch.setattr(messages_module.msgpack, "unpackb", unpack_must_not_run)
+    for data in (payload, zenoh.ZBytes(payload)):  # the size of a ZBytes is read, not copied
+        with pytest.raises(ProtocolError, match=rf"payload of {len(payload)} bytes refused: "
+                                                rf"the limit is {limits.MAX_PAYLOAD_BYTES}"):
+            decode(data, ALL_TYPES)
+
+
+def test_payload_at_the_limit_is_decoded():
+    """Exactly MAX_PAYLOAD_BYTES is not refused for its size (it is decoded, then judged)."""
+    data = nested_payload(limits.MAX_PAYLOAD_BYTES)
+    with pytest.raises(ProtocolError) as err:
+        decode(data, Rod)
+    assert "refused" not in str(err.value) and "nests deeper" in str(err.value)
+
+
+def test_sender_refuses_a_message_over_the_limit():
+    wide = "\U0001f600" * limits.MAX_TEXT  # a valid text field of 4 UTF-8 bytes per character
+    with pytest.raises(ProtocolError, match=r"done: encodes to \d+ bytes, over the 4096-byte limit"):
+        encode(Done(tick=1, results=wide, complete=False, reason=wide))
+    # the largest message an agent actually sends fits, with room to spare
+    obs = Observation(tick=limits.MAX_TICK, estimator="e" * limits.MAX_NAME,
+                      measurement=(-1.2345678901234567e300,) * limits.MAX_VECTOR,
+                      prediction=(-1.2345678901234567e300,) * limits.MAX_VECTOR, lost=True)
+    assert len(encode(obs)) < limits.MAX_PAYLOAD_BYTES // 3
+
+
+# --- nesting and lengths ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("payload", [
+    _raw(**{**GOOD_ROD, "length": [[1.0]]}),
+    _raw(**{**GOOD_ROD, "length": [{"a": 1}]}),
+    _raw(**{**GOOD_ROD, "length": {"a": {"b": 1}}}),
+    b"\x81\xa1v" + nested_payload(3000),  # deeper than msgpack's own stack
+    nested_payload(4000),
+], ids=["list-in-list", "map-in-list", "map-in-map", "map-of-3000", "array-of-4000"])
+def test_nesting_deeper_than_the_bound_is_refused(payload):
+    with pytest.raises(ProtocolError, match=f"payload nests deeper than {limits.MAX_DEPTH} levels"):
+        decode(payload, Rod)
+
+
+def test_depth_two_is_accepted():
+    msg = Sensing(tick=4, r=3.5, theta=-1.2, rod=(0.1, -0.2), velocity=(1.0, 0.5),
+                  oracle_velocity=(1.0, 0.0), gps=(1.0, 2.0, 3.0), leader_gps=(4.0, 5.0, 6.0))
+    assert decode(encode(msg), Sensing) == msg
+
+
+@pytest.mark.parametrize("payload, bound", [
+    (_raw(**{**GOOD_ROD, "pad": "x" * (limits.MAX_STR_BYTES + 1)}), "str"),
+    (_raw(**{**GOOD_ROD, "pad": b"\x00"}), "bin"),
+    (_raw(**{**GOOD_ROD, "pad": [0.0] * (limits.MAX_VECTOR + 1)}), "array"),
+    (_raw(**{f"k{i}": 0 for i in range(limits.MAX_FIELDS + 1)}), "map"),
+    (msgpack.packb({"v": 1, "x": msgpack.ExtType(1, b"abc")}), "ext"),
+    (b"\xdd\xff\xff\xff\xff", "array"),  # claims 4 G elements in 5 bytes
+    (b"\xdf\xff\xff\xff\xff", "map"),
+], ids=["str", "bin", "array", "map", "ext", "array-claim", "map-claim"])
+def test_lengths_over_the_bounds_are_refused(payload, bound):
+    with pytest.raises(ProtocolError, match=f"exceeds the protocol's {bound} length bound"):
+        decode(payload, ALL_TYPES)
+
+
+def test_a_length_claim_beyond_the_data_is_refused():
+    with pytest.raises(ProtocolError, match=r"not valid msgpack \(incomplete input\)"):
+        decode(b"\xdb\xff\xff\xff\xff", ALL_TYPES)  # a 4 GB string in 5 bytes
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(min_size=1, max_size=64), st.integers(1, 3 * limits.MAX_PAYLOAD_BYTES))
+def test_fuzz_any_size_only_protocol_errors(head, size):
+    """Random prefixes padded to any size up to 3x the limit: only ProtocolError escapes."""
+    data = (head * (size // len(head) + 1))[:size]
+    try:
+        decode(data, ALL_TYPES)
+    except ProtocolError as exc:
+        assert (size > limits.MAX_PAYLOAD_BYTES) == ("refused: the limit" in str(exc))
+
+
+# --- text: printable only; names from a safe alphabet -----------------------------------------
+
+
+@pytest.mark.parametrize("name", ["edmd-b", "edmd-c-lagged", "edmd-b-xy", "edmd-bu", "auto",
+                                  "stay", "persist", "pkg.module:Name", "x" * limits.MAX_NAME])
+def test_estimator_names_in_use_are_accepted(name):
+    msg = Observation(tick=5, estimator=name, measurement=(1.0, 2.0), prediction=None, lost=False)
+    assert decode(encode(msg), Observation).estimator == name
+
+
+@pytest.mark.parametrize("name", ["=HYPERLINK(\"http://x\")", "+1+1", "-2+3", "@SUM(A1)", "\tedmd",
+                                  "\redmd", " edmd", "edmd b", "edmd,b", "edmd\"", "edmd\n",
+                                  "", "1edmd", "x" * (limits.MAX_NAME + 1), "\u202eedmd"])
+def test_unsafe_estimator_names_are_refused(name):
+    body = {"v": 1, "type": "obs", "tick": 5, "estimator": name, "measurement": None,
+            "prediction": None, "lost": False}
+    with pytest.raises(ProtocolError, match="'estimator' must be 1-64 characters"):
+        decode(_raw(**body), Observation)
+
+
+@pytest.mark.parametrize("text", ["\x1b[31mred", "two\nlines", "nul\x00", "bidi\u202eflip",
+                                  "x" * (limits.MAX_TEXT + 1)])
+def test_text_fields_refuse_control_characters_and_excess(text):
+    body = {"v": 1, "type": "error", "tick": 0, "error": text, "code": "bad-request"}
+    with pytest.raises(ProtocolError, match="'error' (holds a control|is longer than)"):
+        decode(_raw(**body), ErrorReply)
+
+
+def test_error_payload_always_encodes_a_safe_line():
+    problem = "bad \x1b[2J value\nwith a newline " + "y" * 5000
+    reply = decode(error_payload(3, problem), ErrorReply)
+    assert reply.error == safe_text(problem)
+    assert len(reply.error) == limits.MAX_TEXT and reply.error.isprintable()
+    assert reply.error.startswith("bad ?[2J value?with a newline y")
+
+
+# --- CSV cells ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("value, cell", [
+    ("=HYPERLINK(\"http://evil\")", "'=HYPERLINK(\"http://evil\")"),
+    ("+1+1", "'+1+1"), ("-2+3", "'-2+3"), ("@SUM(A1)", "'@SUM(A1)"),
+    ("\tx", "'\tx"), ("\r=1", "'\r=1"), ("-", "'-"),
+    (-1.5, "-1.5"), (float("-inf"), "-inf"), (-3, "-3"), ("-1.5 2.0 -1e-05", "-1.5 2.0 -1e-05"),
+    ("-inf nan", "-inf nan"), ("edmd-b", "edmd-b"), (None, ""), (True, "True"), ("", ""),
+])
+def test_csv_cells_cannot_be_formulas(value, cell):
+    assert _cell(value) == cell
+
+
+# --- live attack -------------------------------------------------------------------------------
+
+
+def hostile_payloads() -> list[bytes]:
+    """Two 8-10 MB payloads (nested arrays; a map with a huge string) and one 4 KiB nest."""
+    return [nested_payload(BIG), huge_map_payload(8 * 1024 * 1024),
+            nested_payload(limits.MAX_PAYLOAD_BYTES)]
+
+
+def attack(endpoint: str, run_id: str, rounds: int, stop: threading.Event, counts: dict) -> None:
+    """Fire ``rounds`` rounds of hostile payloads during a run: as queries to the world's
+    ``sense`` and ``act`` (leader and followers), and as samples on the agents' ``rod`` and
+    ``obs`` keys and on the world's ``tick`` key (which the agents decode)."""
+    queries = [keys.sense(run_id, 1), keys.act(run_id, 0), keys.act(run_id, 2)]
+    samples = [keys.rod(run_id, 0), keys.rod(run_id, 1), keys.obs(run_id, 2), keys.tick(run_id)]
+    payloads = hostile_payloads()
+    with zenoh.open(zenoh_config("client", connect=[endpoint])) as session:
+        while not stop.is_set():  # fire only once the world serves (it starts after us)
+            if any(r.ok is not None for r in
+                   session.liveliness().get(keys.alive(run_id, "world"), timeout=1.0)):
+                break
+        for i in range(rounds):
+            if stop.is_set():
+                return
+            payload = payloads[i % len(payloads)]
+            for key in queries:
+                for reply in session.get(key, payload=payload, timeout=10.0):
+                    if reply.ok is not None:
+                        counts["answered"] += 1
+                    else:
+                        counts["refusals"].append(decode(reply.err.payload.to_bytes(),
+                                                         ErrorReply).error)
+            for key in samples:
+                session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+                counts["samples"] += 1
+
+
+ATTACK_ROUNDS = 6  # 18 queries and 24 samples, two thirds of them 8-10 MB
+
+
+def test_oversized_and_nested_payloads_leave_the_run_unchanged(tmp_path, caplog):
+    caplog.set_level("WARNING")
+    cfg = RunConfig(run_id="siege", surface="wavy", followers=2, ticks=30)
+    clean = launch(cfg, tmp_path / "clean", in_process=True)
+    endpoint = free_tcp_endpoint()
+    stop = threading.Event()
+    counts: dict = {"answered": 0, "refusals": [], "samples": 0}
+    attacker = threading.Thread(target=attack,
+                                args=(endpoint, cfg.run_id, ATTACK_ROUNDS, stop, counts))
+    attacker.start()
+    try:
+        attacked = launch(cfg, tmp_path / "attacked", in_process=True, endpoint=endpoint)
+    finally:
+        stop.set()
+        attacker.join(timeout=60)
+    assert not attacker.is_alive()
+    assert attacked["complete"], attacked["reason"]
+    assert counts["answered"] == 0
+    refusals = counts["refusals"]
+    assert refusals, "the attack ended before the run served any query"
+    assert all("refused: the limit is 4096" in r or "nests deeper than 2" in r for r in refusals)
+    assert any("refused: the limit is 4096" in r for r in refusals)
+    dropped = [r.getMessage() for r in caplog.records if "payload of" in r.getMessage()]
+    assert dropped, "no oversized sample reached a subscriber"
+    for name in ("ticks.csv", "observations.csv"):
+        assert (tmp_path / "attacked" / name).read_text() == (tmp_path / "clean" / name).read_text()
+    assert attacked["followers"] == clean["followers"]
