@@ -160,6 +160,10 @@ def _attack(endpoint: str, run_id: str, stop: threading.Event, counts: dict) -> 
     garbage = [(keys.rod(run_id, 1), b"\x00\x01"), (keys.obs(run_id, 2), _raw(v=1, type="obs")),
                (keys.rod(run_id, 9), _raw(v=1, type="rod", tick=0, length=-1.0, side=1))]
     with zenoh.open(zenoh_config("client", connect=[endpoint])) as session:
+        while not stop.is_set():  # fire only once the world serves (it starts after us)
+            if any(r.ok is not None for r in
+                   session.liveliness().get(keys.alive(run_id, "world"), timeout=1.0)):
+                break
         i = 0
         while not stop.is_set() and i < 5000:
             key, payload = bad_queries[i % len(bad_queries)]
