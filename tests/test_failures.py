@@ -75,7 +75,8 @@ def test_absurd_timeout_named_with_the_file(tmp_path):
      "surface_params must be a table of at most 32 numbers"),
     ("leader_start = 5", "leader_start must be X,Y,VX,VY, got 5"),
     ("surface = \"" + "s" * 5000 + "\"", "surface must be a preset name"),
-])
+], ids=["deep-array", "deep-table", "huge-file", "huge-int", "syntax", "param-name",
+        "many-params", "leader-start", "long-surface"])
 def test_bad_toml_is_one_line_naming_the_file(tmp_path, text, fragment):
     path = tmp_path / "run.toml"
     path.write_text(text)
@@ -130,7 +131,7 @@ def test_world_refuses_a_bad_log_level(run_toml, capsys):
     ("FILE", "is a file, not a folder"),
     ("/proc/x", "--out /proc/x cannot hold results: No such file or directory"),
     ("/proc/self/status/x", "cannot hold results: Not a directory"),
-])
+], ids=["file", "proc", "under-a-file"])
 def test_world_refuses_an_unusable_out(run_toml, tmp_path, capsys, out, fragment):
     if out == "FILE":
         out = str(tmp_path / "a-file")
@@ -246,7 +247,7 @@ def _swarm(*args: str) -> int:
     (["--agent-timeout", "1e10"], 2, "agent_timeout must be in (0, 3600], got 10000000000.0"),
     (["--followers", "0"], 2, "followers must be an integer in [1, 1000], got 0"),
     (["--surface", "no_such_module_here:surface"], 1, "cannot import module 'no_such_module_here'"),
-])
+], ids=["out-proc", "timeout", "followers", "no-module"])
 def test_swarm_run_refusals_are_one_line(tmp_path, monkeypatch, capsys, args, status, fragment):
     monkeypatch.chdir(tmp_path)
     assert _swarm(*args) == status
