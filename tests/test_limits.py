@@ -35,6 +35,13 @@ def nested_payload(size: int) -> bytes:
     return b"\x91" * (size - 1) + b"\xc0"
 
 
+def wide_payload(size: int) -> bytes:
+    """``size`` bytes of msgpack: one array of one-element arrays (millions of small objects,
+    the costly kind to decode)."""
+    count = (size - 5) // 2
+    return b"\xdd" + count.to_bytes(4, "big") + b"\x91\xc0" * count
+
+
 def huge_map_payload(size: int) -> bytes:
     """A well-formed map that starts like a rod sample and carries ``size`` bytes of text."""
     return _raw(v=1, type="rod", tick=0, length=1.0, side=1, pad="x" * size)
@@ -46,9 +53,9 @@ GOOD_ROD = {"v": 1, "type": "rod", "tick": 2, "length": 3.57, "side": 1}
 # --- size, before decoding --------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("payload", [nested_payload(BIG), huge_map_payload(BIG),
+@pytest.mark.parametrize("payload", [nested_payload(BIG), wide_payload(BIG), huge_map_payload(BIG),
                                      b"\x00" * (limits.MAX_PAYLOAD_BYTES + 1)],
-                         ids=["nested", "map", "one-byte-over"])
+                         ids=["nested", "wide", "map", "one-byte-over"])
 def test_oversized_payload_refused_before_decoding(payload, monkeypatch):
     def unpack_must_not_run(*args, **kwargs):
         raise AssertionError("msgpack.unpackb was called on an oversized payload")
@@ -184,8 +191,9 @@ def test_csv_cells_cannot_be_formulas(value, cell):
 
 
 def hostile_payloads() -> list[bytes]:
-    """Two 8-10 MB payloads (nested arrays; a map with a huge string) and one 4 KiB nest."""
-    return [nested_payload(BIG), huge_map_payload(8 * 1024 * 1024),
+    """Three 8-10 MB payloads (deep arrays, wide arrays, a map with a huge string) and one
+    4 KiB deep nest."""
+    return [nested_payload(BIG), wide_payload(10 * 1024 * 1024), huge_map_payload(8 * 1024 * 1024),
             nested_payload(limits.MAX_PAYLOAD_BYTES)]
 
 
@@ -217,7 +225,7 @@ def attack(endpoint: str, run_id: str, rounds: int, stop: threading.Event, count
                 counts["samples"] += 1
 
 
-ATTACK_ROUNDS = 6  # 18 queries and 24 samples, two thirds of them 8-10 MB
+ATTACK_ROUNDS = 8  # 24 queries and 32 samples, three quarters of them 8-10 MB
 
 
 def test_oversized_and_nested_payloads_leave_the_run_unchanged(tmp_path, caplog):
