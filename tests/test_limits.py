@@ -15,8 +15,8 @@ from protocol import keys, limits
 from protocol import messages as messages_module
 from protocol.config import RunConfig
 from protocol.messages import (
-    MESSAGE_TYPES, ActRequest, Done, ErrorReply, Observation, ProtocolError, Rod, SenseRequest,
-    Sensing, decode, encode, error_payload, safe_text,
+    MESSAGE_TYPES, Done, ErrorReply, Observation, ProtocolError, Rod, Sensing, decode, encode,
+    error_payload, safe_text,
 )
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.launch import launch
