@@ -51,7 +51,7 @@ FLOAT_RANGES = {  # name: (low, high, low end exclusive)
 }
 MAX_COORDINATE = 1e9  # bound on a leader start component and on a surface parameter
 MAX_SURFACE_PARAMS = 32
-MAX_SURFACE_NAME = 4096
+MAX_SURFACE_NAME = 4096  # room for a 'dem:PATH' with a long path (Linux PATH_MAX)
 _PARAM_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,31}")
 MAX_CONFIG_BYTES = 64 * 1024  # a real run.toml is under 2 KiB
 MAX_CONFIG_DEPTH = 3  # real files have 2: the file's table, and surface_params or leader_start

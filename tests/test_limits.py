@@ -77,7 +77,7 @@ def test_payload_at_the_limit_is_decoded():
 
 def test_sender_refuses_a_message_over_the_limit():
     wide = "\U0001f600" * limits.MAX_TEXT  # a valid text field of 4 UTF-8 bytes per character
-    with pytest.raises(ProtocolError, match=r"done: encodes to \d+ bytes, over the 4096-byte limit"):
+    with pytest.raises(ProtocolError, match=rf"done: encodes to \d+ bytes, over the {limits.MAX_PAYLOAD_BYTES}-byte limit"):
         encode(Done(tick=1, results=wide, complete=False, reason=wide))
     # the largest message an agent actually sends fits, with room to spare
     obs = Observation(tick=limits.MAX_TICK, estimator="e" * limits.MAX_NAME,
@@ -248,8 +248,10 @@ def test_oversized_and_nested_payloads_leave_the_run_unchanged(tmp_path, caplog)
     assert counts["answered"] == 0
     refusals = counts["refusals"]
     assert refusals, "the attack ended before the run served any query"
-    assert all("refused: the limit is 4096" in r or "nests deeper than 2" in r for r in refusals)
-    assert any("refused: the limit is 4096" in r for r in refusals)
+    too_big = f"refused: the limit is {limits.MAX_PAYLOAD_BYTES}"
+    too_deep = f"nests deeper than {limits.MAX_DEPTH}"
+    assert all(too_big in r or too_deep in r for r in refusals)
+    assert any(too_big in r for r in refusals)
     dropped = [r.getMessage() for r in caplog.records if "payload of" in r.getMessage()]
     assert dropped, "no oversized sample reached a subscriber"
     for name in ("ticks.csv", "observations.csv"):
