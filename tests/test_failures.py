@@ -293,14 +293,9 @@ def test_swarm_run_with_nothing_estimated_is_not_a_plain_success(tmp_path, capsy
            "4 ticks (0 missed)" in err
 
 
-def test_swarm_run_with_every_tick_missed_is_not_a_plain_success(tmp_path, capsys):
-    """Realtime with a 1.28 microsecond tick: nobody can settle in time."""
-    assert _swarm("--mode", "realtime", "--time-scale", "1e-6", "--ticks", "6",
-                  "--out", str(tmp_path / "r")) == EXIT_NOTHING_ESTIMATED
-    assert "warning: follower 1 missed every tick (6 of 6)" in capsys.readouterr().err
-
-
 def test_empty_followers_names_each_case():
+    """The rule behind exit 3 (a live realtime run that misses every tick depends on timing,
+    so the missed-every-tick case is checked on summaries)."""
     def follower(estimated, missed):
         return {"estimated_ticks": estimated, "missed_ticks": missed}
 
