@@ -1,4 +1,6 @@
-"""Wall time of a run under attack against the same run left alone (``python bench/bench_attack.py``).
+"""Wall time of a run under attack against the same run left alone.
+
+``python bench/bench_attack.py [--repeats 3] [--rounds 8]``.
 
 The attack is the one of ``tests/test_limits.py``: rounds of 8-10 MB and deeply nested msgpack
 payloads fired at the world's ``sense``/``act`` queryables and published on the agents' keys
@@ -63,8 +65,9 @@ def main() -> None:
     ratio = statistics.median(attacked) / statistics.median(clean)
     print(f"run: wavy, 2 followers, {args.ticks} ticks, in-process; attack: {args.rounds} rounds "
           f"({3 * args.rounds} queries, {4 * args.rounds} samples, 3/4 of them 8-10 MB)")
-    print(f"clean    s: {' '.join(f'{x:.2f}' for x in clean)}  median {statistics.median(clean):.2f}")
-    print(f"attacked s: {' '.join(f'{x:.2f}' for x in attacked)}  median {statistics.median(attacked):.2f}")
+    for name, times in (("clean", clean), ("attacked", attacked)):
+        print(f"{name:>8} s: {' '.join(f'{x:.2f}' for x in times)}  "
+              f"median {statistics.median(times):.2f}")
     print(f"ratio {ratio:.2f} (target <= {TARGET}); ticks.csv identical: {same}")
 
 

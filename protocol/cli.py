@@ -39,8 +39,8 @@ def describe(exc: BaseException) -> str:
 
     >>> describe(OSError(28, "No space left on device", "runs/x/ticks.csv"))
     'No space left on device: runs/x/ticks.csv'
-    >>> describe(zenoh.ZError("Unable to connect to any of [Single(tcp/1.2.3.4:7447)]! at /r/x.rs:9."))
-    'Zenoh: Unable to connect to any of [tcp/1.2.3.4:7447]!'
+    >>> describe(zenoh.ZError("Cannot reach [Single(tcp/1.2.3.4:7447)]! at /r/x.rs:9."))
+    'Zenoh: Cannot reach [tcp/1.2.3.4:7447]!'
     """
     if isinstance(exc, zenoh.ZError):
         text = _ENDPOINT_WRAPPER.sub(r"\1", _RUST_LOCATION.sub("", str(exc)))

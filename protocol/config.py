@@ -122,9 +122,11 @@ class RunConfig:
             if self.leader_start[2] == 0 and self.leader_start[3] == 0:
                 raise ValueError("leader_start velocity must not be zero")
             object.__setattr__(self, "leader_start", tuple(float(x) for x in self.leader_start))
-        if not isinstance(self.surface_params, dict) or len(self.surface_params) > MAX_SURFACE_PARAMS:
-            raise ValueError(f"surface_params must be a table of at most {MAX_SURFACE_PARAMS} numbers")
-        for key, value in self.surface_params.items():
+        params = self.surface_params
+        if not isinstance(params, dict) or len(params) > MAX_SURFACE_PARAMS:
+            raise ValueError(f"surface_params must be a table of at most {MAX_SURFACE_PARAMS} "
+                             "numbers")
+        for key, value in params.items():
             if not isinstance(key, str) or not _PARAM_NAME.fullmatch(key):
                 raise ValueError("surface_params names must be identifiers of at most 32 "
                                  f"characters, got {_show(key)}")

@@ -6,7 +6,9 @@ import math
 import sys
 from pathlib import Path
 
-from protocol.cli import EXPECTED_FAILURES, add_log_level_flag, check_out_dir, describe, setup_logging
+from protocol.cli import (
+    EXPECTED_FAILURES, add_log_level_flag, check_out_dir, describe, setup_logging,
+)
 from protocol.config import RunConfig, config_from_dict, load_config
 
 EXIT_NOTHING_ESTIMATED = 3

@@ -61,7 +61,8 @@ def test_absurd_timeout_named_with_the_file(tmp_path):
     path.write_text("agent_timeout = 1e10\n")
     with pytest.raises(ValueError) as err:
         load_config(path)
-    assert str(err.value) == f"config file {path}: agent_timeout must be in (0, 3600], got 10000000000.0"
+    assert str(err.value) == (f"config file {path}: "
+                              "agent_timeout must be in (0, 3600], got 10000000000.0")
 
 
 @pytest.mark.parametrize("text, fragment", [

@@ -77,7 +77,8 @@ def test_payload_at_the_limit_is_decoded():
 
 def test_sender_refuses_a_message_over_the_limit():
     wide = "\U0001f600" * limits.MAX_TEXT  # a valid text field of 4 UTF-8 bytes per character
-    with pytest.raises(ProtocolError, match=rf"done: encodes to \d+ bytes, over the {limits.MAX_PAYLOAD_BYTES}-byte limit"):
+    limit = limits.MAX_PAYLOAD_BYTES
+    with pytest.raises(ProtocolError, match=rf"done: encodes to \d+ bytes, over the {limit}-byte limit"):
         encode(Done(tick=1, results=wide, complete=False, reason=wide))
     # the largest message an agent actually sends fits, with room to spare
     obs = Observation(tick=limits.MAX_TICK, estimator="e" * limits.MAX_NAME,

@@ -8,7 +8,9 @@ from pathlib import Path
 
 import zenoh
 
-from protocol.cli import EXPECTED_FAILURES, add_log_level_flag, check_out_dir, describe, setup_logging
+from protocol.cli import (
+    EXPECTED_FAILURES, add_log_level_flag, check_out_dir, describe, setup_logging,
+)
 from protocol.config import RunConfig, dump_config, load_config
 from protocol.session import add_credential_flags, credentials, zenoh_config
 from world.service import WorldService
