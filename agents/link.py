@@ -103,7 +103,7 @@ class AgentLink:
     def _decode(self, sample: zenoh.Sample, kind: type[Message]) -> Message | None:
         """The sample's message, or None (logged and dropped) if it is malformed."""
         try:
-            return decode(sample.payload.to_bytes(), kind)
+            return decode(sample.payload, kind)
         except ProtocolError as exc:
             log.warning("agent %d: dropped bad sample on %s: %s", self.agent_id, sample.key_expr, exc)
             return None

@@ -124,7 +124,7 @@ class WorldService:
         code = "bad-request"
         try:
             agent = keys.agent_from_key(str(query.key_expr), last=True)
-            payload = query.payload.to_bytes() if query.payload is not None else b""
+            payload = query.payload if query.payload is not None else b""
             query.reply(query.key_expr, handle(agent, payload))
             return
         except TickMissed as exc:
@@ -169,7 +169,7 @@ class WorldService:
     def _on_rod(self, sample: zenoh.Sample) -> None:
         try:
             agent = keys.agent_from_key(str(sample.key_expr))
-            msg = decode(sample.payload.to_bytes(), Rod)
+            msg = decode(sample.payload, Rod)
             with self._cond:
                 if msg.tick != self.sim.tick:
                     raise ValueError(f"rod for tick {msg.tick} while the world is at {self.sim.tick}")
@@ -186,7 +186,7 @@ class WorldService:
     def _on_obs(self, sample: zenoh.Sample) -> None:
         try:
             agent = keys.agent_from_key(str(sample.key_expr))
-            msg = decode(sample.payload.to_bytes(), Observation)
+            msg = decode(sample.payload, Observation)
             if not 1 <= agent < self.sim.n_agents:
                 raise ValueError(f"unknown follower id {agent}")
             with self._cond:
