@@ -141,6 +141,20 @@ def test_world_refuses_an_unusable_out(run_toml, tmp_path, capsys, out, fragment
     assert fragment in one_error_line(capsys)
 
 
+def test_world_on_a_busy_port_is_one_line(run_toml, tmp_path, capsys):
+    import socket
+
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        endpoint = f"tcp/127.0.0.1:{held.getsockname()[1]}"
+        status = world.main.main(["--config", str(run_toml), "--listen", endpoint,
+                                  "--out", str(tmp_path / "out")])
+    assert status == 1
+    assert one_error_line(capsys).startswith(
+        f"error: Zenoh: Can not create a new TCP listener bound to {endpoint}")
+
+
 BAD_SURFACE_MODULES = {
     "syntax": ("def surface(:\n", "SyntaxError: "),
     "raises": ("raise RuntimeError('no terrain today')\n", "RuntimeError: no terrain today"),
