@@ -2,13 +2,13 @@
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 from collections.abc import Callable
 
 import zenoh
 
 from agents.link import AgentAbort, RunFinished
+from protocol.cli import add_log_level_flag, describe, setup_logging
 from protocol.config import AgentSettings, load_agent_settings
 from protocol.session import add_credential_flags, credentials, tls_options, zenoh_config
 
@@ -21,13 +21,13 @@ def parser(description: str) -> argparse.ArgumentParser:
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
     p.add_argument("--mode", choices=("peer", "client"), default="client")
     add_credential_flags(p)
-    p.add_argument("--log-level", default="WARNING")
+    add_log_level_flag(p)
     return p
 
 
 def run_cli(args: argparse.Namespace, body: Callable[[zenoh.Session, AgentSettings], None]) -> int:
     """Open the session from ``args``, run ``body``; map the outcome to an exit status."""
-    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
+    setup_logging(args.log_level)
     try:
         settings = load_agent_settings(args.config)
         user, password = credentials(args)
@@ -38,18 +38,26 @@ def run_cli(args: argparse.Namespace, body: Callable[[zenoh.Session, AgentSettin
         print(f"error: {exc}", file=sys.stderr)
         return 2
     try:
-        with zenoh.open(conf) as session:
+        session = zenoh.open(conf)
+    except zenoh.ZError as exc:
+        where = ", ".join(args.connect) or "the network"
+        print(f"error: no world reachable at {where} within {settings.start_timeout:g} s "
+              f"(is the world or the Zenoh router running there?): {describe(exc)}",
+              file=sys.stderr)
+        return 1
+    try:
+        with session:
             body(session, settings)
     except zenoh.ZError as exc:
-        print(f"error: Zenoh: {exc}", file=sys.stderr)
+        print(f"error: {describe(exc)}", file=sys.stderr)
         return 1
     except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {describe(exc)}", file=sys.stderr)
         return 2
     except RunFinished:
         return 0
-    except AgentAbort as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except (AgentAbort, RuntimeError, OSError) as exc:
+        print(f"error: {describe(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         return 130

@@ -81,8 +81,12 @@ class AgentLink:
             keys.alive(run_id, "world"), self._on_world_liveliness, history=True))
         self._sense_key = keys.sense(run_id, agent_id)
         self._act_key = keys.act(run_id, agent_id)
-        self._rod_pub = session.declare_publisher(keys.rod(run_id, agent_id))
-        self._obs_pub = session.declare_publisher(keys.obs(run_id, agent_id))
+        # BLOCK: a rod or observation is never dropped when a link is congested (a peer may
+        # flood it with data); lockstep would stall waiting for it.
+        self._rod_pub = session.declare_publisher(
+            keys.rod(run_id, agent_id), congestion_control=zenoh.CongestionControl.BLOCK)
+        self._obs_pub = session.declare_publisher(
+            keys.obs(run_id, agent_id), congestion_control=zenoh.CongestionControl.BLOCK)
         self._declared += [self._rod_pub, self._obs_pub]
         # Declared last: when the world sees it, every subscription above is in place.
         self._token = session.liveliness().declare_token(keys.alive(run_id, agent_id))
@@ -106,7 +110,7 @@ class AgentLink:
     def _decode(self, sample: zenoh.Sample, kind: type[Message]) -> Message | None:
         """The sample's message, or None (logged and dropped) if it is malformed."""
         try:
-            return decode(sample.payload.to_bytes(), kind)
+            return decode(sample.payload, kind)
         except ProtocolError as exc:
             log.warning("agent %d: dropped bad sample on %s: %s", self.agent_id, sample.key_expr, exc)
             return None
@@ -214,6 +218,10 @@ class AgentLink:
             else:
                 break  # no reply at all within the time left
             time.sleep(WAIT_RETRY_S)
+        with self._cond:  # a world that died mid-query: its token goes a moment later
+            self._cond.wait_for(lambda: self._world_seen and not self._world_alive, timeout=1.0)
+            if self._world_seen and not self._world_alive:
+                raise AgentAbort("the world process disappeared")
         raise AgentAbort(f"no reply from the world on {key} within {self.query_timeout} s")
 
     def join(self, timeout: float) -> Joined:

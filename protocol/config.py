@@ -29,6 +29,40 @@ VELOCITY_VARIANTS = ("oracle", "lagged", "estimated")
 SIDES = {"left": 1, "right": -1}
 MODES = ("lockstep", "realtime")
 
+# Sane ranges of every number of a run (inclusive; a float range's low end is exclusive when
+# the option must be positive). Timeouts are seconds; a day-long wait is never meant.
+INT_RANGES = {
+    "followers": (1, 1000),
+    "ticks": (2, 1_000_000),
+    "delays": (0, 100),
+    "window": (0, 1_000_000),
+    "arx_order": (1, 100),
+    "arx_window": (0, 1_000_000),
+    "gp_samples": (3, 1000),
+    "seed": (0, 2**63 - 1),
+}
+FLOAT_RANGES = {  # name: (low, high, low end exclusive)
+    "comm_period": (0.0, 1e4, True),
+    "spacing": (0.0, 1e4, True),
+    "time_scale": (0.0, 1e3, True),
+    "agent_timeout": (0.0, 3600.0, True),
+    "start_timeout": (0.0, 3600.0, True),
+    "forget": (0.0, 1.0, True),
+    "kalman_accel": (0.0, 1e6, True),
+    "ridge": (0.0, 1e12, False),
+    "noise_range": (0.0, 1e3, False),
+    "noise_bearing": (0.0, 10.0, False),
+    "noise_velocity": (0.0, 1e3, False),
+    "noise_move": (0.0, 1e3, False),
+    "sensing_range": (0.0, math.inf, True),
+}
+MAX_COORDINATE = 1e9  # bound on a leader start component and on a surface parameter
+MAX_SURFACE_PARAMS = 32
+MAX_SURFACE_NAME = 4096  # room for a 'dem:PATH' with a long path (Linux PATH_MAX)
+_PARAM_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,31}")
+MAX_CONFIG_BYTES = 64 * 1024  # a real run.toml is under 2 KiB
+MAX_CONFIG_DEPTH = 3  # real files have 2: the file's table, and surface_params or leader_start
+
 
 @dataclass(frozen=True)
 class RunConfig:
@@ -77,45 +111,38 @@ class RunConfig:
         _check_choice("velocity", self.velocity, VELOCITY_VARIANTS)
         _check_choice("side", self.side, tuple(SIDES))
         _check_choice("mode", self.mode, MODES)
-        if not isinstance(self.surface, str) or not self.surface:
-            raise ValueError(f"surface must be a preset name or 'package.module:name', got {self.surface!r}")
-        _check_int("followers", self.followers, 1, 10_000)
-        _check_int("ticks", self.ticks, 2, 1_000_000)
+        if (not isinstance(self.surface, str) or not 0 < len(self.surface) <= MAX_SURFACE_NAME
+                or not self.surface.isprintable()):
+            raise ValueError("surface must be a preset name, 'package.module:name' or 'dem:PATH' "
+                             f"(at most {MAX_SURFACE_NAME} printable characters), "
+                             f"got {_show(self.surface)}")
+        for name, (low, high) in INT_RANGES.items():
+            _check_int(name, getattr(self, name), low, high)
         _check_int("init_ticks", self.init_ticks, 2, self.ticks)
-        _check_int("delays", self.delays, 0, 1000)
-        _check_int("window", self.window, 0, 10_000_000)
-        _check_int("arx_order", self.arx_order, 1, 100)
-        _check_int("arx_window", self.arx_window, 0, 10_000_000)
-        _check_int("gp_samples", self.gp_samples, 3, 1000)
-        _check_int("seed", self.seed, 0, 2**63 - 1)
-        for name in ("comm_period", "spacing", "time_scale", "agent_timeout", "start_timeout",
-                     "kalman_accel"):
-            _check_float(name, getattr(self, name), positive=True)
-        for name in ("ridge", "noise_range", "noise_bearing", "noise_velocity", "noise_move"):
-            _check_float(name, getattr(self, name), positive=False)
-        _check_float("forget", self.forget, positive=True)
-        if self.forget > 1.0:
-            raise ValueError(f"forget must be in (0, 1], got {self.forget}")
-        if not (isinstance(self.sensing_range, (int, float)) and self.sensing_range > 0
-                and not math.isnan(self.sensing_range)):
-            raise ValueError(f"sensing_range must be positive (inf allowed), got {self.sensing_range!r}")
+        for name, bounds in FLOAT_RANGES.items():
+            _check_range(name, getattr(self, name), *bounds)
         for name in ("online", "affine", "gps"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
         if self.estimator == "edmd" and self.dictionary in GPS_DICTIONARIES and not self.gps:
             raise ValueError(f"dictionary {self.dictionary!r} uses absolute positions: enable gps")
         if self.leader_start is not None:
-            if len(self.leader_start) != 4:
-                raise ValueError(f"leader_start must be X,Y,VX,VY, got {self.leader_start!r}")
+            if not isinstance(self.leader_start, (tuple, list)) or len(self.leader_start) != 4:
+                raise ValueError(f"leader_start must be X,Y,VX,VY, got {_show(self.leader_start)}")
             for i, x in enumerate(self.leader_start):
-                _check_float(f"leader_start[{i}]", x, positive=False, signed=True)
+                _check_range(f"leader_start[{i}]", x, -MAX_COORDINATE, MAX_COORDINATE)
             if self.leader_start[2] == 0 and self.leader_start[3] == 0:
                 raise ValueError("leader_start velocity must not be zero")
             object.__setattr__(self, "leader_start", tuple(float(x) for x in self.leader_start))
-        if not isinstance(self.surface_params, dict):
-            raise ValueError("surface_params must be a table of numbers")
-        for key, value in self.surface_params.items():
-            _check_float(f"surface_params.{key}", value, positive=False, signed=True)
+        params = self.surface_params
+        if not isinstance(params, dict) or len(params) > MAX_SURFACE_PARAMS:
+            raise ValueError(f"surface_params must be a table of at most {MAX_SURFACE_PARAMS} "
+                             "numbers")
+        for key, value in params.items():
+            if not isinstance(key, str) or not _PARAM_NAME.fullmatch(key):
+                raise ValueError("surface_params names must be identifiers of at most 32 "
+                                 f"characters, got {_show(key)}")
+            _check_range(f"surface_params.{key}", value, -MAX_COORDINATE, MAX_COORDINATE)
 
     @property
     def side_sign(self) -> int:
@@ -194,26 +221,53 @@ def config_from_dict(data: dict[str, Any]) -> RunConfig:
     if unknown:
         raise ValueError(f"unknown configuration option(s): {sorted(unknown)}")
     data = dict(data)
-    if "leader_start" in data and data["leader_start"] is not None:
+    if isinstance(data.get("leader_start"), list):
         data["leader_start"] = tuple(data["leader_start"])
     return RunConfig(**data)
 
 
 def load_config(path: str | os.PathLike[str]) -> RunConfig:
-    """Read a TOML run configuration; errors name the file and the problem."""
+    """Read a TOML run configuration; every error is one line naming the file and the problem.
+
+    A file over ``MAX_CONFIG_BYTES`` or nesting tables/arrays deeper than ``MAX_CONFIG_DEPTH``
+    is refused before its values are looked at.
+    """
     path = Path(path)
     try:
         with path.open("rb") as fh:
-            data = tomllib.load(fh)
+            raw = fh.read(MAX_CONFIG_BYTES + 1)
     except FileNotFoundError:
         raise ValueError(f"config file {path} does not exist") from None
-    except tomllib.TOMLDecodeError as exc:
+    except OSError as exc:
+        raise ValueError(f"cannot read config file {path}: {exc.strerror or exc}") from None
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ValueError(f"config file {path} is larger than {MAX_CONFIG_BYTES // 1024} KiB; "
+                         "a run configuration is far smaller")
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise ValueError(f"config file {path} is not UTF-8 text") from None
+    except ValueError as exc:  # TOMLDecodeError, or a number too long to convert
         raise ValueError(f"config file {path} is not valid TOML: {exc}") from None
+    except RecursionError:
+        raise ValueError(f"config file {path} nests tables or arrays too deeply") from None
+    if _depth(data) > MAX_CONFIG_DEPTH:
+        raise ValueError(f"config file {path} nests tables or arrays deeper than "
+                         f"{MAX_CONFIG_DEPTH} levels")
     data.pop("meta", None)
     try:
         return config_from_dict(data)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"config file {path}: {exc}") from None
+
+
+def _depth(value: Any) -> int:
+    """Nesting depth of tables and arrays (a scalar is 0), without recursion."""
+    depth, level = 0, [value]
+    while containers := [c for c in level if isinstance(c, (dict, list))]:
+        depth += 1
+        level = [x for c in containers for x in (c.values() if isinstance(c, dict) else c)]
+    return depth
 
 
 def load_agent_settings(path: str | os.PathLike[str]) -> AgentSettings:
@@ -266,19 +320,26 @@ def _toml_value(value: Any) -> str:
 
 
 def _check_choice(name: str, value: Any, allowed: tuple[str, ...]) -> None:
-    if value not in allowed:
-        raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {value!r}")
+    if not isinstance(value, str) or value not in allowed:
+        raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {_show(value)}")
 
 
 def _check_int(name: str, value: Any, low: int, high: int) -> None:
     if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-        raise ValueError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
+        raise ValueError(f"{name} must be an integer in [{low}, {high}], got {_show(value)}")
 
 
-def _check_float(name: str, value: Any, *, positive: bool, signed: bool = False) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ValueError(f"{name} must be a finite number, got {value!r}")
-    if positive and value <= 0:
-        raise ValueError(f"{name} must be positive, got {value!r}")
-    if not positive and not signed and value < 0:
-        raise ValueError(f"{name} must be non-negative, got {value!r}")
+def _check_range(name: str, value: Any, low: float, high: float, low_open: bool = False) -> None:
+    """``value`` must be a number in ``[low, high]`` (``(low, high]`` with ``low_open``);
+    infinity passes only when ``high`` is infinite, NaN never."""
+    ok = (not isinstance(value, bool) and isinstance(value, (int, float)) and not math.isnan(value)
+          and (value > low if low_open else value >= low) and value <= high)
+    if not ok:
+        left = "(" if low_open else "["
+        raise ValueError(f"{name} must be in {left}{low:g}, {high:g}], got {_show(value)}")
+
+
+def _show(value: Any) -> str:
+    """``repr(value)`` clipped to one short line (values from a file may be huge)."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."

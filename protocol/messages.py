@@ -1,10 +1,14 @@
 """Typed messages and the one msgpack codec that validates them (SPEC §8).
 
 Every payload is a msgpack map ``{"v": 1, "type": <name>, "tick": j, ...}``. Each message is a
-small frozen dataclass whose fields carry a *kind* (see ``_KINDS``); :func:`decode` checks the
-schema version, the type tag, unknown or missing fields, every field's type, length and
-finiteness, and optionally the tick order and the agent id, and raises :class:`ProtocolError`
-with a message naming the problem. Transport code lives elsewhere (``protocol.session``).
+small frozen dataclass whose fields carry a *kind* (see ``_KINDS``); :func:`decode` refuses a
+payload larger than 4 KiB before decoding it, decodes with bounded msgpack lengths and nesting
+(:mod:`protocol.limits`), then checks the schema version, the type tag, unknown or missing
+fields, every field's type, length and finiteness, and optionally the tick order, and raises
+:class:`ProtocolError` with a message naming the problem. Text fields hold printable characters
+only, and names (an estimator's) start with a letter and use a small safe alphabet, so nothing
+a peer sends can become a control sequence in a log or a formula in a results file. Transport
+code lives elsewhere (``protocol.session``).
 
 >>> msg = decode(encode(Rod(tick=3, length=3.57, side=1)), Rod)
 >>> msg.length
@@ -23,10 +27,12 @@ from typing import Any, ClassVar
 
 import msgpack
 
+from protocol.limits import (
+    MAX_DEPTH, MAX_NAME, MAX_PAYLOAD_BYTES, MAX_TEXT, MAX_TICK, MAX_VECTOR, MSGPACK_BOUNDS,
+    NAME_PATTERN,
+)
+
 SCHEMA_VERSION = 1
-MAX_TICK = 10_000_000
-MAX_VECTOR = 64
-MAX_TEXT = 4096
 
 
 class ProtocolError(ValueError):
@@ -79,6 +85,17 @@ def _text(name: str, value: Any) -> str:
         raise ProtocolError(f"field {name!r} must be a string, got {type(value).__name__}")
     if len(value) > MAX_TEXT:
         raise ProtocolError(f"field {name!r} is longer than {MAX_TEXT} characters")
+    if not value.isprintable():
+        raise ProtocolError(f"field {name!r} holds a control or non-printable character")
+    return value
+
+
+def _name(name: str, value: Any) -> str:
+    if not isinstance(value, str):
+        raise ProtocolError(f"field {name!r} must be a string, got {type(value).__name__}")
+    if not NAME_PATTERN.fullmatch(value):
+        raise ProtocolError(f"field {name!r} must be 1-{MAX_NAME} characters of "
+                            f"[A-Za-z0-9_.:+-] starting with a letter, got {value[:MAX_NAME]!r}")
     return value
 
 
@@ -121,6 +138,7 @@ _KINDS = {
     "side": _side,
     "flag": _flag,
     "text": _text,
+    "name": _name,
     "vec2": _vector(2),
     "vec2?": _optional(_vector(2)),
     "vec3?": _optional(_vector(3)),
@@ -256,7 +274,7 @@ class Observation(Message):
     """
 
     TYPE: ClassVar[str] = "obs"
-    estimator: str = _kind("text", "")
+    estimator: str = _kind("name", "policy")
     measurement: tuple[float, ...] | None = _kind("vec?", None)
     prediction: tuple[float, ...] | None = _kind("vec?", None)
     lost: bool = _kind("flag", False)
@@ -309,7 +327,8 @@ def encode(msg: Message, *, check: bool = True) -> bytes:
     """Serialise ``msg`` to msgpack, validating it first (a bad message is never sent).
 
     ``check=False`` skips that sender-side check, for hot paths whose receiver decodes with
-    full validation anyway (the world's sensing replies).
+    full validation anyway (the world's sensing replies). A message over the size limit is
+    refused either way.
     """
     if not isinstance(msg, Message) or type(msg) not in MESSAGE_TYPES.values():
         raise ProtocolError(f"cannot encode {type(msg).__name__}: not a protocol message")
@@ -319,11 +338,15 @@ def encode(msg: Message, *, check: bool = True) -> bytes:
         body[name] = list(value) if isinstance(value, tuple) else value
     if check:
         _validate(type(msg), body)
-    return msgpack.packb(body, use_bin_type=True)
+    data = msgpack.packb(body, use_bin_type=True)
+    if len(data) > MAX_PAYLOAD_BYTES:  # every receiver would refuse it
+        raise ProtocolError(f"{msg.TYPE}: encodes to {len(data)} bytes, over the "
+                            f"{MAX_PAYLOAD_BYTES}-byte limit")
+    return data
 
 
 def decode(
-    data: bytes | bytearray | memoryview,
+    data: bytes | bytearray | memoryview | Any,
     expected: type[Message] | tuple[type[Message], ...],
     *,
     min_tick: int | None = None,
@@ -332,8 +355,9 @@ def decode(
 
     Parameters
     ----------
-    data : bytes
-        The msgpack payload.
+    data : bytes-like
+        The msgpack payload (bytes, or anything with ``len`` that ``bytes()`` accepts, such as
+        a ``zenoh.ZBytes``: its size is checked before it is copied).
     expected : Message subclass or tuple of them
         The message type(s) this channel carries.
     min_tick : int, optional
@@ -342,14 +366,23 @@ def decode(
     Raises
     ------
     ProtocolError
-        With a message naming the problem.
+        With a message naming the problem. A payload over ``MAX_PAYLOAD_BYTES`` is refused
+        without being decoded, so a huge one costs no more than its length.
     """
+    size = len(data)
+    if size > MAX_PAYLOAD_BYTES:
+        raise ProtocolError(f"payload of {size} bytes refused: the limit is {MAX_PAYLOAD_BYTES}")
     try:
-        body = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True)
+        body = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, **MSGPACK_BOUNDS)
+    except msgpack.StackError:
+        raise ProtocolError(f"payload nests deeper than {MAX_DEPTH} levels") from None
+    except ValueError as exc:  # msgpack's bound checks and format errors (many subclasses)
+        raise ProtocolError(_unpack_problem(exc)) from None
     except Exception as exc:  # msgpack raises several unrelated exception types
         raise ProtocolError(f"payload is not valid msgpack ({type(exc).__name__})") from None
     if not isinstance(body, dict):
         raise ProtocolError(f"payload must be a msgpack map, got {type(body).__name__}")
+    _check_depth(body)
     version = body.get("v")
     if version != SCHEMA_VERSION:
         raise ProtocolError(
@@ -365,6 +398,31 @@ def decode(
     if min_tick is not None and values["tick"] < min_tick:
         raise ProtocolError(f"tick {values['tick']} is older than tick {min_tick} already seen")
     return cls(**values)
+
+
+def _unpack_problem(exc: ValueError) -> str:
+    """One line for a msgpack refusal: a length over a bound, or malformed bytes."""
+    text = str(exc)
+    for bound, limit in MSGPACK_BOUNDS.items():
+        if bound in text:
+            what = bound.removeprefix("max_").removesuffix("_len")
+            return f"payload exceeds the protocol's {what} length bound ({limit})"
+    detail = text.removeprefix("Unpack failed: ")[:60] or type(exc).__name__
+    return f"payload is not valid msgpack ({detail})"
+
+
+def _check_depth(body: dict) -> None:
+    """Refuse containers nested deeper than ``MAX_DEPTH`` (the map itself is level 1).
+
+    msgpack builds plain lists and dicts only, hence the exact type tests (the fast path).
+    """
+    level, inner = 1, [v for v in body.values() if type(v) is list or type(v) is dict]
+    while inner:
+        if level == MAX_DEPTH:
+            raise ProtocolError(f"payload nests deeper than {MAX_DEPTH} levels")
+        level += 1
+        inner = [x for c in inner for x in (c.values() if type(c) is dict else c)
+                 if type(x) is list or type(x) is dict]
 
 
 @functools.cache
@@ -392,10 +450,16 @@ def _validate(cls: type[Message], body: dict[str, Any]) -> dict[str, Any]:
     return values
 
 
+def safe_text(text: str) -> str:
+    """``text`` made fit for a text field: non-printable characters replaced by ``?`` and
+    clipped to ``MAX_TEXT`` characters (for messages built from exceptions or peer input)."""
+    return "".join(c if c.isprintable() else "?" for c in str(text)[:MAX_TEXT])
+
+
 def error_payload(tick: int, problem: str, code: str = "bad-request") -> bytes:
-    """An encoded :class:`ErrorReply` (tick clamped into range so it always encodes)."""
+    """An encoded :class:`ErrorReply` (tick clamped and text made safe so it always encodes)."""
     tick = tick if isinstance(tick, int) and 0 <= tick <= MAX_TICK else 0
-    return encode(ErrorReply(tick=tick, error=problem[:MAX_TEXT], code=code))
+    return encode(ErrorReply(tick=tick, error=safe_text(problem), code=code))
 
 
 def to_body(msg: Message) -> dict[str, Any]:

@@ -6,8 +6,15 @@ import math
 import sys
 from pathlib import Path
 
+from protocol.cli import (
+    EXPECTED_FAILURES, add_log_level_flag, check_out_dir, describe, setup_logging,
+)
 from protocol.config import RunConfig, config_from_dict, load_config
 from protocol.session import add_credential_flags
+
+EXIT_NOTHING_ESTIMATED = 3
+"""``swarm run``'s status for a run that completed but in which a follower missed every tick
+or estimated none."""
 
 # CLI flag -> (config field, argparse kwargs). Flags left unset do not override the file.
 RUN_FLAGS: dict[str, tuple[str, dict]] = {
@@ -116,16 +123,31 @@ def _num(x: float | None) -> str:
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.4f}"
 
 
+def empty_followers(summary: dict, init_ticks: int) -> list[str]:
+    """One line per follower that missed every tick or estimated none (a run that only
+    looks complete)."""
+    lines, n = [], summary["ticks_completed"]
+    for k, s in summary["followers"].items():
+        if n and s["missed_ticks"] >= n:
+            lines.append(f"follower {k} missed every tick ({s['missed_ticks']} of {n}): "
+                         "it never settled in time, its numbers measure nothing it did")
+        elif s["estimated_ticks"] == 0:
+            lines.append(f"follower {k} estimated no tick: estimation starts at tick "
+                         f"{init_ticks} and the run has {n} ticks ({s['missed_ticks']} missed)")
+    return lines
+
+
 def cmd_run(args: argparse.Namespace) -> int:
+    setup_logging(args.log_level)
     try:
         config = config_from_args(args)
+        out = Path(args.out) if args.out else Path("runs") / config.run_id
+        if (out / "summary.json").exists():
+            raise ValueError(f"{out} already holds a run's results; choose another --out "
+                             "(nothing was overwritten)")
+        check_out_dir(out)
     except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    out = Path(args.out) if args.out else Path("runs") / config.run_id
-    if (out / "summary.json").exists():
-        print(f"error: {out} already holds a run's results; choose another --out "
-              "(nothing was overwritten)", file=sys.stderr)
+        print(f"error: {describe(exc)}", file=sys.stderr)
         return 2
     live = endpoint = None
     if args.live:
@@ -167,9 +189,13 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
     try:
         summary = launch(config, out, in_process=args.in_process, on_tick=lambda j: bar.update(1),
                          endpoint=endpoint, before_agents=observe)
-    except (ValueError, RuntimeError) as exc:
+    except OSError as exc:  # the results disk failed during the run (read-only, full)
         bar.close()
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: cannot write the results in {out}: {describe(exc)}", file=sys.stderr)
+        return 1
+    except EXPECTED_FAILURES as exc:
+        bar.close()
+        print(f"error: {describe(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         bar.close()
@@ -183,10 +209,15 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
 
         for path in plot_run(out):
             print(f"figure: {path}")
+    empty = empty_followers(summary, config.init_ticks)
+    for line in empty:
+        print(f"warning: {line}", file=sys.stderr)
     if live is not None:
         print(f"live view still at {live.server.url} (Ctrl-C to quit)", flush=True)
         live.serve_until_interrupted()
-    return 0 if summary["complete"] else 1
+    if not summary["complete"]:
+        return 1
+    return EXIT_NOTHING_ESTIMATED if empty else 0
 
 
 def cmd_watch(args: argparse.Namespace) -> int:
@@ -369,6 +400,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--live", action="store_true",
                      help="serve a live view of the run on localhost (kept up until Ctrl-C)")
     add_live_port(run)
+    add_log_level_flag(run)
     run.set_defaults(func=cmd_run, in_process=False)
     experiment = sub.add_parser("experiment", help="regenerate the paper's tables, figures and report")
     experiment.add_argument("name", choices=("paper",), help="which experiment")

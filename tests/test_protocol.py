@@ -9,8 +9,9 @@ import pytest
 from protocol import keys
 from protocol.config import RunConfig, config_from_dict, dump_config, load_agent_settings, load_config
 from protocol.messages import (
-    MESSAGE_TYPES, ActRequest, ActResult, Done, ErrorReply, Missed, Observation, ProtocolError, Rod,
-    SenseRequest, Sensing, TickStart, decode, encode,
+    MESSAGE_TYPES, ActRequest, ActResult, Done, ErrorReply, Joined, JoinRequest, Missed,
+    Observation, ProtocolError, Rod, SenseRequest, Sensing, TickStart, decode, encode, from_body,
+    to_body,
 )
 from protocol.session import free_tcp_endpoint, zenoh_config
 
@@ -27,7 +28,19 @@ SAMPLES = [
     Done(tick=39, results="runs/x", complete=True, reason=""),
     ErrorReply(tick=0, error="bad", code="missed"),
     Missed(tick=3, agent=2),
+    JoinRequest(tick=0),
+    Joined(tick=12, settled=False, ready=True, start="9f3a"),
 ]
+
+
+@pytest.mark.parametrize("msg", SAMPLES, ids=lambda m: m.TYPE)
+def test_plain_map_round_trip(msg):
+    """to_body/from_body (the follower's state file) give back the same message, validated."""
+    import json
+
+    assert from_body(json.loads(json.dumps(to_body(msg))), type(msg)) == msg
+    with pytest.raises(ProtocolError):
+        from_body({**to_body(msg), "v": 2}, type(msg))
 
 
 @pytest.mark.parametrize("msg", SAMPLES, ids=lambda m: m.TYPE)

@@ -2,13 +2,15 @@
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 from collections.abc import Callable
 from pathlib import Path
 
 import zenoh
 
+from protocol.cli import (
+    EXPECTED_FAILURES, add_log_level_flag, check_out_dir, describe, setup_logging,
+)
 from protocol.config import RunConfig, dump_config, load_config
 from protocol.session import add_credential_flags, credentials, tls_options, zenoh_config
 from world import checkpoint
@@ -72,11 +74,12 @@ def main(argv: list[str] | None = None) -> int:
                        help="connect as a client to a Zenoh router (e.g. docker-compose's zenohd)")
     p.add_argument("--out", help="results folder (default runs/<run_id>)")
     add_credential_flags(p)
-    p.add_argument("--log-level", default="WARNING")
+    add_log_level_flag(p)
     p.add_argument("--force", action="store_true",
                    help="replace the results already in --out (default: refuse)")
     args = p.parse_args(argv)
-    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
+    setup_logging(args.log_level)
+    out = None
     try:
         config = load_config(Path(args.resume) / "config.toml" if args.resume else args.config)
         user, password = credentials(args)
@@ -87,10 +90,18 @@ def main(argv: list[str] | None = None) -> int:
             conf = zenoh_config("router", listen=args.listen or ["tcp/127.0.0.1:7447"],
                                 user=user, password=password, extra=args.cfg,
                                 **tls_options(args))
-        out = args.resume or args.out or default_out(config)
+        out = check_out_dir(args.resume or args.out or default_out(config),
+                            "--resume" if args.resume else "--out")
         summary = run_world(config, conf, out, resume=bool(args.resume), force=args.force)
-    except (ValueError, RuntimeError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except checkpoint.AlreadyComplete as exc:
+        print(str(exc), file=sys.stderr)
+        return 0
+    except OSError as exc:  # the results disk failed during the run (read-only, full)
+        where = "" if out is None else f" in {out}"
+        print(f"error: cannot write the results{where}: {describe(exc)}", file=sys.stderr)
+        return 1
+    except EXPECTED_FAILURES as exc:
+        print(f"error: {describe(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         return 130

@@ -12,6 +12,7 @@ import csv
 import io
 import json
 import math
+import re
 from pathlib import Path
 
 from protocol.config import RunConfig, write_atomic
@@ -241,12 +242,22 @@ def _line(columns: tuple[str, ...], row: dict) -> str:
     return buf.getvalue()
 
 
+_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|[-+]?inf|nan")
+
+
 def _cell(value) -> str:
+    """The text of one CSV cell. A cell that a spreadsheet would read as a formula (starting
+    with ``= + - @``, tab or CR) and is not a number, or numbers separated by spaces, is
+    prefixed with ``'`` so it stays text."""
     if value is None:
         return ""
     if isinstance(value, float):
         return repr(float(value))
-    return str(value)
+    text = str(value)
+    if text.startswith(_FORMULA_START) and not all(map(_NUMBER.fullmatch, text.split(" "))):
+        return "'" + text
+    return text
 
 
 def _shares(counts: dict[str, int]) -> dict[str, float]:

@@ -93,9 +93,14 @@ class WorldService:
             session.liveliness().declare_subscriber(keys.alive(run, "*"), self._on_alive,
                                                     history=True),
         ]
-        self._tick_pub = session.declare_publisher(keys.tick(run))
-        self._missed_pub = session.declare_publisher(keys.missed(run))
-        self._done_pub = session.declare_publisher(keys.done(run))
+        # BLOCK: a tick, miss or done is never dropped when a link is congested (a peer may
+        # flood it with data); the agents would wait for it in vain.
+        self._tick_pub = session.declare_publisher(
+            keys.tick(run), congestion_control=zenoh.CongestionControl.BLOCK)
+        self._missed_pub = session.declare_publisher(
+            keys.missed(run), congestion_control=zenoh.CongestionControl.BLOCK)
+        self._done_pub = session.declare_publisher(
+            keys.done(run), congestion_control=zenoh.CongestionControl.BLOCK)
         self._token = session.liveliness().declare_token(keys.alive(run, "world"))
         self._declared += [self._tick_pub, self._missed_pub, self._done_pub, self._token]
 
@@ -142,7 +147,7 @@ class WorldService:
         code = "bad-request"
         try:
             agent = keys.agent_from_key(str(query.key_expr), last=True)
-            payload = query.payload.to_bytes() if query.payload is not None else b""
+            payload = query.payload if query.payload is not None else b""
             query.reply(query.key_expr, handle(agent, payload))
             return
         except TickMissed as exc:
@@ -213,7 +218,7 @@ class WorldService:
     def _on_rod(self, sample: zenoh.Sample) -> None:
         try:
             agent = keys.agent_from_key(str(sample.key_expr))
-            msg = decode(sample.payload.to_bytes(), Rod)
+            msg = decode(sample.payload, Rod)
             with self._cond:
                 if msg.tick != self.sim.tick:
                     raise ValueError(f"rod for tick {msg.tick} while the world is at {self.sim.tick}")
@@ -237,7 +242,7 @@ class WorldService:
     def _on_obs(self, sample: zenoh.Sample) -> None:
         try:
             agent = keys.agent_from_key(str(sample.key_expr))
-            msg = decode(sample.payload.to_bytes(), Observation)
+            msg = decode(sample.payload, Observation)
             if not 1 <= agent < self.sim.n_agents:
                 raise ValueError(f"unknown follower id {agent}")
             with self._cond:  # one per follower and tick, for the tick in progress (SPEC §8)

@@ -400,9 +400,9 @@ def _import_surface(reference: str) -> Surface:
         raise ValueError(f"name {reference!r} must look like 'package.module:attr'")
     try:
         target: Any = importlib.import_module(module_name)
-    except ImportError as exc:
+    except Exception as exc:  # the user's module may fail in any way: a syntax error, a raise
         raise ValueError(f"cannot import module {module_name!r} of surface {reference!r}: "
-                         f"{exc}") from exc
+                         f"{type(exc).__name__}: {exc}") from exc
     for part in attr.split("."):
         if not hasattr(target, part):
             raise ValueError(f"surface {reference!r}: {module_name!r} has no attribute {attr!r}")
@@ -410,7 +410,11 @@ def _import_surface(reference: str) -> Surface:
     if isinstance(target, type) or not isinstance(target, Surface):
         if not callable(target):
             raise ValueError(f"surface {reference!r} is neither a surface nor callable")
-        target = target()
+        try:
+            target = target()
+        except Exception as exc:  # the user's factory may fail in any way
+            raise ValueError(f"surface {reference!r} failed to build: "
+                             f"{type(exc).__name__}: {exc}") from exc
     if isinstance(target, type) or not isinstance(target, Surface):
         raise ValueError(f"surface {reference!r} did not give an object with height, gradient "
                          f"and hessian methods, got {type(target).__name__}")
