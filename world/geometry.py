@@ -37,10 +37,12 @@ import numpy as np
 from numba.extending import overload, register_jitable
 from numpy.typing import ArrayLike
 
+from world.dem import (DEM_KIND, DemSurface, describe_domain, knot_step_limit, knot_step_shrink,
+                       spline_derivatives)
 from world.surfaces import PRESETS, Surface, preset_derivatives, surface_leader_start
 
 Context = tuple[int, np.ndarray] | Surface
-"""A preset as ``(kind, params)`` (compiled path) or any other surface (Python path)."""
+"""A preset or a DEM as ``(kind, params)`` (compiled path), any other surface (Python path)."""
 
 
 class SurfaceDomainError(ValueError):
@@ -54,13 +56,15 @@ _SAFETY, _MIN_FACTOR, _MAX_FACTOR, _OUTSIDE_FACTOR = 0.9, 0.2, 4.0, 0.25
 _MIN_STEP_FRACTION = 1e-12
 _MAX_SLOPE_SQUARED = 1e12
 _MAX_STEPS = 100_000
-_PRESET_TYPES = frozenset(PRESETS.values())
+_COMPILED_TYPES = frozenset(PRESETS.values()) | {DemSurface}
 
 
 def _surface_derivatives(ctx: Context, x: float,
                          y: float) -> tuple[bool, float, float, float, float, float]:
     """``(inside, Fx, Fy, Fxx, Fxy, Fyy)`` at ``(x, y)`` for either kind of context."""
     if isinstance(ctx, tuple):
+        if ctx[0] == DEM_KIND:
+            return spline_derivatives(ctx[1], x, y)
         return preset_derivatives(ctx[0], ctx[1], x, y)
     nan = math.nan
     p = np.array([x, y])
@@ -81,9 +85,46 @@ def _surface_derivatives(ctx: Context, x: float,
 # annotations included: the former receives numba types, the latter values, hence ``object``.
 @overload(_surface_derivatives, jit_options={"cache": True})
 def _surface_derivatives_compiled(ctx: object, x: object, y: object) -> Callable[..., tuple]:
-    """Numba's version: in compiled code the context is a preset ``(kind, params)``."""
+    """Numba's version: in compiled code the context is a preset or DEM ``(kind, params)``."""
     def implementation(ctx: object, x: object, y: object) -> tuple:
+        if ctx[0] == DEM_KIND:
+            return spline_derivatives(ctx[1], x, y)
         return preset_derivatives(ctx[0], ctx[1], x, y)
+    return implementation
+
+
+def _step_limit(ctx: Context, state: np.ndarray, rate: np.ndarray) -> float:
+    """Longest step the surface allows from ``state``: a DEM's knot lines, else no limit."""
+    if isinstance(ctx, tuple) and ctx[0] == DEM_KIND:
+        return knot_step_limit(ctx[1], state, rate)
+    return math.inf
+
+
+def _step_shrink(ctx: Context, state: np.ndarray, end: np.ndarray) -> float:
+    """1 if a step from ``state`` to ``end`` is acceptable to the surface, else the fraction to
+    retry it with (a DEM's knot lines, see :func:`world.dem.knot_step_shrink`)."""
+    if isinstance(ctx, tuple) and ctx[0] == DEM_KIND:
+        return knot_step_shrink(ctx[1], state, end)
+    return 1.0
+
+
+@overload(_step_limit, jit_options={"cache": True})
+def _step_limit_compiled(ctx: object, state: object, rate: object) -> Callable[..., float]:
+    """Numba's version of :func:`_step_limit` (the context is always a tuple there)."""
+    def implementation(ctx: object, state: object, rate: object) -> float:
+        if ctx[0] == DEM_KIND:
+            return knot_step_limit(ctx[1], state, rate)
+        return math.inf
+    return implementation
+
+
+@overload(_step_shrink, jit_options={"cache": True})
+def _step_shrink_compiled(ctx: object, state: object, end: object) -> Callable[..., float]:
+    """Numba's version of :func:`_step_shrink`."""
+    def implementation(ctx: object, state: object, end: object) -> float:
+        if ctx[0] == DEM_KIND:
+            return knot_step_shrink(ctx[1], state, end)
+        return 1.0
     return implementation
 
 
@@ -200,12 +241,18 @@ def _geodesic_flow(ctx: Context, state: np.ndarray, t: float) -> int:
     exponent = 1.0 / (2 * rows - 1)
     done, big_h = 0.0, t
     for _ in range(_MAX_STEPS):
-        last = big_h >= t - done
+        step = min(big_h, _step_limit(ctx, state, f_start))
+        limited = step < big_h
+        last = step >= t - done
         if last:
-            big_h = t - done
-        inside, error = _extrapolation_step(ctx, state, f_start, big_h, table,
+            step, limited = t - done, False
+        inside, error = _extrapolation_step(ctx, state, f_start, step, table,
                                             previous, current, slope)
         if inside and error <= 1.0:
+            shrink = _step_shrink(ctx, state, table[rows - 1, rows - 1])
+            if shrink < 1.0:
+                big_h = step * shrink
+                continue
             for i in range(4):
                 state[i] = table[rows - 1, rows - 1, i]
             if not _rhs(ctx, state, f_end):
@@ -214,16 +261,18 @@ def _geodesic_flow(ctx: Context, state: np.ndarray, t: float) -> int:
                 return _OK
             for i in range(4):
                 f_start[i] = f_end[i]
-            done += big_h
+            done += step
+            if limited:
+                continue  # the surface cut this step short: keep the error-controlled size
             if error == 0.0:
-                big_h *= _MAX_FACTOR
+                big_h = step * _MAX_FACTOR
             else:
-                big_h *= min(_MAX_FACTOR, _SAFETY * error ** -exponent)
+                big_h = step * min(_MAX_FACTOR, _SAFETY * error ** -exponent)
         else:
             if inside:
-                big_h *= max(_MIN_FACTOR, _SAFETY * error ** -exponent)
+                big_h = step * max(_MIN_FACTOR, _SAFETY * error ** -exponent)
             else:
-                big_h *= _OUTSIDE_FACTOR
+                big_h = step * _OUTSIDE_FACTOR
             if big_h < _MIN_STEP_FRACTION * t:
                 return _STEP_UNDERFLOW if inside else _LEFT_DOMAIN
     return _STEP_LIMIT
@@ -243,8 +292,8 @@ _integrate_state_compiled = numba.njit(cache=True)(_integrate_state)
 
 
 def _context(surface: Surface) -> Context:
-    """``(kind, params)`` for an exact preset type, else the surface itself (Python path)."""
-    if type(surface) in _PRESET_TYPES:
+    """``(kind, params)`` for an exact preset or DEM type, else the surface itself (Python path)."""
+    if type(surface) in _COMPILED_TYPES:
         return surface.kind, surface.params
     if isinstance(surface, type) or not isinstance(surface, Surface):
         raise ValueError(f"surface must have height, gradient and hessian methods, "
@@ -312,7 +361,9 @@ def _flow(ctx: Context, p: np.ndarray, v: np.ndarray, t: float,
 def _gradient_inside(ctx: Context, p: np.ndarray, name: str) -> tuple[float, float]:
     inside, fx, fy, _, _, _ = _surface_derivatives(ctx, float(p[0]), float(p[1]))
     if not inside:
-        raise SurfaceDomainError(f"{name} = {tuple(p)} lies outside the surface's domain")
+        where = (f"the DEM grid {describe_domain(ctx[1])}"
+                 if isinstance(ctx, tuple) and ctx[0] == DEM_KIND else "the surface's domain")
+        raise SurfaceDomainError(f"{name} = {tuple(p)} lies outside {where}")
     return fx, fy
 
 
