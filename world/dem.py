@@ -287,36 +287,36 @@ def _span(knots: np.ndarray, start: int, n_knots: int, u: float) -> int:
 
 
 @register_jitable
-def _ratio(numerator: float, denominator: float) -> float:
-    """``numerator / denominator``, 0 for an empty knot interval (its basis term is 0)."""
-    return numerator / denominator if denominator > 0.0 else 0.0
+def _cubic_basis(t: np.ndarray, l: int, u: float) -> tuple[float, ...]:
+    """Cubic B-spline basis on knot interval ``l`` and its two derivatives at ``u``.
+
+    Returns 12 floats: ``N_{l-3+r,3}(u)``, then their first, then their second derivatives
+    (r = 0 … 3). The Cox–de Boor recursion written out for degree 3; every denominator spans
+    the nonempty interval ``[t_l, t_{l+1}]``, so none is zero.
+    """
+    tm2, tm1, t0, t1, t2, t3 = t[l - 2], t[l - 1], t[l], t[l + 1], t[l + 2], t[l + 3]
+    inv_w = 1.0 / (t1 - t0)
+    a1, b1 = (t1 - u) * inv_w, (u - t0) * inv_w  # N_{l-1,1}, N_{l,1}
+    g1, g2 = a1 / (t1 - tm1), b1 / (t2 - t0)
+    n20 = (t1 - u) * g1  # N_{l-2,2}, N_{l-1,2}, N_{l,2}; their derivatives are 2·(…)
+    n21 = (u - tm1) * g1 + (t2 - u) * g2
+    n22 = (u - t0) * g2
+    h0, h1, h2 = 1.0 / (t1 - tm2), 1.0 / (t2 - tm1), 1.0 / (t3 - t0)
+    m0, m1, m2 = n20 * h0, n21 * h1, n22 * h2
+    d0, d1, d2 = -2.0 * g1 * h0, 2.0 * (g1 - g2) * h1, 2.0 * g2 * h2
+    return ((t1 - u) * m0, (u - tm2) * m0 + (t2 - u) * m1, (u - tm1) * m1 + (t3 - u) * m2,
+            (u - t0) * m2,
+            -3.0 * m0, 3.0 * (m0 - m1), 3.0 * (m1 - m2), 3.0 * m2,
+            -3.0 * d0, 3.0 * (d0 - d1), 3.0 * (d1 - d2), 3.0 * d2)
 
 
 @register_jitable
-def _cubic_basis(t: np.ndarray, l: int, u: float, out: np.ndarray) -> None:
-    """Cubic B-spline basis on knot interval ``l`` and its two derivatives at ``u``.
-
-    ``out[d, r]`` is the ``d``-th derivative of ``N_{l-3+r, 3}`` (r = 0 … 3). Built by the
-    Cox–de Boor recursion; ``n1[s]`` holds ``N_{l-3+s, 1}`` (s = 0 … 5) and ``n2[s]``
-    ``N_{l-3+s, 2}`` (s = 0 … 4), zero outside their support.
-    """
-    n1 = np.zeros(6)
-    n2 = np.zeros(5)
-    d2 = np.zeros(5)
-    width = t[l + 1] - t[l]
-    n1[2] = (t[l + 1] - u) / width
-    n1[3] = (u - t[l]) / width
-    for s in range(1, 4):  # N_{i,2}, i = l-3+s
-        i = l - 3 + s
-        n2[s] = (_ratio(u - t[i], t[i + 2] - t[i]) * n1[s]
-                 + _ratio(t[i + 3] - u, t[i + 3] - t[i + 1]) * n1[s + 1])
-        d2[s] = 2.0 * (_ratio(n1[s], t[i + 2] - t[i]) - _ratio(n1[s + 1], t[i + 3] - t[i + 1]))
-    for r in range(4):  # N_{i,3}, i = l-3+r
-        i = l - 3 + r
-        left, right = t[i + 3] - t[i], t[i + 4] - t[i + 1]
-        out[0, r] = _ratio(u - t[i], left) * n2[r] + _ratio(t[i + 4] - u, right) * n2[r + 1]
-        out[1, r] = 3.0 * (_ratio(n2[r], left) - _ratio(n2[r + 1], right))
-        out[2, r] = 3.0 * (_ratio(d2[r], left) - _ratio(d2[r + 1], right))
+def _row(params: np.ndarray, base: int, basis: tuple[float, ...]) -> tuple[float, float, float]:
+    """Four coefficients from ``params[base]`` against a :func:`_cubic_basis` (three orders)."""
+    c0, c1, c2, c3 = params[base], params[base + 1], params[base + 2], params[base + 3]
+    return (c0 * basis[0] + c1 * basis[1] + c2 * basis[2] + c3 * basis[3],
+            c0 * basis[4] + c1 * basis[5] + c2 * basis[6] + c3 * basis[7],
+            c0 * basis[8] + c1 * basis[9] + c2 * basis[10] + c3 * basis[11])
 
 
 @numba.njit(cache=True)
@@ -346,25 +346,21 @@ def spline_surface(params: np.ndarray, x: float,
     start_c = start_x + n_tx
     n_cx = n_tx - 4
     ly, lx = _span(params, start_y, n_ty, y), _span(params, start_x, n_tx, x)
-    by, bx = np.empty((3, 4)), np.empty((3, 4))
-    _cubic_basis(params, ly, y, by)
-    _cubic_basis(params, lx, x, bx)
-    f = fx = fy = fxx = fxy = fyy = 0.0
-    row0, col0 = ly - start_y - 3, lx - start_x - 3
-    for a in range(4):
-        base = start_c + (row0 + a) * n_cx + col0
-        c0 = c1 = c2 = 0.0  # Σ_b c[a, b] · (B_b, B_b', B_b'') in x
-        for b in range(4):
-            c = params[base + b]
-            c0 += c * bx[0, b]
-            c1 += c * bx[1, b]
-            c2 += c * bx[2, b]
-        f += by[0, a] * c0
-        fx += by[0, a] * c1
-        fxx += by[0, a] * c2
-        fy += by[1, a] * c0
-        fxy += by[1, a] * c1
-        fyy += by[2, a] * c0
+    (ny0, ny1, ny2, ny3, dy0, dy1, dy2, dy3,
+     sy0, sy1, sy2, sy3) = _cubic_basis(params, ly, y)
+    bx = _cubic_basis(params, lx, x)
+    base = start_c + (ly - start_y - 3) * n_cx + (lx - start_x - 3)
+    # Row a of the 4 × 4 coefficient block against the x basis (value, first, second derivative).
+    r00, r01, r02 = _row(params, base, bx)
+    r10, r11, r12 = _row(params, base + n_cx, bx)
+    r20, r21, r22 = _row(params, base + 2 * n_cx, bx)
+    r30, r31, r32 = _row(params, base + 3 * n_cx, bx)
+    f = ny0 * r00 + ny1 * r10 + ny2 * r20 + ny3 * r30
+    fx = ny0 * r01 + ny1 * r11 + ny2 * r21 + ny3 * r31
+    fxx = ny0 * r02 + ny1 * r12 + ny2 * r22 + ny3 * r32
+    fy = dy0 * r00 + dy1 * r10 + dy2 * r20 + dy3 * r30
+    fxy = dy0 * r01 + dy1 * r11 + dy2 * r21 + dy3 * r31
+    fyy = sy0 * r00 + sy1 * r10 + sy2 * r20 + sy3 * r30
     return True, f, fx, fy, fxx, fxy, fyy
 
 
