@@ -316,7 +316,7 @@ def write_geotiff(path: str | Path, heights: np.ndarray, *, west: float, south: 
         E.g. ``"EPSG:4326"``; None writes no CRS.
     """
     import rasterio
-    from rasterio.transform import from_origin
+    from rasterio.transform import Affine
 
     z = np.asarray(heights)
     if z.ndim != 2:
@@ -328,7 +328,7 @@ def write_geotiff(path: str | Path, heights: np.ndarray, *, west: float, south: 
     north = south + cell_y * z.shape[0]
     with rasterio.open(path, "w", driver="GTiff", width=z.shape[1], height=z.shape[0], count=1,
                        dtype=z.dtype, crs=crs,
-                       transform=from_origin(west, north, cell_x, cell_y)) as dst:
+                       transform=Affine(cell_x, 0.0, west, 0.0, -cell_y, north)) as dst:
         dst.write(z[::-1], 1)
     return path
 
