@@ -459,7 +459,7 @@ def plot_comm_period(rows: list[dict], path: str | Path) -> Path:
         ax.xaxis.set_minor_locator(NullLocator())
         ax.set(title=SURFACE_TITLES.get(surface, surface), xlabel="comm period T_c (time units)")
     fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
-    fig.legend(loc="outside lower center", ncol=len(estimators) + 1)
+    fig.legend(loc="outside lower center", ncol=len(estimators) + 1 if len(surfaces) > 1 else 3)
     return _save(fig, path)
 
 

@@ -149,7 +149,7 @@ def run_terrain_experiment(dem: str | Path, out_dir: str | Path, spec: TerrainSp
                             if o.run.labels["comm_period"] in spec.position_periods],
                            range(1, spec.followers + 1)))
     write_run_index(out_dir / "tables" / "runs.csv", outcomes)
-    figures, problems = draw_terrain_figures(out_dir, spec, tables)
+    figures, problems = draw_terrain_figures(out_dir, dem, spec, tables)
     report = write_terrain_report(out_dir, dem, spec, tables, figures, problems, outcomes,
                                   wall_time)
     return {"tables": tables, "figures": figures, "figure_problems": problems, "report": report,
@@ -164,13 +164,14 @@ def trajectory_run(out_dir: Path, spec: TerrainSpec) -> Path:
     return out_dir / "runs" / "terrain" / f"tc{period:g}-{name}"
 
 
-def draw_terrain_figures(out_dir: Path, spec: TerrainSpec, tables: dict[str, Path]
-                         ) -> tuple[dict[str, Path], dict[str, str]]:
+def draw_terrain_figures(out_dir: Path, dem: str | Path, spec: TerrainSpec,
+                         tables: dict[str, Path]) -> tuple[dict[str, Path], dict[str, str]]:
     """The study's three figures; a figure that cannot be drawn is named with the reason."""
     from swarm import plots
 
     folder = out_dir / "figures"
-    comm_rows = [{**r, "surface": "terrain"} for r in read_table(tables["terrain_comm_period"])]
+    comm_rows = [{**r, "surface": f"DEM {Path(dem).name}, follower 1"}
+                 for r in read_table(tables["terrain_comm_period"])]
     position_rows = read_table(tables["terrain_position"])
     jobs = {
         "terrain_trajectories": lambda: plots.plot_effectiveness(

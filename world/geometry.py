@@ -13,8 +13,15 @@ Runge–Kutta method of order 12, and the difference between the last two extrap
 10) is the error estimate that adapts ``H`` (mixed tolerance ``1e-12·(1 + |y|)`` per step,
 max norm over ``(x, y, ẋ, ẏ)``). The integrator is written once, as plain Python functions
 marked ``register_jitable``: for the preset surfaces it runs compiled by numba (derivatives
-from :func:`world.surfaces.preset_derivatives`); for any other surface the very same functions
-run as Python, calling the surface's ``gradient``, ``hessian`` and ``contains``.
+from :func:`world.surfaces.preset_derivatives`), and for DEM surfaces too (the B-spline
+evaluated by :func:`world.dem.spline_derivatives`); for any other surface the very same
+functions run as Python, calling the surface's ``gradient``, ``hessian`` and ``contains``.
+
+A DEM's spline is only C² across its knot lines, where the extrapolation's error estimate
+would be misled. The surface may therefore bound each step (:func:`_step_limit`: a step ends
+at most just past the next knot line, predicted to second order) and reject a step that ended
+too far past one (:func:`_step_shrink`, retried shorter); a step cut short this way keeps the
+error-controlled step size for the next one. For other surfaces both are no-ops.
 
 Domain
 ------
