@@ -181,18 +181,18 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
 
 def cmd_terrain(args: argparse.Namespace) -> int:
-    """``experiment terrain --dem PATH --leader-start X,Y,VX,VY``."""
+    """``experiment terrain --dem PATH --leader-start X,Y,VX,VY [--leader-start ...]``."""
     from swarm.terrain import TerrainSpec, quick, run_terrain_experiment
 
     if args.dem is None:
         print("error: experiment terrain needs --dem PATH", file=sys.stderr)
         return 2
-    if args.leader_start is None:
-        print("error: experiment terrain needs --leader-start X,Y,VX,VY: a DEM has no preset "
-              "leader start", file=sys.stderr)
+    if not args.leader_start:
+        print("error: experiment terrain needs --leader-start X,Y,VX,VY (repeat it for several "
+              "starts): a DEM has no preset leader start", file=sys.stderr)
         return 2
     try:
-        options = {"leader_start": parse_leader_start(args.leader_start)}
+        options = {"leader_starts": tuple(parse_leader_start(s) for s in args.leader_start)}
         for name in ("spacing", "followers", "ticks", "smoothing"):
             if getattr(args, name) is not None:
                 options[name] = getattr(args, name)
@@ -276,8 +276,9 @@ def build_parser() -> argparse.ArgumentParser:
                             help="reduced grid to check the pipeline")
     terrain = experiment.add_argument_group("terrain (experiment terrain only)")
     terrain.add_argument("--dem", help="DEM raster (GeoTIFF or ESRI ASCII grid)")
-    terrain.add_argument("--leader-start", metavar="X,Y,VX,VY",
-                         help="leader start on the DEM (m, m/s); required")
+    terrain.add_argument("--leader-start", metavar="X,Y,VX,VY", action="append",
+                         help="leader start on the DEM (m, m/s); required; repeat it to "
+                              "average over several starts")
     terrain.add_argument("--spacing", type=float, help="rod length (m), default 40")
     terrain.add_argument("--followers", type=int, help="column length, default 10")
     terrain.add_argument("--ticks", type=int, help="ticks per run, default 40")

@@ -34,21 +34,27 @@ from swarm.experiment import (GridRun, RunOutcome, is_nan, read_table, run_grid,
 
 TERRAIN_ESTIMATORS = ("stay", "persist", "edmd-b", "auto")
 """Estimators the terrain study compares (add classical baselines here by name)."""
-COMM_PERIOD_COLUMNS = ("comm_period", "estimator", "mean_required_range", "rmse", "run")
-POSITION_COLUMNS = ("comm_period", "follower", "estimator", "mean_required_range", "rmse", "run")
+COMM_PERIOD_COLUMNS = ("start", "comm_period", "estimator", "mean_required_range", "rmse", "run")
+POSITION_COLUMNS = ("start", "comm_period", "follower", "estimator", "mean_required_range",
+                    "rmse", "run")
 JACKSBORO = "jacksboro_fault_dem.npz"
-JACKSBORO_START = (15_000.0, 9_000.0, 0.0, 8.0)
-"""A leader start on the Jacksboro DEM (m, m/s): heading north across the fault's ridges."""
+JACKSBORO_STARTS = ((15_000.0, 9_000.0, 0.0, 8.0), (8_000.0, 20_000.0, 8.0, 0.0),
+                    (22_000.0, 24_000.0, -5.6, -5.6))
+"""Leader starts on the Jacksboro DEM (m, m/s), 8 m/s north, east and south-west, across the
+fault's ridges; each keeps the 10-follower column on the grid at every comm period studied."""
+Start = tuple[float, float, float, float]
 
 
 @dataclass(frozen=True)
 class TerrainSpec:
     """Sizes of the terrain study. Lengths in metres, times in seconds.
 
-    ``leader_start`` (x, y, vx, vy) is required: a DEM has no preset start.
+    ``leader_starts``, one or more (x, y, vx, vy), are required: a DEM has no preset start.
+    Every start runs the whole grid; tables keep each start, figures and the report average
+    over them.
     """
 
-    leader_start: tuple[float, float, float, float]
+    leader_starts: tuple[Start, ...]
     estimators: tuple[str, ...] = TERRAIN_ESTIMATORS
     comm_periods: tuple[float, ...] = (0.32, 0.64, 1.28, 2.56, 5.12)
     position_periods: tuple[float, ...] = (1.28, 5.12)
@@ -58,11 +64,17 @@ class TerrainSpec:
     smoothing: float = 0.0
 
     def __post_init__(self) -> None:
-        start = tuple(float(v) for v in self.leader_start)
-        if len(start) != 4 or not all(math.isfinite(v) for v in start):
-            raise ValueError(f"leader_start must be four finite numbers X,Y,VX,VY, got "
-                             f"{self.leader_start!r}")
-        object.__setattr__(self, "leader_start", start)
+        starts = []
+        for start in self.leader_starts:
+            values = tuple(float(v) for v in start)
+            if len(values) != 4 or not all(math.isfinite(v) for v in values):
+                raise ValueError(f"leader_starts must hold four finite numbers X,Y,VX,VY each, "
+                                 f"got {start!r}")
+            starts.append(values)
+        if not starts:
+            raise ValueError("leader_starts must hold at least one start: a DEM has no preset "
+                             "leader start")
+        object.__setattr__(self, "leader_starts", tuple(starts))
         if not self.estimators:
             raise ValueError("estimators must name at least one estimator")
         if not self.comm_periods:
@@ -76,9 +88,10 @@ QUICK_TICKS, QUICK_FOLLOWERS = 8, 2
 
 
 def quick(spec: TerrainSpec) -> TerrainSpec:
-    """A reduced study to check the pipeline: two comm periods, 2 followers, 8 ticks."""
+    """A reduced study to check the pipeline: the first start, two comm periods, 2 followers,
+    8 ticks."""
     periods = spec.comm_periods[:2]
-    return TerrainSpec(spec.leader_start, spec.estimators, periods, periods[:1],
+    return TerrainSpec(spec.leader_starts[:1], spec.estimators, periods, periods[:1],
                        QUICK_FOLLOWERS, spec.spacing, QUICK_TICKS, spec.smoothing)
 
 
@@ -90,23 +103,25 @@ def estimator_options(name: str) -> dict[str, Any]:
 
 
 def terrain_grid(dem: str | Path, spec: TerrainSpec) -> list[GridRun]:
-    """One run per comm period and estimator, each with ``spec.followers`` followers.
+    """One run per leader start, comm period and estimator, each with ``spec.followers``
+    followers.
 
     Follower 1 of every run gives the comm-period table; every follower of the runs at
     ``spec.position_periods`` gives the position table (follower ``k`` depends only on the
     agents ahead of it, so one run serves both).
     """
-    base = RunConfig(surface=f"dem:{Path(dem).resolve()}", leader_start=spec.leader_start,
-                     followers=spec.followers, spacing=spec.spacing, ticks=spec.ticks,
+    base = RunConfig(surface=f"dem:{Path(dem).resolve()}", followers=spec.followers,
+                     spacing=spec.spacing, ticks=spec.ticks,
                      surface_params={"smoothing": spec.smoothing} if spec.smoothing else {})
     runs = []
-    for period in spec.comm_periods:
-        for name in spec.estimators:
-            run_name = f"tc{period:g}-{name}"
-            runs.append(GridRun("terrain", run_name,
-                                base.replace(run_id=f"terrain-{run_name}", comm_period=period,
-                                             **estimator_options(name)),
-                                {"comm_period": period, "estimator": name}))
+    for index, start in enumerate(spec.leader_starts):
+        for period in spec.comm_periods:
+            for name in spec.estimators:
+                run_name = f"start{index}-tc{period:g}-{name}"
+                config = base.replace(run_id=f"terrain-{run_name}", leader_start=start,
+                                      comm_period=period, **estimator_options(name))
+                runs.append(GridRun("terrain", run_name, config,
+                                    {"start": index, "comm_period": period, "estimator": name}))
     return runs
 
 
@@ -122,21 +137,46 @@ def table_rows(outcomes: list[RunOutcome], followers: range) -> list[dict]:
     return rows
 
 
+def mean_over_starts(rows: list[dict], keys: tuple[str, ...]) -> list[dict]:
+    """One row per value of ``keys`` with ``mean_required_range`` averaged over the starts
+    (NaN if any start's run failed, so a gap is never hidden by the other starts)."""
+    cells: dict[tuple, list[float]] = {}
+    for row in rows:
+        cells.setdefault(tuple(row[k] for k in keys), []).append(row["mean_required_range"])
+    return [{**dict(zip(keys, key)), "starts": len(values),
+             "mean_required_range": math.nan if any(is_nan(v) for v in values)
+             else sum(values) / len(values)}
+            for key, values in cells.items()]
+
+
+def _validate_starts(dem: str | Path, runs: list[GridRun]) -> None:
+    """Fail before any run if the DEM cannot be used or a leader start is not on it."""
+    from world.main import resolve_with_surface
+    from world.sim import WorldSim
+
+    seen = set()
+    for run in runs:
+        if run.config.leader_start in seen:
+            continue
+        seen.add(run.config.leader_start)
+        config, surface = resolve_with_surface(run.config)
+        try:
+            WorldSim(config, surface)
+        except ValueError as exc:
+            raise ValueError(f"leader start {config.leader_start} on {dem}: {exc}") from None
+
+
 def run_terrain_experiment(dem: str | Path, out_dir: str | Path, spec: TerrainSpec,
                            workers: int | None = None, progress: bool = True) -> dict:
     """Run the terrain study of ``spec`` on ``dem`` into ``out_dir`` (see the module docstring).
 
-    Raises ValueError before any run if the DEM cannot be used or the leader start is not on
+    Raises ValueError before any run if the DEM cannot be used or a leader start is not on
     it. Returns ``tables``, ``figures``, ``figure_problems``, ``report``, ``failed`` and
     ``wall_time`` (s), like :func:`swarm.experiment.run_paper_experiment`.
     """
-    from world.main import resolve_with_surface
-    from world.sim import WorldSim
-
     out_dir = Path(out_dir)
     runs = terrain_grid(dem, spec)
-    config, surface = resolve_with_surface(runs[0].config)
-    WorldSim(config, surface)  # a bad leader start fails here, once, with the DEM's extent
+    _validate_starts(dem, runs)
     start = time.perf_counter()
     outcomes = run_grid(runs, out_dir / "runs", workers=workers, progress=progress)
     wall_time = time.perf_counter() - start
@@ -157,11 +197,11 @@ def run_terrain_experiment(dem: str | Path, out_dir: str | Path, spec: TerrainSp
 
 
 def trajectory_run(out_dir: Path, spec: TerrainSpec) -> Path:
-    """The run whose column the trajectory figure shows: EDMD-b (else the first estimator)
-    at the first position comm period."""
+    """The run whose column the trajectory figure shows: the first start, EDMD-b (else the
+    first estimator), the first position comm period."""
     name = "edmd-b" if "edmd-b" in spec.estimators else spec.estimators[0]
     period = (spec.position_periods or spec.comm_periods)[0]
-    return out_dir / "runs" / "terrain" / f"tc{period:g}-{name}"
+    return out_dir / "runs" / "terrain" / f"start0-tc{period:g}-{name}"
 
 
 def draw_terrain_figures(out_dir: Path, dem: str | Path, spec: TerrainSpec,
@@ -170,9 +210,11 @@ def draw_terrain_figures(out_dir: Path, dem: str | Path, spec: TerrainSpec,
     from swarm import plots
 
     folder = out_dir / "figures"
-    comm_rows = [{**r, "surface": f"DEM {Path(dem).name}, follower 1"}
-                 for r in read_table(tables["terrain_comm_period"])]
-    position_rows = read_table(tables["terrain_position"])
+    label = (f"DEM {Path(dem).name}, follower 1, mean over {len(spec.leader_starts)} start(s)")
+    comm_rows = [{**r, "surface": label} for r in mean_over_starts(
+        read_table(tables["terrain_comm_period"]), ("comm_period", "estimator"))]
+    position_rows = mean_over_starts(read_table(tables["terrain_position"]),
+                                     ("comm_period", "follower", "estimator"))
     jobs = {
         "terrain_trajectories": lambda: plots.plot_effectiveness(
             trajectory_run(out_dir, spec), folder / "terrain_trajectories.png",
@@ -191,13 +233,11 @@ def draw_terrain_figures(out_dir: Path, dem: str | Path, spec: TerrainSpec,
     return drawn, problems
 
 
-def _best(rows: list[dict], **keys: Any) -> tuple[str, float]:
+def _best(rows: list[dict], **keys: Any) -> str:
+    """The estimator with the lowest mean required range among the rows matching ``keys``."""
     mine = [r for r in rows if all(r[k] == v for k, v in keys.items())
             and not is_nan(r["mean_required_range"])]
-    if not mine:
-        return "n/a", math.nan
-    row = min(mine, key=lambda r: r["mean_required_range"])
-    return row["estimator"], row["mean_required_range"]
+    return min(mine, key=lambda r: r["mean_required_range"])["estimator"] if mine else "n/a"
 
 
 def _cell(rows: list[dict], **keys: Any) -> float:
@@ -209,49 +249,52 @@ def _fmt(x: float) -> str:
     return "n/a" if is_nan(x) else f"{x:.3g}"
 
 
+def _markdown_table(head: list[str], rows: list[list[str]]) -> list[str]:
+    return (["| " + " | ".join(head) + " |", "| --- " * len(head) + "|"]
+            + ["| " + " | ".join(row) + " |" for row in rows] + [""])
+
+
 def write_terrain_report(out_dir: Path, dem: str | Path, spec: TerrainSpec,
                          tables: dict[str, Path], figures: dict[str, Path],
                          problems: dict[str, str], outcomes: list[RunOutcome],
                          wall_time: float) -> Path:
-    """``out_dir/report.md``: the figures, the tables as markdown and what they show."""
-    comm = read_table(tables["terrain_comm_period"])
-    position = read_table(tables["terrain_position"])
+    """``out_dir/report.md``: the figures, the tables (means over the starts) as markdown and
+    what they show."""
+    comm_all = read_table(tables["terrain_comm_period"])
+    position_all = read_table(tables["terrain_position"])
+    comm = mean_over_starts(comm_all, ("comm_period", "estimator"))
+    position = mean_over_starts(position_all, ("comm_period", "follower", "estimator"))
     names = list(spec.estimators)
+    starts = "; ".join(f"{i}: {s}" for i, s in enumerate(spec.leader_starts))
     lines = [
         "# Formation keeping on real terrain", "",
-        f"DEM `{Path(dem).name}`; leader start (x, y, vx, vy) = {spec.leader_start} (m, m/s); "
-        f"rod length {spec.spacing:g} m; {spec.ticks} ticks (4 initial); "
-        f"{spec.followers} followers; smoothing {spec.smoothing:g}. {len(outcomes)} runs over "
-        f"Zenoh in {wall_time:.0f} s. Numbers: mean required sensing range (m), read from "
-        "`tables/`.", "",
+        f"DEM `{Path(dem).name}`; leader starts (x, y, vx, vy in m, m/s) {starts}; rod length "
+        f"{spec.spacing:g} m; {spec.ticks} ticks (4 initial); {spec.followers} followers; "
+        f"smoothing {spec.smoothing:g}. {len(outcomes)} runs over Zenoh in {wall_time:.0f} s. "
+        "Numbers: mean required sensing range (m), averaged over the leader starts, read from "
+        "`tables/` (which keep every start).", "",
     ]
     if "terrain_trajectories" in figures:
         lines += ["![trajectories](figures/terrain_trajectories.png)", "",
-                  "The leader's path and the followers' ideal (red) and estimated (blue) "
-                  "positions over the hillshaded DEM with contour lines (EDMD-b).", ""]
+                  "Start 0: the leader's path and the followers' ideal (red) and estimated "
+                  "(blue) positions over the hillshaded DEM with contour lines (EDMD-b).", ""]
     lines += ["## Against the comm period (follower 1)", ""]
     if "terrain_comm_period" in figures:
         lines += ["![comm period](figures/terrain_comm_period.png)", ""]
-    lines += ["| T_c (s) | " + " | ".join(names) + " | best |",
-              "| --- " * (len(names) + 2) + "|"]
-    for period in spec.comm_periods:
-        best, _ = _best(comm, comm_period=period)
-        lines.append(f"| {period:g} | " + " | ".join(
-            _fmt(_cell(comm, comm_period=period, estimator=n)) for n in names) + f" | {best} |")
-    lines.append("")
+    lines += _markdown_table(
+        ["T_c (s)", *names, "best"],
+        [[f"{p:g}", *(_fmt(_cell(comm, comm_period=p, estimator=n)) for n in names),
+          _best(comm, comm_period=p)] for p in spec.comm_periods])
     for period in spec.position_periods:
         lines += [f"## Along the column at T_c = {period:g} s", ""]
-        lines += ["| follower | " + " | ".join(names) + " | best |",
-                  "| --- " * (len(names) + 2) + "|"]
-        for k in range(1, spec.followers + 1):
-            best, _ = _best(position, comm_period=period, follower=k)
-            lines.append(f"| {k} | " + " | ".join(
-                _fmt(_cell(position, comm_period=period, follower=k, estimator=n))
-                for n in names) + f" | {best} |")
-        lines.append("")
+        lines += _markdown_table(
+            ["follower", *names, "best"],
+            [[str(k), *(_fmt(_cell(position, comm_period=period, follower=k, estimator=n))
+                        for n in names), _best(position, comm_period=period, follower=k)]
+             for k in range(1, spec.followers + 1)])
     if "terrain_position" in figures:
         lines += ["![position](figures/terrain_position.png)", ""]
-    lines += _findings(comm, position, spec)
+    lines += _findings(comm_all, position_all, position, spec)
     failed = [o for o in outcomes if not o.ok]
     if failed or problems:
         lines += ["## Problems", ""]
@@ -263,36 +306,40 @@ def write_terrain_report(out_dir: Path, dem: str | Path, spec: TerrainSpec,
     return path
 
 
-def _findings(comm: list[dict], position: list[dict], spec: TerrainSpec) -> list[str]:
-    """Sentences computed from the tables: who wins where, and how the error grows down the
-    column."""
+def _findings(comm_all: list[dict], position_all: list[dict], position: list[dict],
+              spec: TerrainSpec) -> list[str]:
+    """Sentences computed from the tables: who wins where (per start and comm period, and per
+    position), and how the required range changes down the column."""
     out = ["## What the numbers say", ""]
-    wins = {}
-    for period in spec.comm_periods:
-        best, _ = _best(comm, comm_period=period)
+    cells = [(i, p) for i in range(len(spec.leader_starts)) for p in spec.comm_periods]
+    wins: dict[str, int] = {}
+    for i, p in cells:
+        best = _best(comm_all, start=i, comm_period=p)
         wins[best] = wins.get(best, 0) + 1
-    out.append("- Lowest required range for follower 1: " + ", ".join(
-        f"{name} at {count} of {len(spec.comm_periods)} comm periods"
-        for name, count in sorted(wins.items(), key=lambda kv: -kv[1])) + ".")
+    out.append(f"- Lowest required range for follower 1, over {len(cells)} (start, comm period) "
+               "cells: " + ", ".join(f"{name} in {count}" for name, count in
+                                     sorted(wins.items(), key=lambda kv: -kv[1])) + ".")
     if {"edmd-b", "persist"} <= set(spec.estimators):
-        ratios = [(_cell(comm, comm_period=p, estimator="edmd-b")
-                   / _cell(comm, comm_period=p, estimator="persist")) for p in spec.comm_periods]
-        out.append("- EDMD-b / persist (follower 1) per comm period: " + ", ".join(
-            f"{p:g} s: {_fmt(r)}" for p, r in zip(spec.comm_periods, ratios))
-            + " (below 1: the paper's estimator beats assuming a constant relative position).")
+        for p in spec.comm_periods:
+            ratios = [_cell(comm_all, start=i, comm_period=p, estimator="edmd-b")
+                      / _cell(comm_all, start=i, comm_period=p, estimator="persist")
+                      for i in range(len(spec.leader_starts))]
+            out.append(f"- T_c = {p:g} s: EDMD-b / persist for follower 1 per start: "
+                       + ", ".join(_fmt(r) for r in ratios)
+                       + f" (EDMD-b better in {sum(r < 1 for r in ratios)} of {len(ratios)}).")
     for period in spec.position_periods:
-        growth = []
-        for name in spec.estimators:
-            first = _cell(position, comm_period=period, follower=1, estimator=name)
-            last = _cell(position, comm_period=period, follower=spec.followers, estimator=name)
-            growth.append(f"{name} {_fmt(first)} → {_fmt(last)}")
-        winners = {}
-        for k in range(1, spec.followers + 1):
-            best, _ = _best(position, comm_period=period, follower=k)
-            winners[best] = winners.get(best, 0) + 1
-        out.append(f"- At T_c = {period:g} s, follower 1 → follower {spec.followers}: "
-                   + "; ".join(growth) + ". Best per position: " + ", ".join(
-                       f"{n} {c}/{spec.followers}" for n, c in winners.items()) + ".")
+        growth = [f"{n} {_fmt(_cell(position, comm_period=period, follower=1, estimator=n))} → "
+                  f"{_fmt(_cell(position, comm_period=period, follower=spec.followers, estimator=n))}"
+                  for n in spec.estimators]
+        winners: dict[str, int] = {}
+        for i in range(len(spec.leader_starts)):
+            for k in range(1, spec.followers + 1):
+                best = _best(position_all, start=i, comm_period=period, follower=k)
+                winners[best] = winners.get(best, 0) + 1
+        total = len(spec.leader_starts) * spec.followers
+        out.append(f"- At T_c = {period:g} s, follower 1 → follower {spec.followers} (mean over "
+                   "starts): " + "; ".join(growth) + ". Best per (start, position): "
+                   + ", ".join(f"{n} {c}/{total}" for n, c in winners.items()) + ".")
     out.append("")
     return out
 

@@ -309,13 +309,13 @@ def test_terrain_experiment_quick(tmp_path):
     from swarm.experiment import read_table
     from swarm.terrain import TerrainSpec, quick, run_terrain_experiment
 
-    spec = quick(TerrainSpec(HILLS_LEADER_START, estimators=("persist", "edmd-b"),
+    spec = quick(TerrainSpec((HILLS_LEADER_START,), estimators=("persist", "edmd-b"),
                              spacing=SPACING))
     result = run_terrain_experiment(HILLS, tmp_path, spec, workers=1, progress=False)
     assert not result["failed"] and not result["figure_problems"]
     comm = read_table(result["tables"]["terrain_comm_period"])
-    assert [(r["comm_period"], r["estimator"]) for r in comm] == [
-        (p, e) for p in spec.comm_periods for e in spec.estimators]
+    assert [(r["start"], r["comm_period"], r["estimator"]) for r in comm] == [
+        (0, p, e) for p in spec.comm_periods for e in spec.estimators]
     position = read_table(result["tables"]["terrain_position"])
     assert {r["follower"] for r in position} == {1, 2}
     assert all(r["mean_required_range"] > 0 for r in comm + position)
@@ -329,5 +329,24 @@ def test_terrain_spec_needs_a_leader_start_and_known_periods():
     from swarm.terrain import TerrainSpec
 
     with pytest.raises(ValueError, match="position_periods"):
-        TerrainSpec((1.0, 2.0, 1.0, 0.0), comm_periods=(0.5,), position_periods=(1.28,))
+        TerrainSpec(((1.0, 2.0, 1.0, 0.0),), comm_periods=(0.5,), position_periods=(1.28,))
+    with pytest.raises(ValueError, match="at least one start"):
+        TerrainSpec(())
     assert main(["experiment", "terrain", "--dem", str(HILLS)]) == 2
+    assert main(["experiment", "terrain", "--dem", str(HILLS), "--leader-start", "6,8,1"]) == 2
+    assert main(["experiment", "terrain", "--dem", str(HILLS), "--leader-start", "90,8,1,0",
+                 "--quick"]) == 2  # off the grid: refused before any run
+
+
+def test_mean_over_starts_never_hides_a_failed_run():
+    from swarm.terrain import mean_over_starts
+
+    rows = [{"start": 0, "comm_period": 1.28, "estimator": "persist", "mean_required_range": 1.0},
+            {"start": 1, "comm_period": 1.28, "estimator": "persist", "mean_required_range": 3.0},
+            {"start": 0, "comm_period": 1.28, "estimator": "auto", "mean_required_range": 0.5},
+            {"start": 1, "comm_period": 1.28, "estimator": "auto",
+             "mean_required_range": math.nan}]
+    means = mean_over_starts(rows, ("comm_period", "estimator"))
+    assert means[0] == {"comm_period": 1.28, "estimator": "persist", "starts": 2,
+                        "mean_required_range": 2.0}
+    assert math.isnan(means[1]["mean_required_range"])
