@@ -38,10 +38,6 @@ COMM_PERIOD_COLUMNS = ("start", "comm_period", "estimator", "mean_required_range
 POSITION_COLUMNS = ("start", "comm_period", "follower", "estimator", "mean_required_range",
                     "rmse", "run")
 JACKSBORO = "jacksboro_fault_dem.npz"
-JACKSBORO_STARTS = ((15_000.0, 9_000.0, 0.0, 8.0), (8_000.0, 20_000.0, 8.0, 0.0),
-                    (22_000.0, 24_000.0, -5.6, -5.6))
-"""Leader starts on the Jacksboro DEM (m, m/s), 8 m/s north, east and south-west, across the
-fault's ridges; each keeps the 10-follower column on the grid at every comm period studied."""
 Start = tuple[float, float, float, float]
 
 
@@ -210,7 +206,7 @@ def draw_terrain_figures(out_dir: Path, dem: str | Path, spec: TerrainSpec,
     from swarm import plots
 
     folder = out_dir / "figures"
-    label = (f"DEM {Path(dem).name}, follower 1, mean over {len(spec.leader_starts)} start(s)")
+    label = f"{Path(dem).name}: follower 1,\nmean over {len(spec.leader_starts)} start(s)"
     comm_rows = [{**r, "surface": label} for r in mean_over_starts(
         read_table(tables["terrain_comm_period"]), ("comm_period", "estimator"))]
     position_rows = mean_over_starts(read_table(tables["terrain_position"]),
@@ -295,6 +291,12 @@ def write_terrain_report(out_dir: Path, dem: str | Path, spec: TerrainSpec,
     if "terrain_position" in figures:
         lines += ["![position](figures/terrain_position.png)", ""]
     lines += _findings(comm_all, position_all, position, spec)
+    retried = [o.run.folder for o in outcomes if o.ok and o.attempts > 1]
+    if retried:
+        lines += [f"{len(retried)} run(s) completed only at a second attempt (the first ended "
+                  "early; see `tables/runs.csv`): " + ", ".join(f"`{r}`" for r in retried)
+                  + ". A run's numbers do not depend on the attempt (same config, same seed).",
+                  ""]
     failed = [o for o in outcomes if not o.ok]
     if failed or problems:
         lines += ["## Problems", ""]
