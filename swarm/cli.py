@@ -11,7 +11,8 @@ from protocol.config import RunConfig, config_from_dict, load_config
 # CLI flag -> (config field, argparse kwargs). Flags left unset do not override the file.
 RUN_FLAGS: dict[str, tuple[str, dict]] = {
     "--surface": ("surface", {"help": "preset (elliptic, hyperbolic, wavy, plane, gaussian-hill, "
-                                      "ripple, hemisphere) or package.module:name"}),
+                                      "ripple, hemisphere), dem:PATH (a DEM raster) or "
+                                      "package.module:name"}),
     "--followers": ("followers", {"type": int}),
     "--comm-period": ("comm_period", {"type": float, "help": "T_c, time between messages"}),
     "--spacing": ("spacing", {"type": float, "help": "rod length d (Riemannian)"}),
