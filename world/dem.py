@@ -78,7 +78,7 @@ def read_dem(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         than 4 × 4 nodes.
     """
     import rasterio
-    from rasterio.errors import RasterioIOError
+    from rasterio.errors import CRSError, RasterioIOError
 
     path = Path(path)
     if not path.is_file():
@@ -117,7 +117,10 @@ def read_dem(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         scale_y = METRES_PER_DEGREE
         scale_x = METRES_PER_DEGREE * math.cos(math.radians(centre_latitude))
     else:
-        unit, factor = crs.linear_units_factor
+        try:
+            unit, factor = crs.units_factor
+        except CRSError:
+            unit, factor = "unknown", math.nan
         if factor != 1.0:
             raise ValueError(f"path {str(path)!r}: CRS {crs.to_string()!r} has linear unit "
                              f"{unit!r}; only metres (or degrees for EPSG:4326) are supported")
