@@ -211,8 +211,9 @@ def plot_effectiveness(run_dir: str | Path, path: str | Path,
                           if r.get(f"{c}_x") is not None])
     low, high = _box(positions, margin=config.spacing, aspect=3.3)
     surface = make_surface(config.surface, config.surface_params)
+    length = "(m)" if isinstance(surface, DemSurface) else LENGTH  # a DEM is in metres
     contours = _surface_contours(ax, surface, low, high)
-    fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {LENGTH}")
+    fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {length}")
     lead = sorted((r for r in rows if r["agent"] == 0), key=lambda r: r["tick"])
     ax.plot([r["pos_x"] for r in lead], [r["pos_y"] for r in lead], "k.-", lw=1, ms=4,
             label="leader")
@@ -225,7 +226,7 @@ def plot_effectiveness(run_dir: str | Path, path: str | Path,
         ax.plot([r["est_x"] for r in est], [r["est_y"] for r in est], "x", color=ESTIMATE_COLOR,
                 ms=5, mew=1.2, label="estimated" if k == 1 else None)
     ax.set(xlim=(low[0], high[0]), ylim=(low[1], high[1]), aspect="equal",
-           xlabel=f"x {LENGTH}", ylabel=f"y {LENGTH}",
+           xlabel=f"x {length}", ylabel=f"y {length}",
            title=f"leader and {config.followers} follower(s) over the "
                  f"{'hillshaded relief' if isinstance(surface, DemSurface) else 'contour lines'}, "
                  f"estimator {_estimator_label(config)}")
@@ -233,7 +234,7 @@ def plot_effectiveness(run_dir: str | Path, path: str | Path,
     for col, k in enumerate(followers):
         rel = leader_relative(rows, k)
         for row, (ideal, est, label, scale) in enumerate((
-                ("r_ideal", "r_est", f"distance {LENGTH}", 1.0),
+                ("r_ideal", "r_est", f"distance {length}", 1.0),
                 ("theta_ideal", "theta_est", "bearing (deg)", 180 / math.pi)), start=1):
             sub = fig.add_subplot(grid[row, col])
             sub.plot(rel["tick"], rel[ideal] * scale, "o-", color=IDEAL_COLOR, ms=3, lw=1,

@@ -350,3 +350,42 @@ def test_mean_over_starts_never_hides_a_failed_run():
     assert means[0] == {"comm_period": 1.28, "estimator": "persist", "starts": 2,
                         "mean_required_range": 2.0}
     assert math.isnan(means[1]["mean_required_range"])
+
+
+def _uneven_grid(seed: int) -> tuple[np.ndarray, np.ndarray, np.random.Generator]:
+    """Node coordinates of a 20 × 16 grid with 0.5–2.5 m spacing, and the generator after."""
+    rng = np.random.default_rng(seed)
+    return (np.concatenate([[0.0], np.cumsum(rng.uniform(0.5, 2.5, 19))]),
+            np.concatenate([[0.0], np.cumsum(rng.uniform(0.5, 2.5, 15))]), rng)
+
+
+@pytest.mark.parametrize("kind", ["steep", "smoothed"])
+def test_rod_ends_on_unseen_terrain_match_the_reference(kind):
+    """Terrain the code was not tuned on, on an uneven 0.5–2.5 m grid: random heights
+    (slopes of several units, interpolated), or a smooth field with noise fitted by a
+    smoothing spline (fewer, uneven knots)."""
+    from bench.bench_dem import make_cases, reference_rod_end
+
+    x, y, rng = _uneven_grid(SEED + 1)
+    if kind == "steep":
+        dem = DemSurface(x, y, 2.0 * rng.normal(size=(16, 20)))
+    else:
+        z = 3.0 * np.sin(x / 4)[None, :] * np.cos(y / 5)[:, None]
+        dem = DemSurface(x, y, z + 0.05 * rng.normal(size=z.shape), smoothing=3.0)
+    for p, heading, n in make_cases(dem, 4, 5.0, SEED):
+        end, _ = rod_end(dem, p, heading, 5.0)
+        reference, _ = reference_rod_end(dem, p, n, 5.0)
+        assert np.max(np.abs(end - reference)) < 1e-8
+
+
+def test_a_failed_smoothing_fit_is_refused():
+    """scipy 1.17 returns unsorted knots for this grid at s = 100 (no B-spline at all)."""
+    from scipy.interpolate import RectBivariateSpline
+
+    x, y, rng = _uneven_grid(SEED + 1)
+    z = 2.0 * rng.normal(size=(16, 20))
+    knots = RectBivariateSpline(y, x, z, s=100.0).tck[:2]
+    if all(np.all(np.diff(t) >= 0) for t in knots):
+        pytest.skip("this scipy fits this grid with sorted knots")
+    with pytest.raises(ValueError, match="smoothing = 100 .* unsorted knots"):
+        DemSurface(x, y, z, smoothing=100.0)

@@ -180,6 +180,12 @@ class DemSurface:
         self.spline = RectBivariateSpline(self.y, self.x, self.z, kx=3, ky=3, s=self.smoothing)
         self.bounds = (float(self.x[0]), float(self.x[-1]), float(self.y[0]), float(self.y[-1]))
         ty, tx = self.spline.tck[0], self.spline.tck[1]
+        if np.any(np.diff(tx) < 0) or np.any(np.diff(ty) < 0):
+            # Seen with scipy 1.17 for some s > 0: FITPACK's smoothing fit hands back an
+            # unsorted knot vector, which is no B-spline (scipy still evaluates it, wildly).
+            raise ValueError(f"smoothing = {self.smoothing:g} on this grid makes scipy's "
+                             "RectBivariateSpline return unsorted knots (a failed FITPACK fit); "
+                             "choose another smoothing, or 0 to interpolate")
         coefficients = np.asarray(self.spline.tck[2], dtype=float)
         params = np.concatenate([[ty.size, tx.size, self.bounds[2], self.bounds[3],
                                   self.bounds[0], self.bounds[1]], ty, tx, coefficients])
