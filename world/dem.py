@@ -461,4 +461,4 @@ def knot_step_shrink(params: np.ndarray, state: np.ndarray, end: np.ndarray) -> 
             shrink = min(shrink, (high + 0.5 * margin - u) / moved)
         elif end[axis] < low - margin:
             shrink = min(shrink, (low - 0.5 * margin - u) / moved)
-    return min(max(shrink, 0.01), 0.99) if shrink < 1.0 else 1.0
+    return min(max(shrink, 0.01), 1.0 - 1e-9) if shrink < 1.0 else 1.0

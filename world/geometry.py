@@ -58,6 +58,7 @@ class SurfaceDomainError(ValueError):
 
 _OK, _LEFT_DOMAIN, _STEP_UNDERFLOW, _STEP_LIMIT = 0, 1, 2, 3
 _STEP_COUNTS = (2, 4, 6, 8, 10, 12)
+_EARLY_ROW = 2  # a cut-short step may stop after rows n = 2, 4, 6 (order 6)
 _TOLERANCE = 1e-12
 _SAFETY, _MIN_FACTOR, _MAX_FACTOR, _OUTSIDE_FACTOR = 0.9, 0.2, 4.0, 0.25
 _MIN_STEP_FRACTION = 1e-12
@@ -201,19 +202,33 @@ def _modified_midpoint(ctx: Context, start: np.ndarray, f_start: np.ndarray, big
 
 
 @register_jitable
-def _extrapolation_step(ctx: Context, start: np.ndarray, f_start: np.ndarray, big_h: float,
-                        table: np.ndarray, previous: np.ndarray, current: np.ndarray,
-                        slope: np.ndarray) -> tuple[bool, float]:
-    """One GBS step; the result is ``table[-1, -1]``, shape (4,).
+def _scaled_error(start: np.ndarray, table: np.ndarray, row: int) -> float:
+    """Error estimate of extrapolation row ``row``: ``|T[row,row] − T[row,row−1]|`` scaled by
+    the mixed tolerance, max over the components."""
+    error = 0.0
+    for i in range(4):
+        scale = _TOLERANCE * (1.0 + max(abs(start[i]), abs(table[row, row, i])))
+        error = max(error, abs(table[row, row, i] - table[row, row - 1, i]) / scale)
+    return error
 
-    ``table[j, k]`` is the Aitken–Neville extrapolant from midpoint rows ``j−k … j``.
-    Returns whether every evaluation was defined and the scaled error estimate.
+
+@register_jitable
+def _extrapolation_step(ctx: Context, start: np.ndarray, f_start: np.ndarray, big_h: float,
+                        early: bool, table: np.ndarray, previous: np.ndarray,
+                        current: np.ndarray, slope: np.ndarray) -> tuple[bool, float, int]:
+    """One GBS step; the result is ``table[row, row]``, shape (4,).
+
+    ``table[j, k]`` is the Aitken–Neville extrapolant from midpoint rows ``j−k … j``. With
+    ``early``, the step stops at the first row ``j >= _EARLY_ROW`` whose error estimate is
+    within tolerance (used for steps the surface cut short, often tiny); otherwise it uses
+    every row. Returns whether every evaluation was defined, the scaled error estimate and
+    the row of the result.
     """
     rows = len(_STEP_COUNTS)
     for j in range(rows):
         n_j = _STEP_COUNTS[j]
         if not _modified_midpoint(ctx, start, f_start, big_h, n_j, previous, current, slope):
-            return False, math.inf
+            return False, math.inf, j
         for i in range(4):
             table[j, 0, i] = current[i]
         for k in range(1, j + 1):
@@ -222,12 +237,10 @@ def _extrapolation_step(ctx: Context, start: np.ndarray, f_start: np.ndarray, bi
             for i in range(4):
                 table[j, k, i] = (table[j, k - 1, i]
                                   + (table[j, k - 1, i] - table[j - 1, k - 1, i]) / denominator)
-    last = rows - 1
-    error = 0.0
-    for i in range(4):
-        scale = _TOLERANCE * (1.0 + max(abs(start[i]), abs(table[last, last, i])))
-        error = max(error, abs(table[last, last, i] - table[last, last - 1, i]) / scale)
-    return math.isfinite(error), error
+        if early and _EARLY_ROW <= j < rows - 1 and _scaled_error(start, table, j) <= 1.0:
+            return True, _scaled_error(start, table, j), j
+    error = _scaled_error(start, table, rows - 1)
+    return math.isfinite(error), error, rows - 1
 
 
 @register_jitable
@@ -247,21 +260,23 @@ def _geodesic_flow(ctx: Context, state: np.ndarray, t: float) -> int:
         return _OK
     exponent = 1.0 / (2 * rows - 1)
     done, big_h = 0.0, t
+    retry = math.inf  # a shorter step the surface asked for after rejecting one
     for _ in range(_MAX_STEPS):
-        step = min(big_h, _step_limit(ctx, state, f_start))
-        limited = step < big_h
+        step = min(big_h, retry, _step_limit(ctx, state, f_start))
+        retry = math.inf
+        cut = step < big_h  # the surface cut this step short (never for presets)
         last = step >= t - done
         if last:
-            step, limited = t - done, False
-        inside, error = _extrapolation_step(ctx, state, f_start, step, table,
-                                            previous, current, slope)
+            step, cut = t - done, False
+        inside, error, row = _extrapolation_step(ctx, state, f_start, step, cut, table,
+                                                 previous, current, slope)
         if inside and error <= 1.0:
-            shrink = _step_shrink(ctx, state, table[rows - 1, rows - 1])
+            shrink = _step_shrink(ctx, state, table[row, row])
             if shrink < 1.0:
-                big_h = step * shrink
+                retry = step * shrink
                 continue
             for i in range(4):
-                state[i] = table[rows - 1, rows - 1, i]
+                state[i] = table[row, row, i]
             if not _rhs(ctx, state, f_end):
                 return _LEFT_DOMAIN
             if last:
@@ -269,8 +284,8 @@ def _geodesic_flow(ctx: Context, state: np.ndarray, t: float) -> int:
             for i in range(4):
                 f_start[i] = f_end[i]
             done += step
-            if limited:
-                continue  # the surface cut this step short: keep the error-controlled size
+            if cut:
+                continue  # keep the error-controlled size for the next step
             if error == 0.0:
                 big_h = step * _MAX_FACTOR
             else:
