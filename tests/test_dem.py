@@ -218,7 +218,7 @@ def test_a_dem_needs_a_leader_start_on_its_grid():
     with pytest.raises(ValueError, match="no default leader start"):
         resolve_with_surface(config)
     config, surface = resolve_with_surface(config.replace(leader_start=(80.0, 8.0, 1.0, 0.0)))
-    with pytest.raises(ValueError, match=r"outside the DEM grid x ∈ \[0, 50\]"):
+    with pytest.raises(ValueError, match=r"\(80, 8\) lies outside the DEM grid x ∈ \[0, 50\]"):
         WorldSim(config, surface)
 
 

@@ -385,7 +385,7 @@ def _gradient_inside(ctx: Context, p: np.ndarray, name: str) -> tuple[float, flo
     if not inside:
         where = (f"the DEM grid {describe_domain(ctx[1])}"
                  if isinstance(ctx, tuple) and ctx[0] == DEM_KIND else "the surface's domain")
-        raise SurfaceDomainError(f"{name} = {tuple(p)} lies outside {where}")
+        raise SurfaceDomainError(f"{name} = ({p[0]:.6g}, {p[1]:.6g}) lies outside {where}")
     return fx, fy
 
 
