@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 
 from protocol.config import RunConfig, write_atomic
-from swarm.experiment import (GridRun, RunOutcome, is_nan, read_table, run_grid, write_run_index,
-                              write_table)
+from swarm.experiment import (ESTIMATORS, GridRun, RunOutcome, is_nan, read_table, run_grid,
+                              write_run_index, write_table)
 
 TERRAIN_ESTIMATORS = ("stay", "persist", "edmd-b", "auto")
 """Estimators the terrain study compares (add classical baselines here by name)."""
@@ -92,10 +92,9 @@ def quick(spec: TerrainSpec) -> TerrainSpec:
 
 
 def estimator_options(name: str) -> dict[str, Any]:
-    """RunConfig options of a study estimator name (``edmd-b``: EDMD, dictionary b)."""
-    if name == "edmd-b":
-        return {"estimator": "edmd", "dictionary": "b"}
-    return {"estimator": name}
+    """RunConfig options of a study estimator name: the paper experiment's (``edmd-b``: EDMD,
+    dictionary b), else the name as ``estimator``."""
+    return dict(ESTIMATORS.get(name, {"estimator": name}))
 
 
 def terrain_grid(dem: str | Path, spec: TerrainSpec) -> list[GridRun]:
