@@ -19,7 +19,8 @@ or estimated none."""
 # CLI flag -> (config field, argparse kwargs). Flags left unset do not override the file.
 RUN_FLAGS: dict[str, tuple[str, dict]] = {
     "--surface": ("surface", {"help": "preset (elliptic, hyperbolic, wavy, plane, gaussian-hill, "
-                                      "ripple, hemisphere) or package.module:name"}),
+                                      "ripple, hemisphere), dem:PATH (a DEM raster) or "
+                                      "package.module:name"}),
     "--followers": ("followers", {"type": int}),
     "--comm-period": ("comm_period", {"type": float, "help": "T_c, time between messages"}),
     "--spacing": ("spacing", {"type": float, "help": "rod length d (Riemannian)"}),
@@ -59,6 +60,9 @@ RUN_FLAGS: dict[str, tuple[str, dict]] = {
 def add_run_flags(p: argparse.ArgumentParser) -> None:
     for flag, (dest, kwargs) in RUN_FLAGS.items():
         p.add_argument(flag, dest=dest, default=None, **kwargs)
+    p.add_argument("--smoothing", type=float, default=None,
+                   help="DEM surfaces: scipy's spline smoothing s (0 = interpolate; TOML: "
+                        "surface_params.smoothing)")
     p.add_argument("--config", help="TOML file with any of the options; flags override it")
 
 
@@ -73,13 +77,23 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
         if value is not None:
             data[dest] = value
     if isinstance(data.get("leader_start"), str):
-        try:
-            data["leader_start"] = tuple(float(x) for x in data["leader_start"].split(","))
-        except ValueError:
-            raise ValueError(f"--leader-start must be X,Y,VX,VY numbers, got {data['leader_start']!r}") from None
+        data["leader_start"] = parse_leader_start(data["leader_start"])
+    if args.smoothing is not None:
+        data["surface_params"] = {**data.get("surface_params", {}), "smoothing": args.smoothing}
     if args.config and args.run_id is None and "run_id" not in _file_keys(args.config):
         data["run_id"] = new_run_id()
     return config_from_dict(data)
+
+
+def parse_leader_start(text: str) -> tuple[float, ...]:
+    """``"X,Y,VX,VY"`` -> four floats (ValueError naming --leader-start otherwise)."""
+    try:
+        values = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 4:
+        raise ValueError(f"--leader-start must be X,Y,VX,VY numbers, got {text!r}")
+    return values
 
 
 def _file_keys(path: str) -> set[str]:
@@ -265,12 +279,19 @@ def _serve(live, conf) -> int:
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
-    """``experiment paper``: the paper's Section 4 grid, tables, figures and report."""
+    """``experiment paper``: the paper's Section 4 grid, tables, figures and report;
+    ``experiment terrain --dem PATH``: the terrain study (:mod:`swarm.terrain`)."""
     from swarm.experiment import FULL, QUICK, run_paper_experiment
 
     if args.workers is not None and args.workers < 1:
         print(f"error: --workers must be at least 1, got {args.workers}", file=sys.stderr)
         return 2
+    if args.name == "terrain":
+        return cmd_terrain(args)
+    if args.dem is not None:
+        print("error: --dem applies only to `experiment terrain`", file=sys.stderr)
+        return 2
+    args.out = args.out or "runs/experiment-paper"
     try:
         result = run_paper_experiment(args.out, QUICK if args.quick else FULL,
                                       workers=args.workers)
@@ -350,6 +371,63 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         return 2
     out = Path(args.out) if args.out else Path("runs") / f"sweep-{name}"
     return _run_sweep_and_print(name, base, axes, out, follower, args.workers)
+def cmd_terrain(args: argparse.Namespace) -> int:
+    """``experiment terrain --dem PATH --leader-start X,Y,VX,VY [--leader-start ...]``."""
+    from swarm.terrain import TerrainSpec, quick, run_terrain_experiment
+
+    if args.dem is None:
+        print("error: experiment terrain needs --dem PATH", file=sys.stderr)
+        return 2
+    if not args.leader_start:
+        print("error: experiment terrain needs --leader-start X,Y,VX,VY (repeat it for several "
+              "starts): a DEM has no preset leader start", file=sys.stderr)
+        return 2
+    try:
+        options = {"leader_starts": tuple(parse_leader_start(s) for s in args.leader_start)}
+        for name in ("spacing", "followers", "ticks", "smoothing"):
+            if getattr(args, name) is not None:
+                options[name] = getattr(args, name)
+        if args.estimators:
+            options["estimators"] = tuple(args.estimators.split(","))
+        if args.comm_periods:
+            options["comm_periods"] = tuple(float(x) for x in args.comm_periods.split(","))
+            options["position_periods"] = tuple(
+                p for p in TerrainSpec.position_periods if p in options["comm_periods"]
+            ) or options["comm_periods"][:1]
+        spec = TerrainSpec(**options)
+        spec = quick(spec) if args.quick else spec
+        result = run_terrain_experiment(args.dem, args.out or "runs/experiment-terrain", spec,
+                                        workers=args.workers)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    for path in result["tables"].values():
+        print(f"table: {path}")
+    for path in result["figures"].values():
+        print(f"figure: {path}")
+    print(f"report: {result['report']}")
+    for name, reason in result["figure_problems"].items():
+        print(f"figure {name} not drawn: {reason}", file=sys.stderr)
+    for outcome in result["failed"]:
+        print(f"FAILED {outcome.run.folder}: {outcome.error}", file=sys.stderr)
+    print(f"wall time {result['wall_time']:.1f} s (runs)")
+    return 1 if result["failed"] else 0
+
+
+def cmd_dem_from_npz(args: argparse.Namespace) -> int:
+    """``dem-from-npz OUT.tif [--npz PATH]``: matplotlib's Jacksboro DEM as a GeoTIFF."""
+    from swarm.terrain import dem_from_npz
+
+    try:
+        path = dem_from_npz(args.out, args.npz)
+    except (ValueError, OSError, KeyError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"dem: {path}")
+    return 0
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
@@ -403,11 +481,23 @@ def build_parser() -> argparse.ArgumentParser:
     add_log_level_flag(run)
     run.set_defaults(func=cmd_run, in_process=False)
     experiment = sub.add_parser("experiment", help="regenerate the paper's tables, figures and report")
-    experiment.add_argument("name", choices=("paper",), help="which experiment")
-    experiment.add_argument("--out", default="runs/experiment-paper",
-                            help="output folder D: D/runs, D/tables, D/figures, D/report.md")
+    experiment.add_argument("name", choices=("paper", "terrain"), help="which experiment")
+    experiment.add_argument("--out", default=None,
+                            help="output folder D: D/runs, D/tables, D/figures, D/report.md "
+                                 "(default runs/experiment-<name>)")
     experiment.add_argument("--quick", action="store_true",
-                            help="reduced grid (one surface, 10 ticks) to check the pipeline")
+                            help="reduced grid to check the pipeline")
+    terrain = experiment.add_argument_group("terrain (experiment terrain only)")
+    terrain.add_argument("--dem", help="DEM raster (GeoTIFF or ESRI ASCII grid)")
+    terrain.add_argument("--leader-start", metavar="X,Y,VX,VY", action="append",
+                         help="leader start on the DEM (m, m/s); required; repeat it to "
+                              "average over several starts")
+    terrain.add_argument("--spacing", type=float, help="rod length (m), default 40")
+    terrain.add_argument("--followers", type=int, help="column length, default 10")
+    terrain.add_argument("--ticks", type=int, help="ticks per run, default 40")
+    terrain.add_argument("--smoothing", type=float, help="spline smoothing s, default 0")
+    terrain.add_argument("--estimators", help="comma-separated, default stay,persist,edmd-b,auto")
+    terrain.add_argument("--comm-periods", help="comma-separated, default 0.32,0.64,1.28,2.56,5.12")
     experiment.add_argument("--workers", type=int, default=None,
                             help="runs in parallel (default min(2, CPU count))")
     experiment.set_defaults(func=cmd_experiment)
@@ -428,6 +518,11 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("--workers", type=int, default=None,
                        help="runs in parallel (default min(2, CPU count))")
     sweep.set_defaults(func=cmd_sweep)
+    dem = sub.add_parser("dem-from-npz", help="write matplotlib's sample DEM (Jacksboro fault, "
+                                              "USGS, public domain) as a GeoTIFF")
+    dem.add_argument("out", metavar="OUT.tif")
+    dem.add_argument("--npz", help="another .npz in the same layout (default: the sample)")
+    dem.set_defaults(func=cmd_dem_from_npz)
     plot = sub.add_parser("plot", help="draw one run's figures into RUN_DIR/figures")
     plot.add_argument("run_dir", metavar="RUN_DIR", help="a results folder of `swarm run`")
     plot.set_defaults(func=cmd_plot)

@@ -21,10 +21,12 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import LightSource
 from matplotlib.figure import Figure
 from matplotlib.ticker import NullLocator
 
 from protocol.config import RunConfig, load_config
+from world.dem import DemSurface
 from world.results import read_ticks
 from world.surfaces import make_surface
 
@@ -145,7 +147,10 @@ def _box(points: np.ndarray, margin: float, aspect: float) -> tuple[np.ndarray, 
 
 
 def _surface_contours(ax, surface, low: np.ndarray, high: np.ndarray):
-    """Contour lines of ``surface`` over the box ``low``..``high`` (NaN outside its domain)."""
+    """Contour lines of ``surface`` over the box ``low``..``high`` (NaN outside its domain);
+    over a DEM, on its hillshaded relief (:func:`terrain_relief`)."""
+    if isinstance(surface, DemSurface):
+        return terrain_relief(ax, surface, low, high)[1]
     xs, ys = np.linspace(low[0], high[0], 160), np.linspace(low[1], high[1], 100)
     contains = getattr(surface, "contains", None)
     z = np.full((ys.size, xs.size), np.nan)
@@ -155,6 +160,33 @@ def _surface_contours(ax, surface, low: np.ndarray, high: np.ndarray):
             if contains is None or contains(p):
                 z[i, j] = surface.height(p)
     return ax.contour(xs, ys, z, levels=14, cmap="viridis", linewidths=0.8, alpha=0.8)
+
+
+def terrain_relief(ax, dem: DemSurface, low: np.ndarray, high: np.ndarray,
+                   samples: int = 400):
+    """Hillshade (matplotlib ``LightSource``, sun from the north-west at 45°) and contour
+    lines of a DEM's spline over the part of the box ``low``..``high`` inside the grid.
+
+    Returns the hillshade image and the contour set.
+    """
+    x0, x1, y0, y1 = dem.bounds
+    left, right = max(low[0], x0), min(high[0], x1)
+    bottom, top = max(low[1], y0), min(high[1], y1)
+    if not (left < right and bottom < top):
+        raise ValueError(f"the box {tuple(low)}–{tuple(high)} does not meet the DEM grid")
+    scale = samples / max(right - left, top - bottom)
+    xs = np.linspace(left, right, max(8, round((right - left) * scale)))
+    ys = np.linspace(bottom, top, max(8, round((top - bottom) * scale)))
+    z = dem.spline(ys, xs)  # (len(ys), len(xs)), row j at ys[j]
+    relief = np.ptp(z) or 1.0
+    # Exaggerate gentle relief so it reads at this scale (an exaggeration, not data).
+    exaggeration = max(1.0, 0.05 * max(right - left, top - bottom) / relief)
+    shade = LightSource(azdeg=315, altdeg=45).hillshade(
+        z, vert_exag=exaggeration, dx=xs[1] - xs[0], dy=ys[1] - ys[0])
+    image = ax.imshow(shade, cmap="gray", origin="lower", extent=(left, right, bottom, top),
+                      vmin=0, vmax=1, alpha=0.75, interpolation="bilinear")
+    contours = ax.contour(xs, ys, z, levels=14, cmap="viridis", linewidths=0.8, alpha=0.9)
+    return image, contours
 
 
 @_styled
@@ -178,8 +210,10 @@ def plot_effectiveness(run_dir: str | Path, path: str | Path,
     positions = np.array([(r[f"{c}_x"], r[f"{c}_y"]) for r in rows for c in ("pos", "ideal")
                           if r.get(f"{c}_x") is not None])
     low, high = _box(positions, margin=config.spacing, aspect=3.3)
-    contours = _surface_contours(ax, make_surface(config.surface, config.surface_params), low, high)
-    fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {LENGTH}")
+    surface = make_surface(config.surface, config.surface_params)
+    length = "(m)" if isinstance(surface, DemSurface) else LENGTH  # a DEM is in metres
+    contours = _surface_contours(ax, surface, low, high)
+    fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {length}")
     lead = sorted((r for r in rows if r["agent"] == 0), key=lambda r: r["tick"])
     ax.plot([r["pos_x"] for r in lead], [r["pos_y"] for r in lead], "k.-", lw=1, ms=4,
             label="leader")
@@ -192,14 +226,15 @@ def plot_effectiveness(run_dir: str | Path, path: str | Path,
         ax.plot([r["est_x"] for r in est], [r["est_y"] for r in est], "x", color=ESTIMATE_COLOR,
                 ms=5, mew=1.2, label="estimated" if k == 1 else None)
     ax.set(xlim=(low[0], high[0]), ylim=(low[1], high[1]), aspect="equal",
-           xlabel=f"x {LENGTH}", ylabel=f"y {LENGTH}",
-           title=f"leader and {config.followers} follower(s) over the contour lines, "
+           xlabel=f"x {length}", ylabel=f"y {length}",
+           title=f"leader and {config.followers} follower(s) over the "
+                 f"{'hillshaded relief' if isinstance(surface, DemSurface) else 'contour lines'}, "
                  f"estimator {_estimator_label(config)}")
     ax.legend(loc="best", framealpha=0.9)
     for col, k in enumerate(followers):
         rel = leader_relative(rows, k)
         for row, (ideal, est, label, scale) in enumerate((
-                ("r_ideal", "r_est", f"distance {LENGTH}", 1.0),
+                ("r_ideal", "r_est", f"distance {length}", 1.0),
                 ("theta_ideal", "theta_est", "bearing (deg)", 180 / math.pi)), start=1):
             sub = fig.add_subplot(grid[row, col])
             sub.plot(rel["tick"], rel[ideal] * scale, "o-", color=IDEAL_COLOR, ms=3, lw=1,
@@ -425,5 +460,28 @@ def plot_comm_period(rows: list[dict], path: str | Path) -> Path:
         ax.xaxis.set_minor_locator(NullLocator())
         ax.set(title=SURFACE_TITLES.get(surface, surface), xlabel="comm period T_c (time units)")
     fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
-    fig.legend(loc="outside lower center", ncol=len(estimators) + 1)
+    fig.legend(loc="outside lower center", ncol=len(estimators) + 1 if len(surfaces) > 1 else 3)
+    return _save(fig, path)
+
+
+@_styled
+def plot_position(rows: list[dict], path: str | Path) -> Path:
+    """Mean required sensing range against the position in the column (follower 1 … N), one
+    panel per comm period, one curve per estimator (log y)."""
+    periods = sorted({r["comm_period"] for r in rows})
+    estimators = list(dict.fromkeys(r["estimator"] for r in rows))
+    fig = _figure(PANEL_WIDTH * len(periods) + 0.6, 4.8)
+    for ax, period in zip(_panels(fig, len(periods), sharey=True), periods):
+        for est in estimators:
+            mine = sorted((r["follower"], r["mean_required_range"]) for r in rows
+                          if r["comm_period"] == period and r["estimator"] == est)
+            color, marker = ESTIMATOR_STYLE.get(est, ("k", "."))
+            ax.plot(*zip(*mine), marker=marker, color=color, ms=5,
+                    label=est if period == periods[0] else None)
+        _log_y(ax)
+        followers = sorted({r["follower"] for r in rows})
+        ax.set_xticks(followers, [str(k) for k in followers])
+        ax.set(title=f"T_c = {period:g}", xlabel="position in the column (follower k)")
+    fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
+    fig.legend(loc="outside lower center", ncol=len(estimators))
     return _save(fig, path)

@@ -13,8 +13,15 @@ Runge–Kutta method of order 12, and the difference between the last two extrap
 10) is the error estimate that adapts ``H`` (mixed tolerance ``1e-12·(1 + |y|)`` per step,
 max norm over ``(x, y, ẋ, ẏ)``). The integrator is written once, as plain Python functions
 marked ``register_jitable``: for the preset surfaces it runs compiled by numba (derivatives
-from :func:`world.surfaces.preset_derivatives`); for any other surface the very same functions
-run as Python, calling the surface's ``gradient``, ``hessian`` and ``contains``.
+from :func:`world.surfaces.preset_derivatives`), and for DEM surfaces too (the B-spline
+evaluated by :func:`world.dem.spline_derivatives`); for any other surface the very same
+functions run as Python, calling the surface's ``gradient``, ``hessian`` and ``contains``.
+
+A DEM's spline is only C² across its knot lines, where the extrapolation's error estimate
+would be misled. The surface may therefore bound each step (:func:`_step_limit`: a step ends
+at most just past the next knot line, predicted to second order) and reject a step that ended
+too far past one (:func:`_step_shrink`, retried shorter); a step cut short this way keeps the
+error-controlled step size for the next one. For other surfaces both are no-ops.
 
 Domain
 ------
@@ -37,10 +44,12 @@ import numpy as np
 from numba.extending import overload, register_jitable
 from numpy.typing import ArrayLike
 
+from world.dem import (DEM_KIND, DemSurface, describe_domain, knot_step_limit, knot_step_shrink,
+                       spline_derivatives)
 from world.surfaces import PRESETS, Surface, preset_derivatives, surface_leader_start
 
 Context = tuple[int, np.ndarray] | Surface
-"""A preset as ``(kind, params)`` (compiled path) or any other surface (Python path)."""
+"""A preset or a DEM as ``(kind, params)`` (compiled path), any other surface (Python path)."""
 
 
 class SurfaceDomainError(ValueError):
@@ -49,18 +58,21 @@ class SurfaceDomainError(ValueError):
 
 _OK, _LEFT_DOMAIN, _STEP_UNDERFLOW, _STEP_LIMIT = 0, 1, 2, 3
 _STEP_COUNTS = (2, 4, 6, 8, 10, 12)
+_EARLY_ROW = 2  # a cut-short step may stop after rows n = 2, 4, 6 (order 6)
 _TOLERANCE = 1e-12
 _SAFETY, _MIN_FACTOR, _MAX_FACTOR, _OUTSIDE_FACTOR = 0.9, 0.2, 4.0, 0.25
 _MIN_STEP_FRACTION = 1e-12
 _MAX_SLOPE_SQUARED = 1e12
 _MAX_STEPS = 100_000
-_PRESET_TYPES = frozenset(PRESETS.values())
+_COMPILED_TYPES = frozenset(PRESETS.values()) | {DemSurface}
 
 
 def _surface_derivatives(ctx: Context, x: float,
                          y: float) -> tuple[bool, float, float, float, float, float]:
     """``(inside, Fx, Fy, Fxx, Fxy, Fyy)`` at ``(x, y)`` for either kind of context."""
     if isinstance(ctx, tuple):
+        if ctx[0] == DEM_KIND:
+            return spline_derivatives(ctx[1], x, y)
         return preset_derivatives(ctx[0], ctx[1], x, y)
     nan = math.nan
     p = np.array([x, y])
@@ -81,9 +93,46 @@ def _surface_derivatives(ctx: Context, x: float,
 # annotations included: the former receives numba types, the latter values, hence ``object``.
 @overload(_surface_derivatives, jit_options={"cache": True})
 def _surface_derivatives_compiled(ctx: object, x: object, y: object) -> Callable[..., tuple]:
-    """Numba's version: in compiled code the context is a preset ``(kind, params)``."""
+    """Numba's version: in compiled code the context is a preset or DEM ``(kind, params)``."""
     def implementation(ctx: object, x: object, y: object) -> tuple:
+        if ctx[0] == DEM_KIND:
+            return spline_derivatives(ctx[1], x, y)
         return preset_derivatives(ctx[0], ctx[1], x, y)
+    return implementation
+
+
+def _step_limit(ctx: Context, state: np.ndarray, rate: np.ndarray) -> float:
+    """Longest step the surface allows from ``state``: a DEM's knot lines, else no limit."""
+    if isinstance(ctx, tuple) and ctx[0] == DEM_KIND:
+        return knot_step_limit(ctx[1], state, rate)
+    return math.inf
+
+
+def _step_shrink(ctx: Context, state: np.ndarray, end: np.ndarray) -> float:
+    """1 if a step from ``state`` to ``end`` is acceptable to the surface, else the fraction to
+    retry it with (a DEM's knot lines, see :func:`world.dem.knot_step_shrink`)."""
+    if isinstance(ctx, tuple) and ctx[0] == DEM_KIND:
+        return knot_step_shrink(ctx[1], state, end)
+    return 1.0
+
+
+@overload(_step_limit, jit_options={"cache": True})
+def _step_limit_compiled(ctx: object, state: object, rate: object) -> Callable[..., float]:
+    """Numba's version of :func:`_step_limit` (the context is always a tuple there)."""
+    def implementation(ctx: object, state: object, rate: object) -> float:
+        if ctx[0] == DEM_KIND:
+            return knot_step_limit(ctx[1], state, rate)
+        return math.inf
+    return implementation
+
+
+@overload(_step_shrink, jit_options={"cache": True})
+def _step_shrink_compiled(ctx: object, state: object, end: object) -> Callable[..., float]:
+    """Numba's version of :func:`_step_shrink`."""
+    def implementation(ctx: object, state: object, end: object) -> float:
+        if ctx[0] == DEM_KIND:
+            return knot_step_shrink(ctx[1], state, end)
+        return 1.0
     return implementation
 
 
@@ -153,19 +202,33 @@ def _modified_midpoint(ctx: Context, start: np.ndarray, f_start: np.ndarray, big
 
 
 @register_jitable
-def _extrapolation_step(ctx: Context, start: np.ndarray, f_start: np.ndarray, big_h: float,
-                        table: np.ndarray, previous: np.ndarray, current: np.ndarray,
-                        slope: np.ndarray) -> tuple[bool, float]:
-    """One GBS step; the result is ``table[-1, -1]``, shape (4,).
+def _scaled_error(start: np.ndarray, table: np.ndarray, row: int) -> float:
+    """Error estimate of extrapolation row ``row``: ``|T[row,row] − T[row,row−1]|`` scaled by
+    the mixed tolerance, max over the components."""
+    error = 0.0
+    for i in range(4):
+        scale = _TOLERANCE * (1.0 + max(abs(start[i]), abs(table[row, row, i])))
+        error = max(error, abs(table[row, row, i] - table[row, row - 1, i]) / scale)
+    return error
 
-    ``table[j, k]`` is the Aitken–Neville extrapolant from midpoint rows ``j−k … j``.
-    Returns whether every evaluation was defined and the scaled error estimate.
+
+@register_jitable
+def _extrapolation_step(ctx: Context, start: np.ndarray, f_start: np.ndarray, big_h: float,
+                        early: bool, table: np.ndarray, previous: np.ndarray,
+                        current: np.ndarray, slope: np.ndarray) -> tuple[bool, float, int]:
+    """One GBS step; the result is ``table[row, row]``, shape (4,).
+
+    ``table[j, k]`` is the Aitken–Neville extrapolant from midpoint rows ``j−k … j``. With
+    ``early``, the step stops at the first row ``j >= _EARLY_ROW`` whose error estimate is
+    within tolerance (used for steps the surface cut short, often tiny); otherwise it uses
+    every row. Returns whether every evaluation was defined, the scaled error estimate and
+    the row of the result.
     """
     rows = len(_STEP_COUNTS)
     for j in range(rows):
         n_j = _STEP_COUNTS[j]
         if not _modified_midpoint(ctx, start, f_start, big_h, n_j, previous, current, slope):
-            return False, math.inf
+            return False, math.inf, j
         for i in range(4):
             table[j, 0, i] = current[i]
         for k in range(1, j + 1):
@@ -174,12 +237,10 @@ def _extrapolation_step(ctx: Context, start: np.ndarray, f_start: np.ndarray, bi
             for i in range(4):
                 table[j, k, i] = (table[j, k - 1, i]
                                   + (table[j, k - 1, i] - table[j - 1, k - 1, i]) / denominator)
-    last = rows - 1
-    error = 0.0
-    for i in range(4):
-        scale = _TOLERANCE * (1.0 + max(abs(start[i]), abs(table[last, last, i])))
-        error = max(error, abs(table[last, last, i] - table[last, last - 1, i]) / scale)
-    return math.isfinite(error), error
+        if early and _EARLY_ROW <= j < rows - 1 and _scaled_error(start, table, j) <= 1.0:
+            return True, _scaled_error(start, table, j), j
+    error = _scaled_error(start, table, rows - 1)
+    return math.isfinite(error), error, rows - 1
 
 
 @register_jitable
@@ -199,31 +260,41 @@ def _geodesic_flow(ctx: Context, state: np.ndarray, t: float) -> int:
         return _OK
     exponent = 1.0 / (2 * rows - 1)
     done, big_h = 0.0, t
+    retry = math.inf  # a shorter step the surface asked for after rejecting one
     for _ in range(_MAX_STEPS):
-        last = big_h >= t - done
+        step = min(big_h, retry, _step_limit(ctx, state, f_start))
+        retry = math.inf
+        cut = step < big_h  # the surface cut this step short (never for presets)
+        last = step >= t - done
         if last:
-            big_h = t - done
-        inside, error = _extrapolation_step(ctx, state, f_start, big_h, table,
-                                            previous, current, slope)
+            step, cut = t - done, False
+        inside, error, row = _extrapolation_step(ctx, state, f_start, step, cut, table,
+                                                 previous, current, slope)
         if inside and error <= 1.0:
+            shrink = _step_shrink(ctx, state, table[row, row])
+            if shrink < 1.0:
+                retry = step * shrink
+                continue
             for i in range(4):
-                state[i] = table[rows - 1, rows - 1, i]
+                state[i] = table[row, row, i]
             if not _rhs(ctx, state, f_end):
                 return _LEFT_DOMAIN
             if last:
                 return _OK
             for i in range(4):
                 f_start[i] = f_end[i]
-            done += big_h
+            done += step
+            if cut:
+                continue  # keep the error-controlled size for the next step
             if error == 0.0:
-                big_h *= _MAX_FACTOR
+                big_h = step * _MAX_FACTOR
             else:
-                big_h *= min(_MAX_FACTOR, _SAFETY * error ** -exponent)
+                big_h = step * min(_MAX_FACTOR, _SAFETY * error ** -exponent)
         else:
             if inside:
-                big_h *= max(_MIN_FACTOR, _SAFETY * error ** -exponent)
+                big_h = step * max(_MIN_FACTOR, _SAFETY * error ** -exponent)
             else:
-                big_h *= _OUTSIDE_FACTOR
+                big_h = step * _OUTSIDE_FACTOR
             if big_h < _MIN_STEP_FRACTION * t:
                 return _STEP_UNDERFLOW if inside else _LEFT_DOMAIN
     return _STEP_LIMIT
@@ -243,8 +314,8 @@ _integrate_state_compiled = numba.njit(cache=True)(_integrate_state)
 
 
 def _context(surface: Surface) -> Context:
-    """``(kind, params)`` for an exact preset type, else the surface itself (Python path)."""
-    if type(surface) in _PRESET_TYPES:
+    """``(kind, params)`` for an exact preset or DEM type, else the surface itself (Python path)."""
+    if type(surface) in _COMPILED_TYPES:
         return surface.kind, surface.params
     if isinstance(surface, type) or not isinstance(surface, Surface):
         raise ValueError(f"surface must have height, gradient and hessian methods, "
@@ -312,7 +383,9 @@ def _flow(ctx: Context, p: np.ndarray, v: np.ndarray, t: float,
 def _gradient_inside(ctx: Context, p: np.ndarray, name: str) -> tuple[float, float]:
     inside, fx, fy, _, _, _ = _surface_derivatives(ctx, float(p[0]), float(p[1]))
     if not inside:
-        raise SurfaceDomainError(f"{name} = {tuple(p)} lies outside the surface's domain")
+        where = (f"the DEM grid {describe_domain(ctx[1])}"
+                 if isinstance(ctx, tuple) and ctx[0] == DEM_KIND else "the surface's domain")
+        raise SurfaceDomainError(f"{name} = ({p[0]:.6g}, {p[1]:.6g}) lies outside {where}")
     return fx, fy
 
 

@@ -19,6 +19,9 @@ through :func:`make_surface`):
 - ``ripple`` (held out): ``A·sin(k·sqrt(x² + y² + ε))``; ``amplitude = 1.5``,
   ``wavenumber = 0.25``, ``epsilon = 1``
 - ``hemisphere``: ``sqrt(R² − x² − y²)`` on the open disc ``x² + y² < R²``; ``radius = 20``
+
+Real terrain: ``dem:PATH`` loads a digital elevation model (:mod:`world.dem`; parameter
+``smoothing = 0``).
 """
 from __future__ import annotations
 
@@ -358,11 +361,12 @@ def make_surface(name: str, params: Mapping[str, Any] | None = None) -> Surface:
     Parameters
     ----------
     name : str
-        A key of :data:`PRESETS`, or ``"package.module:attr"`` naming a Surface object or a
-        zero-argument callable (e.g. a class) returning one. Only the world imports it.
+        A key of :data:`PRESETS`, ``"dem:PATH"`` (a DEM raster, :mod:`world.dem`), or
+        ``"package.module:attr"`` naming a Surface object or a zero-argument callable (e.g. a
+        class) returning one. Only the world imports it.
     params : mapping of str to float, optional
-        Keyword parameters of the preset (see the module table). Not allowed with a
-        ``module:attr`` reference.
+        Keyword parameters of the preset (see the module table), or ``smoothing`` for a DEM.
+        Not allowed with a ``module:attr`` reference.
 
     Returns
     -------
@@ -372,11 +376,16 @@ def make_surface(name: str, params: Mapping[str, Any] | None = None) -> Surface:
     ------
     ValueError
         Unknown preset, unknown or invalid parameters, a module that cannot be imported, a
-        missing attribute, or an object that is not a surface.
+        missing attribute, an object that is not a surface, or a DEM that cannot be used
+        (see :func:`world.dem.read_dem`).
     """
     if not isinstance(name, str) or not name:
         raise ValueError(f"name must be a preset name or 'package.module:attr', got {name!r}")
     params = dict(params or {})
+    if name.startswith("dem:"):
+        from world.dem import make_dem_surface
+
+        return make_dem_surface(name, params)
     if ":" in name:
         if params:
             raise ValueError(f"params apply only to presets, not to the custom surface {name!r}")

@@ -1,0 +1,403 @@
+"""Real terrain: ``python -m swarm experiment terrain --dem PATH`` and the DEM helpers it needs.
+
+The experiment runs the column over a DEM (:mod:`world.dem`) through the paper experiment's
+grid runner (:func:`swarm.experiment.run_grid`: every run over Zenoh, world as embedded
+router) and writes, into ``D``:
+
+- ``tables/terrain_comm_period.csv``: follower 1's mean required sensing range per comm period
+  and estimator;
+- ``tables/terrain_position.csv``: the same per position in the column (followers 1 … N) at
+  the comm periods of :attr:`TerrainSpec.position_periods`;
+- ``tables/runs.csv``; ``figures/terrain_comm_period.png``, ``figures/terrain_position.png``,
+  ``figures/terrain_trajectories.png`` (the column over the hillshaded relief); ``report.md``,
+  whose numbers are read back from the tables.
+
+Estimators are names in :data:`TERRAIN_ESTIMATORS` (``edmd-b`` is the paper's EDMD with
+dictionary b; any other name is passed as ``--estimator``), so adding one is one line.
+
+``python -m swarm dem-from-npz OUT.tif`` writes matplotlib's sample DEM (USGS, Jacksboro
+fault, Tennessee; public domain) as a GeoTIFF, the DEM of the committed study.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from protocol.config import RunConfig, write_atomic
+from swarm.experiment import (ESTIMATORS, GridRun, RunOutcome, is_nan, read_table, run_grid,
+                              write_run_index, write_table)
+
+TERRAIN_ESTIMATORS = ("stay", "persist", "edmd-b", "cv", "kalman", "arx", "gp", "auto")
+"""Estimators the terrain study compares (add classical baselines here by name)."""
+COMM_PERIOD_COLUMNS = ("start", "comm_period", "estimator", "mean_required_range", "rmse", "run")
+POSITION_COLUMNS = ("start", "comm_period", "follower", "estimator", "mean_required_range",
+                    "rmse", "run")
+JACKSBORO = "jacksboro_fault_dem.npz"
+Start = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class TerrainSpec:
+    """Sizes of the terrain study. Lengths in metres, times in seconds.
+
+    ``leader_starts``, one or more (x, y, vx, vy), are required: a DEM has no preset start.
+    Every start runs the whole grid; tables keep each start, figures and the report average
+    over them.
+    """
+
+    leader_starts: tuple[Start, ...]
+    estimators: tuple[str, ...] = TERRAIN_ESTIMATORS
+    comm_periods: tuple[float, ...] = (0.32, 0.64, 1.28, 2.56, 5.12)
+    position_periods: tuple[float, ...] = (1.28, 5.12)
+    followers: int = 10
+    spacing: float = 40.0
+    ticks: int = 40
+    smoothing: float = 0.0
+
+    def __post_init__(self) -> None:
+        starts = []
+        for start in self.leader_starts:
+            values = tuple(float(v) for v in start)
+            if len(values) != 4 or not all(math.isfinite(v) for v in values):
+                raise ValueError(f"leader_starts must hold four finite numbers X,Y,VX,VY each, "
+                                 f"got {start!r}")
+            starts.append(values)
+        if not starts:
+            raise ValueError("leader_starts must hold at least one start: a DEM has no preset "
+                             "leader start")
+        object.__setattr__(self, "leader_starts", tuple(starts))
+        if not self.estimators:
+            raise ValueError("estimators must name at least one estimator")
+        if not self.comm_periods:
+            raise ValueError("comm_periods must hold at least one comm period")
+        missing = sorted(set(self.position_periods) - set(self.comm_periods))
+        if missing:
+            raise ValueError(f"position_periods {missing} must be among comm_periods")
+
+
+QUICK_TICKS, QUICK_FOLLOWERS = 8, 2
+
+
+def quick(spec: TerrainSpec) -> TerrainSpec:
+    """A reduced study to check the pipeline: the first start, two comm periods, 2 followers,
+    8 ticks."""
+    periods = spec.comm_periods[:2]
+    return TerrainSpec(spec.leader_starts[:1], spec.estimators, periods, periods[:1],
+                       QUICK_FOLLOWERS, spec.spacing, QUICK_TICKS, spec.smoothing)
+
+
+def estimator_options(name: str) -> dict[str, Any]:
+    """RunConfig options of a study estimator name: the paper experiment's (``edmd-b``: EDMD,
+    dictionary b), else the name as ``estimator``."""
+    return dict(ESTIMATORS.get(name, {"estimator": name}))
+
+
+def terrain_grid(dem: str | Path, spec: TerrainSpec) -> list[GridRun]:
+    """One run per leader start, comm period and estimator, each with ``spec.followers``
+    followers.
+
+    Follower 1 of every run gives the comm-period table; every follower of the runs at
+    ``spec.position_periods`` gives the position table (follower ``k`` depends only on the
+    agents ahead of it, so one run serves both).
+    """
+    base = RunConfig(surface=f"dem:{Path(dem).resolve()}", followers=spec.followers,
+                     spacing=spec.spacing, ticks=spec.ticks,
+                     surface_params={"smoothing": spec.smoothing} if spec.smoothing else {})
+    runs = []
+    for index, start in enumerate(spec.leader_starts):
+        for period in spec.comm_periods:
+            for name in spec.estimators:
+                run_name = f"start{index}-tc{period:g}-{name}"
+                config = base.replace(run_id=f"terrain-{run_name}", leader_start=start,
+                                      comm_period=period, **estimator_options(name))
+                runs.append(GridRun("terrain", run_name, config,
+                                    {"start": index, "comm_period": period, "estimator": name}))
+    return runs
+
+
+def table_rows(outcomes: list[RunOutcome], followers: range) -> list[dict]:
+    """Rows per run and follower in ``followers`` (NaN metrics for a failed run)."""
+    rows = []
+    for outcome in outcomes:
+        for k in followers:
+            stats = outcome.summary["followers"][str(k)] if outcome.ok else {}
+            rows.append({**outcome.run.labels, "follower": k,
+                         "mean_required_range": _number(stats.get("mean_required_range")),
+                         "rmse": _number(stats.get("rmse")), "run": outcome.run.folder})
+    return rows
+
+
+def mean_over_starts(rows: list[dict], keys: tuple[str, ...]) -> list[dict]:
+    """One row per value of ``keys`` with ``mean_required_range`` averaged over the starts
+    (NaN if any start's run failed, so a gap is never hidden by the other starts)."""
+    cells: dict[tuple, list[float]] = {}
+    for row in rows:
+        cells.setdefault(tuple(row[k] for k in keys), []).append(row["mean_required_range"])
+    return [{**dict(zip(keys, key)), "starts": len(values),
+             "mean_required_range": math.nan if any(is_nan(v) for v in values)
+             else sum(values) / len(values)}
+            for key, values in cells.items()]
+
+
+def _validate_starts(dem: str | Path, runs: list[GridRun]) -> None:
+    """Fail before any run if the DEM cannot be used or a leader start is not on it."""
+    from world.main import resolve_with_surface
+    from world.sim import WorldSim
+
+    seen = set()
+    for run in runs:
+        if run.config.leader_start in seen:
+            continue
+        seen.add(run.config.leader_start)
+        config, surface = resolve_with_surface(run.config)
+        try:
+            WorldSim(config, surface)
+        except ValueError as exc:
+            raise ValueError(f"leader start {config.leader_start} on {dem}: {exc}") from None
+
+
+def run_terrain_experiment(dem: str | Path, out_dir: str | Path, spec: TerrainSpec,
+                           workers: int | None = None, progress: bool = True) -> dict:
+    """Run the terrain study of ``spec`` on ``dem`` into ``out_dir`` (see the module docstring).
+
+    Raises ValueError before any run if the DEM cannot be used or a leader start is not on
+    it. Returns ``tables``, ``figures``, ``figure_problems``, ``report``, ``failed`` and
+    ``wall_time`` (s), like :func:`swarm.experiment.run_paper_experiment`.
+    """
+    out_dir = Path(out_dir)
+    runs = terrain_grid(dem, spec)
+    _validate_starts(dem, runs)
+    start = time.perf_counter()
+    outcomes = run_grid(runs, out_dir / "runs", workers=workers, progress=progress)
+    wall_time = time.perf_counter() - start
+    tables = {"terrain_comm_period": out_dir / "tables" / "terrain_comm_period.csv",
+              "terrain_position": out_dir / "tables" / "terrain_position.csv"}
+    write_table(tables["terrain_comm_period"], COMM_PERIOD_COLUMNS,
+                table_rows(outcomes, range(1, 2)))
+    write_table(tables["terrain_position"], POSITION_COLUMNS,
+                table_rows([o for o in outcomes
+                            if o.run.labels["comm_period"] in spec.position_periods],
+                           range(1, spec.followers + 1)))
+    write_run_index(out_dir / "tables" / "runs.csv", outcomes)
+    figures, problems = draw_terrain_figures(out_dir, dem, spec, tables)
+    report = write_terrain_report(out_dir, dem, spec, tables, figures, problems, outcomes,
+                                  wall_time)
+    return {"tables": tables, "figures": figures, "figure_problems": problems, "report": report,
+            "failed": [o for o in outcomes if not o.ok], "wall_time": wall_time}
+
+
+def trajectory_run(out_dir: Path, spec: TerrainSpec) -> Path:
+    """The run whose column the trajectory figure shows: the first start, EDMD-b (else the
+    first estimator), the first position comm period."""
+    name = "edmd-b" if "edmd-b" in spec.estimators else spec.estimators[0]
+    period = (spec.position_periods or spec.comm_periods)[0]
+    return out_dir / "runs" / "terrain" / f"start0-tc{period:g}-{name}"
+
+
+def draw_terrain_figures(out_dir: Path, dem: str | Path, spec: TerrainSpec,
+                         tables: dict[str, Path]) -> tuple[dict[str, Path], dict[str, str]]:
+    """The study's three figures; a figure that cannot be drawn is named with the reason."""
+    from swarm import plots
+
+    folder = out_dir / "figures"
+    label = f"{Path(dem).name}: follower 1,\nmean over {len(spec.leader_starts)} start(s)"
+    comm_rows = [{**r, "surface": label} for r in mean_over_starts(
+        read_table(tables["terrain_comm_period"]), ("comm_period", "estimator"))]
+    position_rows = mean_over_starts(read_table(tables["terrain_position"]),
+                                     ("comm_period", "follower", "estimator"))
+    jobs = {
+        "terrain_trajectories": lambda: plots.plot_effectiveness(
+            trajectory_run(out_dir, spec), folder / "terrain_trajectories.png",
+            title="Column over real terrain (hillshade and contour lines of the DEM)"),
+        "terrain_comm_period": lambda: plots.plot_comm_period(
+            comm_rows, folder / "terrain_comm_period.png"),
+        "terrain_position": lambda: plots.plot_position(
+            position_rows, folder / "terrain_position.png"),
+    }
+    drawn, problems = {}, {}
+    for name, job in jobs.items():
+        try:
+            drawn[name] = job()
+        except (ValueError, KeyError, IndexError, OSError) as exc:  # e.g. a failed run's files
+            problems[name] = f"{type(exc).__name__}: {exc}"
+    return drawn, problems
+
+
+def _best(rows: list[dict], **keys: Any) -> str:
+    """The estimator with the lowest mean required range among the rows matching ``keys``."""
+    mine = [r for r in rows if all(r[k] == v for k, v in keys.items())
+            and not is_nan(r["mean_required_range"])]
+    return min(mine, key=lambda r: r["mean_required_range"])["estimator"] if mine else "n/a"
+
+
+def _cell(rows: list[dict], **keys: Any) -> float:
+    return next((r["mean_required_range"] for r in rows
+                 if all(r[k] == v for k, v in keys.items())), math.nan)
+
+
+def _fmt(x: float) -> str:
+    return "n/a" if is_nan(x) else f"{x:.3g}"
+
+
+def _markdown_table(head: list[str], rows: list[list[str]]) -> list[str]:
+    return (["| " + " | ".join(head) + " |", "| --- " * len(head) + "|"]
+            + ["| " + " | ".join(row) + " |" for row in rows] + [""])
+
+
+def write_terrain_report(out_dir: Path, dem: str | Path, spec: TerrainSpec,
+                         tables: dict[str, Path], figures: dict[str, Path],
+                         problems: dict[str, str], outcomes: list[RunOutcome],
+                         wall_time: float) -> Path:
+    """``out_dir/report.md``: the figures, the tables (means over the starts) as markdown and
+    what they show."""
+    comm_all = read_table(tables["terrain_comm_period"])
+    position_all = read_table(tables["terrain_position"])
+    comm = mean_over_starts(comm_all, ("comm_period", "estimator"))
+    position = mean_over_starts(position_all, ("comm_period", "follower", "estimator"))
+    names = list(spec.estimators)
+    starts = "; ".join(f"{i}: {s}" for i, s in enumerate(spec.leader_starts))
+    lines = [
+        "# Formation keeping on real terrain", "",
+        f"DEM `{Path(dem).name}`; leader starts (x, y, vx, vy in m, m/s) {starts}; rod length "
+        f"{spec.spacing:g} m; {spec.ticks} ticks (4 initial); {spec.followers} followers; "
+        f"smoothing {spec.smoothing:g}. {len(outcomes)} runs over Zenoh in {wall_time:.0f} s. "
+        "Numbers: mean required sensing range (m), averaged over the leader starts, read from "
+        "`tables/` (which keep every start).", "",
+    ]
+    if "terrain_trajectories" in figures:
+        lines += ["![trajectories](figures/terrain_trajectories.png)", "",
+                  "Start 0: the leader's path and the followers' ideal (red) and estimated "
+                  "(blue) positions over the hillshaded DEM with contour lines (EDMD-b).", ""]
+    lines += ["## Against the comm period (follower 1)", ""]
+    if "terrain_comm_period" in figures:
+        lines += ["![comm period](figures/terrain_comm_period.png)", ""]
+    lines += _markdown_table(
+        ["T_c (s)", *names, "best"],
+        [[f"{p:g}", *(_fmt(_cell(comm, comm_period=p, estimator=n)) for n in names),
+          _best(comm, comm_period=p)] for p in spec.comm_periods])
+    for period in spec.position_periods:
+        lines += [f"## Along the column at T_c = {period:g} s", ""]
+        lines += _markdown_table(
+            ["follower", *names, "best"],
+            [[str(k), *(_fmt(_cell(position, comm_period=period, follower=k, estimator=n))
+                        for n in names), _best(position, comm_period=period, follower=k)]
+             for k in range(1, spec.followers + 1)])
+    if "terrain_position" in figures:
+        lines += ["![position](figures/terrain_position.png)", ""]
+    lines += _findings(comm_all, position_all, position, spec)
+    retried = [o.run.folder for o in outcomes if o.ok and o.attempts > 1]
+    if retried:
+        lines += [f"{len(retried)} run(s) completed only at a second attempt (the first ended "
+                  "early; see `tables/runs.csv`): " + ", ".join(f"`{r}`" for r in retried)
+                  + ". A run's numbers do not depend on the attempt (same config, same seed).",
+                  ""]
+    failed = [o for o in outcomes if not o.ok]
+    if failed or problems:
+        lines += ["## Problems", ""]
+        lines += [f"- run `{o.run.folder}` failed: {o.error}" for o in failed]
+        lines += [f"- figure `{name}` not drawn: {why}" for name, why in problems.items()]
+        lines.append("")
+    path = out_dir / "report.md"
+    write_atomic(path, "\n".join(lines))
+    return path
+
+
+def _findings(comm_all: list[dict], position_all: list[dict], position: list[dict],
+              spec: TerrainSpec) -> list[str]:
+    """Sentences computed from the tables: who wins where (per start and comm period, and per
+    position), and how the required range changes down the column."""
+    out = ["## What the numbers say", ""]
+    cells = [(i, p) for i in range(len(spec.leader_starts)) for p in spec.comm_periods]
+    wins: dict[str, int] = {}
+    for i, p in cells:
+        best = _best(comm_all, start=i, comm_period=p)
+        wins[best] = wins.get(best, 0) + 1
+    out.append(f"- Lowest required range for follower 1, over {len(cells)} (start, comm period) "
+               "cells: " + ", ".join(f"{name} in {count}" for name, count in
+                                     sorted(wins.items(), key=lambda kv: -kv[1])) + ".")
+    if {"edmd-b", "persist"} <= set(spec.estimators):
+        for p in spec.comm_periods:
+            ratios = [_cell(comm_all, start=i, comm_period=p, estimator="edmd-b")
+                      / _cell(comm_all, start=i, comm_period=p, estimator="persist")
+                      for i in range(len(spec.leader_starts))]
+            out.append(f"- T_c = {p:g} s: EDMD-b / persist for follower 1 per start: "
+                       + ", ".join(_fmt(r) for r in ratios)
+                       + f" (EDMD-b better in {sum(r < 1 for r in ratios)} of {len(ratios)}).")
+    for period in spec.position_periods:
+        growth = [f"{n} {_fmt(_cell(position, comm_period=period, follower=1, estimator=n))} → "
+                  f"{_fmt(_cell(position, comm_period=period, follower=spec.followers, estimator=n))}"
+                  for n in spec.estimators]
+        winners: dict[str, int] = {}
+        for i in range(len(spec.leader_starts)):
+            for k in range(1, spec.followers + 1):
+                best = _best(position_all, start=i, comm_period=period, follower=k)
+                winners[best] = winners.get(best, 0) + 1
+        total = len(spec.leader_starts) * spec.followers
+        out.append(f"- At T_c = {period:g} s, follower 1 → follower {spec.followers} (mean over "
+                   "starts): " + "; ".join(growth) + ". Best per (start, position): "
+                   + ", ".join(f"{n} {c}/{total}" for n, c in winners.items()) + ".")
+    out.append("")
+    return out
+
+
+def _number(value: Any) -> float:
+    return math.nan if value is None else float(value)
+
+
+# --- DEM files ---------------------------------------------------------------------------------
+
+def write_geotiff(path: str | Path, heights: np.ndarray, *, west: float, south: float,
+                  cell_x: float, cell_y: float, crs: str | None) -> Path:
+    """Write ``heights`` (shape (rows, cols), **south row first**) as a one-band GeoTIFF.
+
+    Parameters
+    ----------
+    west, south : float
+        Outer edges of the grid in the CRS's units.
+    cell_x, cell_y : float
+        Cell size (> 0) in the CRS's units.
+    crs : str or None
+        E.g. ``"EPSG:4326"``; None writes no CRS.
+    """
+    import rasterio
+    from rasterio.transform import Affine
+
+    z = np.asarray(heights)
+    if z.ndim != 2:
+        raise ValueError(f"heights must be 2-D (rows, cols), got shape {z.shape}")
+    if not (cell_x > 0 and cell_y > 0):
+        raise ValueError(f"cell_x and cell_y must be > 0, got {cell_x!r}, {cell_y!r}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    north = south + cell_y * z.shape[0]
+    with rasterio.open(path, "w", driver="GTiff", width=z.shape[1], height=z.shape[0], count=1,
+                       dtype=z.dtype, crs=crs,
+                       transform=Affine(cell_x, 0.0, west, 0.0, -cell_y, north)) as dst:
+        dst.write(z[::-1], 1)
+    return path
+
+
+def dem_from_npz(out: str | Path, npz: str | Path | None = None) -> Path:
+    """Write matplotlib's Jacksboro sample DEM (or ``npz`` in the same layout) as a GeoTIFF.
+
+    The archive holds ``elevation`` (rows, cols; north row first; metres) and the grid's outer
+    edges in degrees (``xmin``, ``xmax``; ``ymin`` is its **northern** edge, ``ymax`` the
+    southern one) with cell sizes ``dx``, ``dy``; the GeoTIFF is EPSG:4326.
+    """
+    import matplotlib.cbook
+
+    data = (np.load(npz) if npz is not None
+            else matplotlib.cbook.get_sample_data(JACKSBORO))
+    elevation = np.asarray(data["elevation"])
+    north, south = max(data["ymin"], data["ymax"]), min(data["ymin"], data["ymax"])
+    rows, cols = elevation.shape
+    if not (math.isclose(north - south, rows * data["dy"], rel_tol=1e-6)
+            and math.isclose(data["xmax"] - data["xmin"], cols * data["dx"], rel_tol=1e-6)):
+        raise ValueError("npz: the grid's edges do not match its size and cell size")
+    return write_geotiff(out, elevation[::-1], west=float(data["xmin"]), south=float(south),
+                         cell_x=float(data["dx"]), cell_y=float(data["dy"]), crs="EPSG:4326")
