@@ -59,14 +59,17 @@ def run_local(config: RunConfig, out_dir: str | Path | None = None,
     recorder = RunRecorder(out_dir, config)
     if out_dir is not None:
         recorder.open()
+    rows: list[dict] = []
     for tick in range(config.ticks):
         observations = []
         sim.start_tick(tick)
         sim.drive(0, tick, sim.time_of(tick))
         for k, (link, policy) in enumerate(zip(links, policies), start=1):
             observations.append((k, follower_tick(link, policy, settings, tick).observation))
-        recorder.add_tick(sim.finish_tick(), observations)
+        tick_rows = sim.finish_tick()
+        rows.extend(tick_rows)
+        recorder.add_tick(tick_rows, observations)
     if out_dir is not None:
         recorder.write_summary(complete=True)
         recorder.close()
-    return recorder.summary(complete=True), recorder.rows
+    return recorder.summary(complete=True), rows

@@ -29,8 +29,9 @@ from typing import Any
 import numpy as np
 
 from protocol.config import RunConfig, write_atomic
-from swarm.experiment import (ESTIMATORS, GridRun, RunOutcome, is_nan, read_table, run_grid,
+from swarm.experiment import (GridRun, RunOutcome, is_nan, read_table, run_grid,
                               write_run_index, write_table)
+from swarm.grid import estimator_options
 
 TERRAIN_ESTIMATORS = ("stay", "persist", "edmd-b", "cv", "kalman", "arx", "gp", "auto")
 """Estimators the terrain study compares (add classical baselines here by name)."""
@@ -89,12 +90,6 @@ def quick(spec: TerrainSpec) -> TerrainSpec:
     periods = spec.comm_periods[:2]
     return TerrainSpec(spec.leader_starts[:1], spec.estimators, periods, periods[:1],
                        QUICK_FOLLOWERS, spec.spacing, QUICK_TICKS, spec.smoothing)
-
-
-def estimator_options(name: str) -> dict[str, Any]:
-    """RunConfig options of a study estimator name: the paper experiment's (``edmd-b``: EDMD,
-    dictionary b), else the name as ``estimator``."""
-    return dict(ESTIMATORS.get(name, {"estimator": name}))
 
 
 def terrain_grid(dem: str | Path, spec: TerrainSpec) -> list[GridRun]:

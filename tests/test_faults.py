@@ -18,7 +18,7 @@ from protocol import keys
 from protocol.config import RunConfig, dump_config
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.launch import agent_commands, launch
-from world.results import read_observations, read_ticks
+from world.results import read_ticks
 
 ROOT = Path(__file__).resolve().parents[1]
 

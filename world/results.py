@@ -113,13 +113,12 @@ class RunRecorder:
     lengths after the last complete tick: the world's checkpoint stores them, and
     ``open(resume_offsets=...)`` cuts off whatever a crash left past them (a half-written or
     unconfirmed tick), then reads the kept rows back for the summary's totals. Without a folder
-    (``out_dir=None``, the in-memory layout) the rows are kept in :attr:`rows`.
+    (``out_dir=None``) only the totals are kept.
     """
 
     def __init__(self, out_dir: str | Path | None, config: RunConfig) -> None:
         self.out_dir = None if out_dir is None else Path(out_dir)
         self.config = config
-        self.rows: list[dict] = []
         self.ticks_done = 0
         self._metrics = {k: _FollowerMetrics() for k in range(1, config.followers + 1)}
         self._files: dict[str, io.TextIOBase] = {}
@@ -180,7 +179,6 @@ class RunRecorder:
         for row in obs_rows:
             self._count_observation(row)
         if self.out_dir is None:
-            self.rows.extend(rows)
             return
         ticks, obs = self._files[TICKS_FILE], self._files[OBS_FILE]
         ticks.write("".join(_line(TICK_COLUMNS, row) for row in rows))
