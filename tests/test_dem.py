@@ -14,8 +14,7 @@ from swarm.terrain import write_geotiff
 from tests.make_dem_data import (HILLS, HILLS_CELL, HILLS_CRS, HILLS_LEADER_START, HILLS_SHAPE,
                                  hills_function, hills_heights)
 from world.dem import METRES_PER_DEGREE, DemSurface, load_dem, spline_surface
-from world.geometry import (SurfaceDomainError, ideal_formation, integrate_geodesic, rod_end,
-                            rod_normal)
+from world.geometry import SurfaceDomainError, ideal_formation, integrate_geodesic, rod_end
 from world.surfaces import make_surface
 
 SEED = 20261123
