@@ -128,9 +128,10 @@ class StateLog:
                 entry = _entry(body)
             except (ProtocolError, ValueError, TypeError) as exc:
                 raise self._refuse(f"line {number}: {exc}") from None
-            if entries and entry.tick <= entries[-1].tick:
-                raise self._refuse(f"line {number}: tick {entry.tick} after tick "
-                                   f"{entries[-1].tick}")
+            before = entries[-1].tick if entries else -1
+            if entry.tick != before + 1 + entry.skips:  # every tick accounted for
+                raise self._refuse(f"line {number}: tick {entry.tick} after tick {before} with "
+                                   f"{entry.skips} skipped (a line is missing or out of place)")
             entries.append(entry)
         return entries
 

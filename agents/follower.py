@@ -79,16 +79,20 @@ def _restore(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Po
             log.info("follower %d: rolling back to tick %d (the world redoes tick %d)",
                      agent_id, through, through + 1)
             state.rewrite(kept)
-        replay(policy, kept)
         last = kept[-1].tick if kept else -1
+        if last < through:  # ticks it was not there for (realtime misses): bridged
+            kept.append(Entry(tick=through, skips=through - last - 1, settled=None, target=None))
+            state.append(kept[-1])
+        replay(policy, kept)
         if entries:
             log.info("follower %d: restored %d ticks of history from %s", agent_id, len(kept),
                      state.path)
-    else:
-        last = -1
+    else:  # no history kept: bridge the ticks it was not there for, as a log would
+        for _ in range(max(through, 0)):
+            policy.skip()
     if joined.ready and not joined.settled:
         link.advance(joined.tick)
-    return state, max(last, through) if joined.settled else last
+    return state, through
 
 
 def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,

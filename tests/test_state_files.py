@@ -1,0 +1,173 @@
+"""State files are data (SPEC §4): the follower's replay log and the world's checkpoint refuse
+anything corrupt, truncated, foreign or crafted with one line naming the file and why, and a
+planted pickle never runs."""
+from __future__ import annotations
+
+import json
+import pickle
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.checkpoint import Entry, StateError, StateLog, replay, state_path
+from agents.policies import make_policy
+from protocol.config import AgentSettings, RunConfig, dump_config
+from protocol.messages import Sensing
+from protocol.session import free_tcp_endpoint
+from world import checkpoint as world_checkpoint
+from world.results import RESULT_FILES
+
+ROOT = Path(__file__).resolve().parents[1]
+RUN, START = "state-run", "0123456789abcdef"
+
+
+def _entries(n: int = 5) -> list[Entry]:
+    out = []
+    for j in range(n):
+        settled = Sensing(tick=j, r=3.5 + 0.01 * j, theta=0.1 * j, rod=None,
+                          velocity=None if j == 0 else (0.5, -0.25))
+        out.append(Entry(tick=j, skips=0, settled=settled,
+                         target=None if j % 2 else (0.125 * j, -1.0 / 3.0)))
+    return out
+
+
+def _log(tmp_path: Path, entries: list[Entry]) -> Path:
+    state, existing = StateLog.open(tmp_path, RUN, 1, START)
+    assert existing == []
+    for entry in entries:
+        state.append(entry)
+    return state.path
+
+
+def test_replay_log_round_trips_exactly_and_rebuilds_the_policy(tmp_path):
+    entries = _entries()
+    _log(tmp_path, entries)
+    _, read = StateLog.open(tmp_path, RUN, 1, START)
+    assert read == entries  # floats through JSON exactly
+    settings = AgentSettings.from_config(RunConfig(estimator="auto"))
+    live, rebuilt = make_policy(settings), make_policy(settings)
+    for e in entries:
+        live.record(e.settled, None if e.target is None else np.asarray(e.target))
+    replay(rebuilt, read)
+    pre = Sensing(tick=5, r=3.6, theta=0.45, rod=(0.1, 0.2), velocity=(0.5, -0.25))
+    assert rebuilt.propose(pre).offset.tolist() == live.propose(pre).offset.tolist()
+
+
+def test_a_torn_last_line_is_a_tick_never_reported(tmp_path):
+    path = _log(tmp_path, _entries())
+    raw = path.read_bytes()
+    path.write_bytes(raw[:-40])  # killed in the middle of appending the last tick
+    _, read = StateLog.open(tmp_path, RUN, 1, START)
+    assert [e.tick for e in read] == [0, 1, 2, 3]
+
+
+def _refusal(tmp_path: Path, start: str = START, run: str = RUN, agent: int = 1) -> str:
+    with pytest.raises(StateError) as err:
+        StateLog.open(tmp_path, run, agent, start)
+    message = str(err.value)
+    assert "\n" not in message and str(state_path(tmp_path, agent)) in message
+    return message
+
+
+def test_corrupt_edited_and_truncated_files_are_refused(tmp_path):
+    path = _log(tmp_path, _entries())
+    lines = path.read_text().splitlines(keepends=True)
+    path.write_text("".join(lines[:2] + [lines[2].replace("3.5", "9.5")] + lines[3:]))
+    assert "fails its checksum" in _refusal(tmp_path)
+    path.write_text("".join(lines[:2] + lines[3:]))  # a whole line gone from the middle
+    assert "a line is missing or out of place" in _refusal(tmp_path)
+    path.write_text("")
+    assert "empty" in _refusal(tmp_path)
+    path.write_bytes(b"\xff\xfe garbage\n")
+    assert "not JSON" in _refusal(tmp_path)
+
+
+def test_foreign_files_are_refused(tmp_path):
+    _log(tmp_path, _entries())
+    assert "another run, start or agent" in _refusal(tmp_path, start="feedfacefeedface")
+    assert "another run, start or agent" in _refusal(tmp_path, run="other-run")
+    state_path(tmp_path, 1).rename(state_path(tmp_path, 2))
+    assert "another run, start or agent" in _refusal(tmp_path, agent=2)
+
+
+def test_crafted_lines_with_valid_checksums_are_refused(tmp_path):
+    from agents.checkpoint import _line
+
+    header = {"schema": 1, "run_id": RUN, "agent": 1, "start": START}
+    crafted = [
+        {"tick": 0, "skips": 0, "settled": {"v": 1, "type": "sensing", "tick": 0, "r": "x"},
+         "target": None},
+        {"tick": 0, "skips": -5, "settled": None, "target": None},
+        {"tick": 0, "skips": 0, "settled": None, "target": [1.0, 2.0]},
+        {"tick": 0, "skips": 0, "settled": None, "target": None, "code": "__import__('os')"},
+        {"tick": 1e9, "skips": 0, "settled": None, "target": None},
+    ]
+    for body in crafted:
+        state_path(tmp_path, 1).write_text(_line(header) + _line(body))
+        _refusal(tmp_path)
+
+
+def test_a_planted_pickle_is_refused_and_never_runs(tmp_path):
+    """The attack of the issue: a pickle planted where a follower keeps its state. The follower
+    exits with one line naming the file; the pickle's payload never ran."""
+    marker = tmp_path / "pwned"
+
+    class Payload:
+        def __reduce__(self):
+            return (open, (str(marker), "w"))
+
+    folder = tmp_path / "run"
+    folder.mkdir()
+    config = RunConfig(run_id="planted", followers=1, ticks=8, start_timeout=20.0)
+    dump_config(config, folder / "config.toml")
+    (folder / "state").mkdir()
+    state_path(folder / "state", 1).write_bytes(pickle.dumps(Payload()))
+    endpoint = free_tcp_endpoint()
+    world = subprocess.Popen([sys.executable, "-m", "world", "--config", str(folder / "config.toml"),
+                              "--listen", endpoint, "--out", str(folder / "out")], cwd=ROOT,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        follower = subprocess.run(
+            [sys.executable, "-m", "agents.follower", "--id", "1", "--config",
+             str(folder / "config.toml"), "--connect", endpoint],
+            cwd=ROOT, capture_output=True, text=True, timeout=60)
+    finally:
+        world.kill()
+        world.communicate(timeout=10)
+    assert follower.returncode != 0
+    errors = [line for line in follower.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "state file" in errors[0] and "refusing it" in errors[0], \
+        follower.stderr
+    assert "Traceback" not in follower.stderr
+    assert not marker.exists()
+
+
+def test_world_checkpoint_refuses_corrupt_foreign_and_edited_files(tmp_path):
+    world_checkpoint.save(tmp_path, run_id="r1", start="ab", sim={"tick": 3},
+                          offsets={"ticks.csv": 10, "observations.csv": 10}, wall_time=1.0)
+    assert world_checkpoint.load(tmp_path, "r1")["sim"] == {"tick": 3}
+    with pytest.raises(world_checkpoint.StateError, match="belongs to run 'r1'"):
+        world_checkpoint.load(tmp_path, "r2")
+    path = tmp_path / world_checkpoint.STATE_FILE
+    body = json.loads(path.read_text())
+    body["sim"]["tick"] = 30
+    path.write_text(json.dumps(body))
+    with pytest.raises(world_checkpoint.StateError, match="fails its checksum"):
+        world_checkpoint.load(tmp_path, "r1")
+    path.write_bytes(pickle.dumps({"tick": 3}))
+    with pytest.raises(world_checkpoint.StateError, match="unreadable"):
+        world_checkpoint.load(tmp_path, "r1")
+
+
+def test_a_fresh_world_refuses_a_folder_with_results_unless_forced(tmp_path):
+    for name in RESULT_FILES:
+        (tmp_path / name).write_text("kept\n")
+    (tmp_path / "summary.json").write_text(json.dumps({"run_id": "old-run"}))
+    with pytest.raises(world_checkpoint.StateError, match="results of run 'old-run'"):
+        world_checkpoint.claim(tmp_path, "new-run")
+    assert (tmp_path / "ticks.csv").read_text() == "kept\n"
+    world_checkpoint.claim(tmp_path, "new-run", force=True)
+    assert not any((tmp_path / name).exists() for name in RESULT_FILES)
