@@ -34,7 +34,7 @@ MODES = ("lockstep", "realtime")
 INT_RANGES = {
     "followers": (1, 1000),
     "ticks": (2, 1_000_000),
-    "delays": (0, 100),
+    "delays": (0, 1000),
     "window": (0, 1_000_000),
     "arx_order": (1, 100),
     "arx_window": (0, 1_000_000),
