@@ -155,6 +155,21 @@ def cmd_run(args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
     try:
         config = config_from_args(args)
+    except ValueError as exc:
+        print(f"error: {describe(exc)}", file=sys.stderr)
+        return 2
+    live = endpoint = None
+    if args.live:  # its arguments are checked before anything is written
+        from protocol.session import free_tcp_endpoint
+        from swarm.live.observer import LiveView
+
+        try:
+            live = LiveView(port=args.live_port, run_id=config.run_id)
+        except (ValueError, RuntimeError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        endpoint = free_tcp_endpoint()
+    try:
         out = Path(args.out) if args.out else Path("runs") / config.run_id
         if (out / "summary.json").exists():
             raise ValueError(f"{out} already holds a run's results; choose another --out "
@@ -163,19 +178,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"error: {describe(exc)}", file=sys.stderr)
         return 2
-    live = endpoint = None
-    if args.live:
-        from protocol.session import free_tcp_endpoint
-        from swarm.live.observer import LiveView
-
-        try:
-            live = LiveView(port=args.live_port, run_id=config.run_id)
-            print(f"live view: {live.start()}", flush=True)
-        except (ValueError, RuntimeError) as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 1
-        endpoint = free_tcp_endpoint()
     try:
+        if live is not None:
+            try:
+                print(f"live view: {live.start()}", flush=True)
+            except RuntimeError as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                return 1
         return _run_and_report(args, config, out, live, endpoint)
     finally:
         if live is not None:
