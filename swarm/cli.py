@@ -307,6 +307,13 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print(f"interrupted: finished runs are in {Path(args.out) / 'runs'}", file=sys.stderr)
         return 130
+    timing = result["timing"]
+    return _print_experiment(result, f"wall time {timing['total']:.1f} s (runs "
+                                     f"{timing['runs']:.1f} s, figures {timing['figures']:.1f} s)")
+
+
+def _print_experiment(result: dict, wall_line: str) -> int:
+    """Print what an experiment wrote and what failed; its exit status."""
     for path in result["tables"].values():
         print(f"table: {path}")
     for path in result["figures"].values():
@@ -316,9 +323,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         print(f"figure {name} not drawn: {reason}", file=sys.stderr)
     for outcome in result["failed"]:
         print(f"FAILED {outcome.run.folder}: {outcome.error}", file=sys.stderr)
-    timing = result["timing"]
-    print(f"wall time {timing['total']:.1f} s (runs {timing['runs']:.1f} s, "
-          f"figures {timing['figures']:.1f} s)")
+    print(wall_line)
     return 1 if result["failed"] else 0
 
 
@@ -413,17 +418,7 @@ def cmd_terrain(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    for path in result["tables"].values():
-        print(f"table: {path}")
-    for path in result["figures"].values():
-        print(f"figure: {path}")
-    print(f"report: {result['report']}")
-    for name, reason in result["figure_problems"].items():
-        print(f"figure {name} not drawn: {reason}", file=sys.stderr)
-    for outcome in result["failed"]:
-        print(f"FAILED {outcome.run.folder}: {outcome.error}", file=sys.stderr)
-    print(f"wall time {result['wall_time']:.1f} s (runs)")
-    return 1 if result["failed"] else 0
+    return _print_experiment(result, f"wall time {result['wall_time']:.1f} s (runs)")
 
 
 def cmd_dem_from_npz(args: argparse.Namespace) -> int:

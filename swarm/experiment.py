@@ -185,6 +185,11 @@ def draw_figures(out_dir: Path, tables: dict[str, list[dict]]
     jobs["practical"] = lambda: plots.plot_practical(tables["practical"], folder / "practical.png")
     jobs["comm_period"] = lambda: plots.plot_comm_period(tables["comm_period"],
                                                          folder / "comm_period.png")
+    return draw_jobs(jobs)
+
+
+def draw_jobs(jobs: dict[str, Callable[[], Path]]) -> tuple[dict[str, Path], dict[str, str]]:
+    """Draw every figure it can: (paths by name, why each of the others was not drawn)."""
     drawn, problems = {}, {}
     for name, job in jobs.items():
         try:

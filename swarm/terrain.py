@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from protocol.config import RunConfig, write_atomic
-from swarm.experiment import (GridRun, RunOutcome, is_nan, read_table, run_grid,
+from swarm.experiment import (GridRun, RunOutcome, draw_jobs, is_nan, read_table, run_grid,
                               write_run_index, write_table)
 from swarm.grid import estimator_options
 
@@ -214,13 +214,7 @@ def draw_terrain_figures(out_dir: Path, dem: str | Path, spec: TerrainSpec,
         "terrain_position": lambda: plots.plot_position(
             position_rows, folder / "terrain_position.png"),
     }
-    drawn, problems = {}, {}
-    for name, job in jobs.items():
-        try:
-            drawn[name] = job()
-        except (ValueError, KeyError, IndexError, OSError) as exc:  # e.g. a failed run's files
-            problems[name] = f"{type(exc).__name__}: {exc}"
-    return drawn, problems
+    return draw_jobs(jobs)
 
 
 def _best(rows: list[dict], **keys: Any) -> str:

@@ -21,19 +21,11 @@ from protocol import keys
 from protocol.config import RunConfig, dump_config
 from protocol.messages import Observation, Rod, encode
 from protocol.session import free_tcp_endpoint, zenoh_config
+from attacking import run_under_attack, same_results, wait_for_world
 from swarm.launch import RunCredentials, agent_commands, launch
 from world.results import read_observations, read_ticks
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _wait_world(session: zenoh.Session, run_id: str, stop: threading.Event) -> None:
-    up = threading.Event()
-    watch = session.liveliness().declare_subscriber(keys.alive(run_id, "world"),
-                                                    lambda _: up.set(), history=True)
-    while not up.wait(0.05) and not stop.is_set():
-        pass
-    watch.undeclare()
 
 
 def _flood(endpoint: str, run_id: str, credentials: RunCredentials, stop: threading.Event,
@@ -44,7 +36,7 @@ def _flood(endpoint: str, run_id: str, credentials: RunCredentials, stop: thread
                                         password=credentials.passwords[user]))
                 for user in ("leader", "follower-1")]
     try:
-        _wait_world(sessions[0], run_id, stop)
+        wait_for_world(sessions[0], run_id, stop)
         far = encode(Rod(tick=10_000_000, length=3.57, side=1))
         for i in range(2000):
             if stop.is_set():
@@ -63,21 +55,11 @@ def _flood(endpoint: str, run_id: str, credentials: RunCredentials, stop: thread
 def test_observation_flood_and_far_future_rods_change_nothing(tmp_path, caplog):
     caplog.set_level("WARNING")
     cfg = RunConfig(run_id="flood", surface="wavy", followers=2, ticks=40)
-    clean = launch(cfg, tmp_path / "clean", in_process=True)
-    endpoint, stop, sent = free_tcp_endpoint(), threading.Event(), {"n": 0}
-    credentials = RunCredentials.create(tmp_path / "credentials", cfg.followers)
-    attacker = threading.Thread(target=_flood, args=(endpoint, cfg.run_id, credentials, stop, sent))
-    attacker.start()
-    try:
-        attacked = launch(cfg, tmp_path / "attacked", in_process=True, endpoint=endpoint,
-                          credentials=credentials)
-    finally:
-        stop.set()
-        attacker.join(timeout=60)
-    assert not attacker.is_alive() and sent["n"] > 0
-    assert attacked["complete"], attacked["reason"]
-    for name in ("ticks.csv", "observations.csv"):
-        assert (tmp_path / "attacked" / name).read_bytes() == (tmp_path / "clean" / name).read_bytes()
+    sent = {"n": 0}
+    clean, attacked = run_under_attack(
+        cfg, tmp_path, lambda endpoint, credentials, stop: _flood(endpoint, cfg.run_id,
+                                                                  credentials, stop, sent))
+    assert sent["n"] > 0 and same_results(tmp_path)
     obs = read_observations(tmp_path / "attacked" / "observations.csv")
     assert len(obs) == cfg.ticks * cfg.followers  # one per follower and tick, nothing more
     assert attacked["followers"] == clean["followers"]

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 import threading
 import time
-from pathlib import Path
 
 import msgpack
 import pytest
@@ -20,7 +19,7 @@ from protocol.messages import (
     decode, encode,
 )
 from protocol.session import free_tcp_endpoint, zenoh_config
-from swarm.launch import launch
+from attacking import run_under_attack, same_results, wait_for_world
 from world.main import resolve
 from world.service import WorldService
 from world.surfaces import make_surface
@@ -174,7 +173,7 @@ def test_non_numeric_id_in_key(world):
 
 
 def _attack(endpoint: str, run_id: str, stop: threading.Event, counts: dict,
-            password_file: Path) -> None:
+            password: str) -> None:
     """Fire malformed queries and garbage samples until ``stop``, logged in as follower 1
     (the embedded router admits only the run's users, and lets follower 1 query only its
     own keys: tests/test_acl.py)."""
@@ -187,16 +186,9 @@ def _attack(endpoint: str, run_id: str, stop: threading.Event, counts: dict,
     ]
     garbage = [(keys.rod(run_id, 1), b"\x00\x01"), (keys.obs(run_id, 2), _raw(v=1, type="obs")),
                (keys.rod(run_id, 9), _raw(v=1, type="rod", tick=0, length=-1.0, side=1))]
-    while not password_file.exists() and not stop.wait(0.01):
-        pass
     with zenoh.open(zenoh_config("client", connect=[endpoint], user="follower-1",
-                                 password=password_file.read_text().strip())) as session:
-        world_up = threading.Event()  # its queryables are declared before its token
-        watch = session.liveliness().declare_subscriber(keys.alive(run_id, "world"),
-                                                        lambda _: world_up.set(), history=True)
-        while not world_up.wait(0.05) and not stop.is_set():
-            pass
-        watch.undeclare()
+                                 password=password)) as session:
+        wait_for_world(session, run_id, stop)
         i = 0
         while not stop.is_set() and i < 5000:
             key, payload = bad_queries[i % len(bad_queries)]
@@ -210,21 +202,9 @@ def _attack(endpoint: str, run_id: str, stop: threading.Event, counts: dict,
 
 def test_flood_of_malformed_queries_leaves_the_numbers_unchanged(tmp_path):
     cfg = RunConfig(run_id="flood", surface="wavy", followers=2, ticks=40)
-    clean = launch(cfg, tmp_path / "clean", in_process=True)
-    endpoint = free_tcp_endpoint()
-    stop, counts = threading.Event(), {"errors": 0, "answered": 0, "garbage": 0}
-    creds = tmp_path / "credentials"
-    attacker = threading.Thread(target=_attack, args=(endpoint, cfg.run_id, stop, counts,
-                                                      creds / "follower-1.password"))
-    attacker.start()
-    try:
-        attacked = launch(cfg, tmp_path / "attacked", in_process=True, endpoint=endpoint,
-                          credentials_dir=creds)
-    finally:
-        stop.set()
-        attacker.join(timeout=30)
-    assert not attacker.is_alive()
+    counts = {"errors": 0, "answered": 0, "garbage": 0}
+    clean, attacked = run_under_attack(cfg, tmp_path, lambda endpoint, credentials, stop: _attack(
+        endpoint, cfg.run_id, stop, counts, credentials.passwords["follower-1"]))
     assert counts["errors"] >= 200 and counts["answered"] == 0, counts
-    assert attacked["complete"]
-    assert (tmp_path / "attacked" / "ticks.csv").read_text() == (tmp_path / "clean" / "ticks.csv").read_text()
+    assert same_results(tmp_path)
     assert attacked["followers"] == clean["followers"]

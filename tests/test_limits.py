@@ -18,8 +18,8 @@ from protocol.messages import (
     MESSAGE_TYPES, Done, ErrorReply, Observation, ProtocolError, Rod, Sensing, decode, encode,
     error_payload, safe_text,
 )
-from protocol.session import MAX_MESSAGE_SIZE, free_tcp_endpoint, zenoh_config
-from swarm.launch import RunCredentials, launch
+from protocol.session import MAX_MESSAGE_SIZE, zenoh_config
+from attacking import run_under_attack, same_results, wait_for_world
 from world.results import _cell
 
 ALL_TYPES = tuple(MESSAGE_TYPES.values())
@@ -212,12 +212,7 @@ def attack(endpoint: str, run_id: str, password: str, rounds: int, stop: threadi
     payloads = hostile_payloads()
     with zenoh.open(zenoh_config("client", connect=[endpoint], user="follower-1",
                                  password=password)) as session:
-        world_up = threading.Event()  # fire only once the world serves (it starts after us)
-        watch = session.liveliness().declare_subscriber(keys.alive(run_id, "world"),
-                                                        lambda _: world_up.set(), history=True)
-        while not world_up.wait(0.05) and not stop.is_set():
-            pass
-        watch.undeclare()
+        wait_for_world(session, run_id, stop)
         for i in range(rounds):
             if stop.is_set():
                 return
@@ -240,22 +235,9 @@ ATTACK_ROUNDS = 10  # 30 queries and 40 samples, each payload twice
 def test_oversized_and_nested_payloads_leave_the_run_unchanged(tmp_path, caplog):
     caplog.set_level("WARNING")
     cfg = RunConfig(run_id="siege", surface="wavy", followers=2, ticks=30)
-    clean = launch(cfg, tmp_path / "clean", in_process=True)
-    endpoint = free_tcp_endpoint()
-    stop = threading.Event()
     counts: dict = {"answered": 0, "refusals": [], "samples": 0}
-    credentials = RunCredentials.create(tmp_path / "credentials", cfg.followers)
-    attacker = threading.Thread(target=attack, args=(
+    clean, attacked = run_under_attack(cfg, tmp_path, lambda endpoint, credentials, stop: attack(
         endpoint, cfg.run_id, credentials.passwords["follower-1"], ATTACK_ROUNDS, stop, counts))
-    attacker.start()
-    try:
-        attacked = launch(cfg, tmp_path / "attacked", in_process=True, endpoint=endpoint,
-                          credentials=credentials)
-    finally:
-        stop.set()
-        attacker.join(timeout=60)
-    assert not attacker.is_alive()
-    assert attacked["complete"], attacked["reason"]
     assert counts["answered"] == 0
     refusals = counts["refusals"]
     assert refusals, "the attack ended before the run served any query"
@@ -265,6 +247,5 @@ def test_oversized_and_nested_payloads_leave_the_run_unchanged(tmp_path, caplog)
     assert any(too_big in r for r in refusals)
     dropped = [r.getMessage() for r in caplog.records if "payload of" in r.getMessage()]
     assert dropped, "no oversized sample reached a subscriber"
-    for name in ("ticks.csv", "observations.csv"):
-        assert (tmp_path / "attacked" / name).read_text() == (tmp_path / "clean" / name).read_text()
+    assert same_results(tmp_path)
     assert attacked["followers"] == clean["followers"]
