@@ -34,3 +34,30 @@ class CrossedWaves:
 
 
 crossed_waves = CrossedWaves()
+
+
+class SlantedFolds:
+    """``F = 0.04 x + 0.6 sin(x/6 + y/8) + 0.002 y²``: oblique folds on a slope and a gentle trough.
+
+    Defined before ``auto``'s inverse-error blend (see the README) was designed and not looked
+    at while designing it.
+    """
+
+    default_leader_start = (-20.0, -2.0, 0.98, 0.2)
+
+    def height(self, p: ArrayLike) -> float:
+        x, y = np.asarray(p, dtype=float)
+        return 0.04 * x + 0.6 * math.sin(x / 6 + y / 8) + 0.002 * y * y
+
+    def gradient(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        c = math.cos(x / 6 + y / 8)
+        return np.array([0.04 + 0.1 * c, 0.075 * c + 0.004 * y])
+
+    def hessian(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        s = math.sin(x / 6 + y / 8)
+        return np.array([[-0.6 / 36 * s, -0.6 / 48 * s], [-0.6 / 48 * s, -0.6 / 64 * s + 0.004]])
+
+
+slanted_folds = SlantedFolds()
