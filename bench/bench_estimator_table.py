@@ -106,8 +106,8 @@ def main() -> None:
             for tc in periods:
                 row = table[(s, tc)]
                 name, best = best_classical(row)
-                cells.append(f"{row['auto'] / best:.2f} {name:<6}[{row['auto'] / row['edmd-b']:.2f}]"
-                             f" {row['auto']:.1e}")
+                auto = row["auto"]
+                cells.append(f"{auto / best:.2f} {name:<6}[{auto / row['edmd-b']:.2f}] {auto:.1e}")
             print(f"{short(s):<15}" + "".join(f"{c:>26}" for c in cells))
     if args.noise_free:
         return

@@ -1,7 +1,9 @@
-"""A held-out surface of this benchmark's own (``bench.held_out_surfaces:crossed_waves``).
+"""Held-out surfaces of this benchmark's own (``bench.held_out_surfaces:crossed_waves`` and
+``bench.held_out_surfaces:slanted_folds``).
 
-Defined after ``auto``'s candidates and rules were chosen and never used to choose them: a
-gentle slope with crossed waves of two wavelengths, driven across obliquely.
+``crossed_waves`` was defined after ``auto``'s candidates and rules were chosen and never used to
+choose them: a gentle slope with crossed waves of two wavelengths, driven across obliquely.
+``slanted_folds`` was defined before ``auto``'s inverse-error blend was designed.
 """
 from __future__ import annotations
 
@@ -37,7 +39,7 @@ crossed_waves = CrossedWaves()
 
 
 class SlantedFolds:
-    """``F = 0.04 x + 0.6 sin(x/6 + y/8) + 0.002 y²``: oblique folds on a slope and a gentle trough.
+    """``F = 0.04 x + 0.6 sin(x/6 + y/8) + 0.002 y²``: oblique folds on a slope, a gentle trough.
 
     Defined before ``auto``'s inverse-error blend (see the README) was designed and not looked
     at while designing it.
