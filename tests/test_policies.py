@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from agents.policies import Auto, NotReady, Persist, Proposal, Stay, Unwrapper, make_policy
+from agents.policies import (Auto, NotReady, Persist, Proposal, Stay, Unwrapper, make_policy,
+                             relative)
 from protocol.config import AgentSettings, RunConfig
 from protocol.messages import Sensing
 from swarm.local import run_local
@@ -108,20 +109,52 @@ class _Fixed(Stay):
         return Proposal(self.offset.copy())
 
 
-def test_auto_follows_lowest_recent_error_and_falls_back_to_anchor():
-    auto = Auto([_Fixed("a", [0.0, 0.0]), _Fixed("b", [1.0, 0.0]), _Fixed("c", [0.5, 0.0])],
-                horizon=2, trust=3.0, burn_in=0)
+def _three(**options):
+    return Auto([_Fixed("a", [0.0, 0.0]), _Fixed("b", [1.0, 0.0]), _Fixed("c", [0.5, 0.0])],
+                horizon=2, trust=3.0, burn_in=0, **options)
+
+
+def test_auto_blends_by_inverse_recent_error():
+    auto = _three()
     first = auto.propose(_sensing())
-    assert first.followed == "a"  # nothing scored yet: the anchor
+    assert first.followed == "a" and np.allclose(first.offset, [0.0, 0.0])  # nothing scored
     auto.record(_sensing(), np.array([0.4, 0.0]))  # errors 0.4, 0.6, 0.1
+    inverse = np.array([1 / 0.4**2, 1 / 0.6**2, 1 / 0.1**2])
+    expected = inverse @ np.array([0.0, 1.0, 0.5]) / inverse.sum()  # 0.4840...
     proposal = auto.propose(_sensing())
-    assert np.allclose(proposal.offset, [0.5, 0.0]) and proposal.followed == "c"
-    auto.record(_sensing(), np.array([0.05, 0.0]))  # anchor's errors now 0.4, 0.05
-    auto.errors[2].clear()
+    assert proposal.offset == pytest.approx([expected, 0.0], abs=1e-12)
+    assert proposal.followed == "c"  # the largest weight
+    # the blend's prediction is the relative position its offset implies
+    assert np.allclose(proposal.prediction, relative(_sensing()) - proposal.offset)
+    assert sum(auto.weights(auto._proposals(_sensing())).values()) == pytest.approx(1.0)
+    # blend=False follows the lowest error alone
+    hard = _three(blend=False)
+    hard.record(_sensing(), np.array([0.4, 0.0]))
+    chosen = hard.propose(_sensing())
+    assert np.array_equal(chosen.offset, [0.5, 0.0]) and chosen.followed == "c"
+
+
+def test_auto_exact_candidates_share_the_weight():
+    auto = _three()
+    auto.errors[0].extend([0.5, 0.5])
+    auto.errors[1].extend([0.0, 0.0])
+    auto.errors[2].extend([0.0, 0.0])
+    proposal = auto.propose(_sensing())
+    assert proposal.offset == pytest.approx([0.75, 0.0]) and proposal.followed == "b"
+
+
+def test_auto_leaves_out_wild_proposals_and_falls_back_to_anchor():
+    auto = _three()
+    auto.errors[0].extend([0.4, 0.05])  # anchor: largest recent change 0.4, radius 1.2
+    auto.errors[1].extend([0.6, 0.95])
     auto.errors[2].extend([0.0, 0.0])  # candidate c looks perfect ...
     auto.candidates[2].offset = np.array([5.0, 0.0])  # ... but proposes a wild jump
     proposal = auto.propose(_sensing())
-    assert np.allclose(proposal.offset, [0.0, 0.0]) and proposal.followed == "a"
+    assert set(auto.weights(auto._proposals(_sensing()))) == {0, 1}
+    assert 0.0 < proposal.offset[0] < 1.0 and proposal.followed == "a"
+    auto.candidates[1].offset = np.array([2.0, 0.0])  # b beyond the radius too
+    proposal = auto.propose(_sensing())
+    assert np.array_equal(proposal.offset, [0.0, 0.0]) and proposal.followed == "a"
 
 
 def test_auto_compares_candidates_on_the_same_ticks():
