@@ -157,7 +157,7 @@ def test_auto_records_what_it_followed(tmp_path):
                            out_dir=tmp_path)
     shares = summary["followers"]["1"]["followed"]
     names = {c.name for c in make_policy(AgentSettings.from_config(
-        RunConfig(estimator="auto"))).policy.candidates}
+        RunConfig(estimator="auto"))).policy.candidates} | {"blend"}
     assert set(shares) <= names and sum(shares.values()) == pytest.approx(1.0)
     with open(tmp_path / "observations.csv", newline="") as fh:
         followed = [r["followed"] for r in csv.DictReader(fh) if int(r["tick"]) >= 4]

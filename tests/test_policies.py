@@ -114,33 +114,38 @@ def _three(**options):
                 horizon=2, trust=3.0, burn_in=0, **options)
 
 
-def test_auto_blends_by_inverse_recent_error():
+def test_auto_follows_the_lowest_recent_error_and_the_blend_is_a_candidate():
     auto = _three()
     first = auto.propose(_sensing())
     assert first.followed == "a" and np.allclose(first.offset, [0.0, 0.0])  # nothing scored
-    auto.record(_sensing(), np.array([0.4, 0.0]))  # errors 0.4, 0.6, 0.1
+    auto.record(_sensing(), np.array([0.4, 0.0]))  # errors 0.4, 0.6, 0.1; the blend unscored
+    chosen = auto.propose(_sensing())
+    assert np.array_equal(chosen.offset, [0.5, 0.0]) and chosen.followed == "c"
+    # the blend: weights 1/MSE, normalised (Bates-Granger)
     inverse = np.array([1 / 0.4**2, 1 / 0.6**2, 1 / 0.1**2])
     expected = inverse @ np.array([0.0, 1.0, 0.5]) / inverse.sum()  # 0.4840...
-    proposal = auto.propose(_sensing())
-    assert proposal.offset == pytest.approx([expected, 0.0], abs=1e-12)
-    assert proposal.followed == "c"  # the largest weight
-    # the blend's prediction is the relative position its offset implies
-    assert np.allclose(proposal.prediction, relative(_sensing()) - proposal.offset)
-    assert sum(auto.weights(auto._proposals(_sensing())).values()) == pytest.approx(1.0)
-    # blend=False follows the lowest error alone
+    blend = auto._proposals(_sensing())[-1]
+    assert blend.offset == pytest.approx([expected, 0.0], abs=1e-12) and blend.followed == "blend"
+    assert np.allclose(blend.prediction, relative(_sensing()) - blend.offset)
+    assert sum(auto.weights(auto._proposals(_sensing())[:-1]).values()) == pytest.approx(1.0)
+    # the true offset is 0.48 this time: the blend (scored with the weights it had) wins
+    auto.record(_sensing(), np.array([expected, 0.0]))
+    assert auto.errors[-1][-1] == pytest.approx(0.0, abs=1e-12)
+    assert auto.propose(_sensing()).followed == "blend"
+    # blend=False: the candidates alone, the lowest error followed
     hard = _three(blend=False)
     hard.record(_sensing(), np.array([0.4, 0.0]))
-    chosen = hard.propose(_sensing())
-    assert np.array_equal(chosen.offset, [0.5, 0.0]) and chosen.followed == "c"
+    hard.record(_sensing(), np.array([0.48, 0.0]))
+    assert hard._proposals(_sensing())[-1] is None and hard.propose(_sensing()).followed == "c"
 
 
-def test_auto_exact_candidates_share_the_weight():
+def test_auto_exact_candidates_share_the_blend_weight():
     auto = _three()
     auto.errors[0].extend([0.5, 0.5])
     auto.errors[1].extend([0.0, 0.0])
     auto.errors[2].extend([0.0, 0.0])
-    proposal = auto.propose(_sensing())
-    assert proposal.offset == pytest.approx([0.75, 0.0]) and proposal.followed == "b"
+    assert auto._proposals(_sensing())[-1].offset == pytest.approx([0.75, 0.0])
+    assert auto.propose(_sensing()).followed == "b"  # exact, and first among the exact ones
 
 
 def test_auto_leaves_out_wild_proposals_and_falls_back_to_anchor():
@@ -149,9 +154,9 @@ def test_auto_leaves_out_wild_proposals_and_falls_back_to_anchor():
     auto.errors[1].extend([0.6, 0.95])
     auto.errors[2].extend([0.0, 0.0])  # candidate c looks perfect ...
     auto.candidates[2].offset = np.array([5.0, 0.0])  # ... but proposes a wild jump
+    assert set(auto.weights(auto._proposals(_sensing())[:-1])) == {0, 1}  # not in the blend
     proposal = auto.propose(_sensing())
-    assert set(auto.weights(auto._proposals(_sensing()))) == {0, 1}
-    assert 0.0 < proposal.offset[0] < 1.0 and proposal.followed == "a"
+    assert proposal.followed == "a"  # c left out; a's error is below b's
     auto.candidates[1].offset = np.array([2.0, 0.0])  # b beyond the radius too
     proposal = auto.propose(_sensing())
     assert np.array_equal(proposal.offset, [0.0, 0.0]) and proposal.followed == "a"
@@ -169,9 +174,9 @@ def test_auto_compares_candidates_on_the_same_ticks():
 def test_auto_burn_in_drops_each_candidates_first_score():
     auto = Auto([_Fixed("a", [0.0, 0.0]), _Fixed("b", [1.0, 0.0])], burn_in=1)
     auto.record(_sensing(), np.array([0.4, 0.0]))
-    assert [len(e) for e in auto.errors] == [0, 0]
+    assert [len(e) for e in auto.errors] == [0, 0, 0]
     auto.record(_sensing(), np.array([0.4, 0.0]))
-    assert [list(e) for e in auto.errors] == [[pytest.approx(0.4)], [pytest.approx(0.6)]]
+    assert [list(e) for e in auto.errors[:2]] == [[pytest.approx(0.4)], [pytest.approx(0.6)]]
     with pytest.raises(ValueError, match="candidate names must be unique"):
         Auto([_Fixed("a", [0, 0]), _Fixed("a", [1, 0])])
 

@@ -1,5 +1,5 @@
-"""``auto``: run several candidate policies side by side and blend their proposals by their
-recent one-step errors (beyond the paper)."""
+"""``auto``: run several candidate policies side by side and use, at each tick, the one with
+the lowest recent one-step error; one of them is the blend of the others (beyond the paper)."""
 from __future__ import annotations
 
 import dataclasses
@@ -12,33 +12,35 @@ from agents.estimators import NotFitted
 from agents.policies.base import Policy, Proposal, reconstructed_pre, relative
 from protocol.messages import Sensing
 
+BLEND = "blend"
+
 
 class Auto(Policy):
-    """Blend the candidates' proposals with weights inversely proportional to their mean
-    squared one-step error over recent ticks (Bates and Granger's forecast combination).
+    """Follow the candidate with the lowest mean squared one-step error over recent ticks
+    (SPEC §6); with ``blend=True`` the candidates include their own *blend*: the weighted mean
+    of their proposals with weights inversely proportional to their errors (Bates and
+    Granger's forecast combination), scored like any other candidate.
 
     Every candidate is scored each tick once the true ideal position is seen (``target``):
     ``record`` asks each candidate what it would have proposed from where the follower stood
     (:func:`reconstructed_pre`) and appends ``|offset - target|`` to a window of ``horizon``
-    ticks, before the candidate learns from the tick. Scoring starts in the initial ticks,
-    where nothing moves; each candidate's first ``burn_in`` scores are dropped (a least-squares
-    model fitted on its minimum number of pairs says little about its later errors).
-    ``propose`` weighs the candidates with at least ``min_scores`` scores by the inverse of
-    their mean squared error over the ticks all of them were scored on (the same ticks for
-    each: a late starter is not compared on fewer, luckier ticks). With ``blend=False`` it
-    follows the lowest error alone (ties to the earlier candidate). Candidates with zero
-    error share the weight equally, the others get none (the limit of inverse weights).
+    ticks, before the candidate learns from the tick; the blend is scored with the weights it
+    had at that moment. Scoring starts in the initial ticks, where nothing moves; each
+    candidate's first ``burn_in`` scores are dropped (a least-squares model fitted on its
+    minimum number of pairs says little about its later errors). ``propose`` compares the
+    candidates with at least ``min_scores`` scores over the ticks all of them were scored on
+    (the same ticks for each: a late starter is not compared on fewer, luckier ticks) and
+    follows the lowest (ties to the earlier candidate, the blend last).
 
-    Why a blend: candidates whose errors are of similar size and not fully correlated
-    average to a smaller error than any one of them, and a weight that moves smoothly with
-    the scores does not flip between candidates on the noise of a 4-tick score; a candidate
-    far worse than the best gets a negligible weight.
+    Why a blend among the candidates: candidates whose errors are of similar size and not fully
+    correlated average to a smaller error than any one of them, so the blend is often the best
+    candidate; when one candidate is clearly better, it is followed alone.
 
     Safeguard (``trust``): the first candidate is the anchor (``persist``). A proposal that
     differs from the anchor's by more than ``trust`` times the largest error the anchor made
-    within the window (the largest recent change of relative position) gets no weight: a model
-    that extrapolates wildly right after a change of regime is left out; if no other candidate
-    remains, the anchor is followed.
+    within the window (the largest recent change of relative position) is left out (of the
+    blend too): a model that extrapolates wildly right after a change of regime is not
+    followed; if no other candidate remains, the anchor is followed.
     """
 
     name = "auto"
@@ -63,29 +65,33 @@ class Auto(Policy):
         self.min_scores = min_scores
         self.burn_in = burn_in
         self.blend = blend
-        self.errors = [deque(maxlen=horizon) for _ in candidates]
-        self.scored = [0] * len(candidates)  # ticks each candidate was scored on
+        # one score window per candidate, the blend's last
+        self.errors = [deque(maxlen=horizon) for _ in range(len(candidates) + 1)]
+        self.scored = [0] * (len(candidates) + 1)  # ticks each was scored on
 
-    def weights(self, proposals: list[Proposal | None]) -> dict[int, float]:
-        """Weight (summing to 1) of each candidate that enters the proposal, by index, given
-        each candidate's proposal (None: not ready)."""
-        available = [i for i, p in enumerate(proposals) if p is not None]
-        if not available:
-            raise NotFitted("no candidate of auto is ready")
-        ready = [i for i in available if len(self.errors[i]) >= self.min_scores]
+    def _eligible(self, proposals: list[Proposal | None]) -> list[int]:
+        """Candidates (by index) with enough scores and a proposal within the trust radius."""
+        ready = [i for i, p in enumerate(proposals)
+                 if p is not None and len(self.errors[i]) >= self.min_scores]
         anchor = proposals[0]
         if ready and self.trust is not None and anchor is not None and self.errors[0]:
             radius = self.trust * max(self.errors[0])
             ready = [i for i in ready if i == 0 or float(
                 np.hypot(*(proposals[i].offset - anchor.offset))) <= radius]
+        return ready
+
+    def _mse(self, errors: list[deque], ready: list[int]) -> dict[int, float]:
+        common = min(len(errors[i]) for i in ready)
+        return {i: math.fsum(e * e for e in list(errors[i])[len(errors[i]) - common:]) / common
+                for i in ready}
+
+    def weights(self, proposals: list[Proposal | None]) -> dict[int, float]:
+        """The blend's weight (summing to 1) of each candidate that enters it, by index."""
+        ready = self._eligible(proposals)
         if not ready:
-            return {0 if anchor is not None else available[0]: 1.0}
-        common = min(len(self.errors[i]) for i in ready)
-        mse = {i: math.fsum(e * e for e in list(self.errors[i])[len(self.errors[i]) - common:])
-               / common for i in ready}
+            raise NotFitted("no candidate of auto is scored yet")
+        mse = self._mse(self.errors, ready)
         best = min(ready, key=lambda i: (mse[i], i))
-        if not self.blend:
-            return {best: 1.0}
         if mse[best] == 0.0:
             exact = [i for i in ready if mse[i] == 0.0]
             return {i: 1.0 / len(exact) for i in exact}
@@ -93,27 +99,44 @@ class Auto(Policy):
         total = math.fsum(inverse.values())
         return {i: w / total for i, w in inverse.items()}
 
+    def _blended(self, pre: Sensing, proposals: list[Proposal | None]) -> Proposal | None:
+        """The blend's proposal, or None while fewer than two candidates enter it."""
+        if not self.blend:
+            return None
+        try:
+            weights = self.weights(proposals)
+        except NotFitted:
+            return None
+        if len(weights) < 2:
+            return None
+        offset = np.sum([w * proposals[i].offset for i, w in sorted(weights.items())], axis=0)
+        # the candidates' predictions live in different lifted spaces: the blend's is the
+        # predicted relative position (xy) its offset implies
+        return Proposal(offset, tuple(float(v) for v in relative(pre) - offset), followed=BLEND)
+
     def _proposals(self, pre: Sensing) -> list[Proposal | None]:
+        """Each candidate's proposal (None: not ready), the blend's last."""
         out = []
         for cand in self.candidates:
             try:
                 out.append(cand.propose(pre))
             except NotFitted:
                 out.append(None)
-        return out
+        return out + [self._blended(pre, out)]
 
     def propose(self, pre: Sensing) -> Proposal:
         proposals = self._proposals(pre)
-        weights = self.weights(proposals)
-        top = min(weights, key=lambda i: (-weights[i], i))
-        followed = self.candidates[top].name
-        if len(weights) == 1:
-            return dataclasses.replace(proposals[top], followed=followed)
-        offset = np.sum([w * proposals[i].offset for i, w in sorted(weights.items())], axis=0)
-        # the candidates' predictions live in different lifted spaces: the blend's is the
-        # predicted relative position (xy) its offset implies
-        return Proposal(offset, tuple(float(v) for v in relative(pre) - offset),
-                        followed=followed)
+        if all(p is None for p in proposals):
+            raise NotFitted("no candidate of auto is ready")
+        ready = self._eligible(proposals)
+        if not ready:  # nothing scored or trusted: the anchor, else whoever is ready
+            top = 0 if proposals[0] is not None else next(
+                i for i, p in enumerate(proposals) if p is not None)
+        else:
+            mse = self._mse(self.errors, ready)
+            top = min(ready, key=lambda i: (mse[i], i))
+        name = BLEND if top == len(self.candidates) else self.candidates[top].name
+        return dataclasses.replace(proposals[top], followed=name)
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
         if target is not None:
