@@ -1,9 +1,9 @@
 """A follower: estimates its leader's rod end, moves there, snaps on it (``python -m agents.follower``).
 
 One tick (SPEC §4): sense the leader (``pre``) and ask the policy for its estimate; from tick
-``init_ticks`` on, move there and sense again (``moved``); snap onto the rod end if it is in range (else
-count a lost tick); sense once more (``settled``) and record the measurement; publish the
-observation and the rod.
+``init_ticks`` on, move there (the reply carries the ``moved`` sensing); snap onto the rod end
+if it is in range, else count a lost tick (the reply carries the ``settled`` sensing); record
+the measurement; publish the observation and the rod. Three round trips to the world per tick.
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from agents.cli import parser, run_cli
 from agents.link import QUERY_TIMEOUT_S, AgentAbort, AgentLink, RunFinished, TickMissed
 from agents.policies import NotReady, Policy, make_policy
 from protocol.config import AgentSettings
-from protocol.messages import ActRequest, Observation, Sensing
+from protocol.messages import Move, Observation, Sensing, Snap
 
 log = logging.getLogger(__name__)
 
@@ -47,10 +47,9 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
     if tick < settings.init_ticks:
         offset, rod = np.zeros(2), pre.rod
     else:
-        link.act(ActRequest(tick=tick, action="move", offset=(float(offset[0]), float(offset[1]))))
-        rod = link.sense(tick, "moved").rod
-    lost = not link.act(ActRequest(tick=tick, action="snap")).moved
-    settled = link.sense(tick, "settled")
+        rod = link.act(Move(tick=tick, offset=(float(offset[0]), float(offset[1])))).rod
+    snapped = link.act(Snap(tick=tick))
+    lost, settled = not snapped.moved, snapped.sensing
     target = None if lost or rod is None else offset + np.asarray(rod)
     measurement = policy.record(settled, target)
     observation = Observation(tick=tick, estimator=policy.name, measurement=measurement,

@@ -8,7 +8,7 @@ import zenoh
 from agents.cli import parser, run_cli
 from agents.link import QUERY_TIMEOUT_S, AgentLink, TickMissed
 from protocol.config import AgentSettings
-from protocol.messages import ActRequest
+from protocol.messages import Drive
 
 
 def run_leader(session: zenoh.Session, settings: AgentSettings) -> None:
@@ -27,7 +27,7 @@ def run_leader(session: zenoh.Session, settings: AgentSettings) -> None:
             timeout = settings.step_timeout
             t = tick * settings.comm_period
             try:
-                link.act(ActRequest(tick=tick, action="drive", t=t))
+                link.act(Drive(tick=tick, t=t))
             except TickMissed:  # realtime: too late for this tick; the world keeps the pose
                 continue
             link.publish_rod(tick, settings.spacing, settings.side)

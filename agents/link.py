@@ -15,8 +15,8 @@ import zenoh
 
 from protocol import keys
 from protocol.messages import (
-    ActRequest, ActResult, Done, ErrorReply, Joined, JoinRequest, Message, Missed, Observation,
-    ProtocolError, Rod, Sensing, SenseRequest, TickStart, decode, encode,
+    ActResult, ActSensing, Done, Drive, ErrorReply, Joined, JoinRequest, Message, Missed, Observation,
+    Move, ProtocolError, Rod, Sensing, SenseRequest, Snap, TickStart, decode, encode,
 )
 
 log = logging.getLogger(__name__)
@@ -247,8 +247,10 @@ class AgentLink:
     def sense(self, tick: int, phase: str) -> Sensing:
         return self._query(self._sense_key, SenseRequest(tick=tick, phase=phase), Sensing)
 
-    def act(self, request: ActRequest) -> ActResult:
-        return self._query(self._act_key, request, ActResult)
+    def act(self, request: Drive | Move | Snap) -> ActResult | ActSensing:
+        """Ask the world to act; a move or snap is answered with the sensing after it."""
+        return self._query(self._act_key, request,
+                           ActResult if isinstance(request, Drive) else ActSensing)
 
     def publish_rod(self, tick: int, length: float, side: int) -> None:
         self._rod_pub.put(encode(Rod(tick=tick, length=length, side=side)))

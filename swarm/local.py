@@ -14,7 +14,7 @@ from pathlib import Path
 from agents.follower import follower_tick
 from agents.policies import Policy, make_policy
 from protocol.config import AgentSettings, RunConfig
-from protocol.messages import ActRequest, ActResult, Message, Sensing, decode, encode
+from protocol.messages import ActSensing, Message, Move, Sensing, Snap, decode, encode
 from world.main import resolve_with_surface
 from world.results import RunRecorder
 from world.sim import WorldSim
@@ -33,14 +33,8 @@ class LocalLink:
     def sense(self, tick: int, phase: str) -> Sensing:
         return self._wire(self.sim.sense(self.agent, tick, phase))
 
-    def act(self, request: ActRequest) -> ActResult:
-        request = self._wire(request)
-        moved = True
-        if request.action == "move":
-            self.sim.move(self.agent, request.tick, request.offset)
-        else:
-            moved = self.sim.snap(self.agent, request.tick)
-        return ActResult(tick=request.tick, moved=moved)
+    def act(self, request: Move | Snap) -> ActSensing:
+        return self._wire(self.sim.act(self.agent, self._wire(request)))
 
 
 def run_local(config: RunConfig, out_dir: str | Path | None = None,

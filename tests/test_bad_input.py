@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from protocol import keys
 from protocol.config import RunConfig
 from protocol.messages import (
-    MESSAGE_TYPES, ActRequest, ErrorReply, Joined, JoinRequest, ProtocolError, Rod, SenseRequest,
+    MESSAGE_TYPES, Drive, ErrorReply, Joined, JoinRequest, ProtocolError, Rod, SenseRequest,
     decode, encode,
 )
 from protocol.session import free_tcp_endpoint, zenoh_config
@@ -99,7 +99,8 @@ def _raw(**body):
 
 
 GOOD_SENSE = {"v": 1, "type": "sense", "tick": 0, "phase": "pre"}
-GOOD_MOVE = {"v": 1, "type": "act", "tick": 0, "action": "move", "t": None, "offset": [0.1, 0.0]}
+GOOD_MOVE = {"v": 1, "type": "move", "tick": 0, "offset": [0.1, 0.0]}
+GOOD_DRIVE = {"v": 1, "type": "drive", "tick": 0, "t": 0.0}
 
 
 @pytest.mark.parametrize("key_agent, payload, fragment", [
@@ -137,9 +138,11 @@ def test_a_follower_ahead_of_its_predecessor_is_told_to_wait(world):
     (1, {**GOOD_MOVE, "offset": [1e9, 0.0]}, "move offset must be two finite numbers of size"),
     (1, {**GOOD_MOVE, "offset": [1.0]}, "'offset' must have length 2"),
     (1, GOOD_MOVE, "tick 0 is an initial tick"),
-    (1, {**GOOD_MOVE, "action": "teleport"}, "'action' must be one of"),
-    (1, {**GOOD_MOVE, "action": "drive", "t": 0.0}, "only the leader (agent 0) may drive"),
-    (0, {**GOOD_MOVE, "action": "drive", "t": 0.0}, "the leader already drove"),
+    (1, {**GOOD_MOVE, "type": "teleport"}, "message type 'teleport' not accepted"),
+    (1, {**GOOD_MOVE, "t": 0.0}, "unknown field(s) ['t']"),
+    (1, {"v": 1, "type": "move", "tick": 0}, "missing field 'offset'"),
+    (1, GOOD_DRIVE, "only the leader (agent 0) may drive"),
+    (0, GOOD_DRIVE, "the leader already drove"),
     (0, GOOD_MOVE, "agent 0 is the leader"),
     (7, GOOD_MOVE, "unknown agent id 7"),
 ])
@@ -182,7 +185,7 @@ def _attack(endpoint: str, run_id: str, stop: threading.Event, counts: dict,
         (keys.sense(run_id, 1), b"\xff\x00garbage"),
         (keys.act(run_id, 1), _raw(**{**GOOD_MOVE, "offset": [math.inf, 1.0]})),
         (keys.act(run_id, 1), _raw(**{**GOOD_MOVE, "v": 99})),
-        (keys.act(run_id, 1), encode(ActRequest(tick=10**6, action="drive", t=1.0))),
+        (keys.act(run_id, 1), encode(Drive(tick=10**6, t=1.0))),
         (keys.sense(run_id, 1), _raw(**{**GOOD_SENSE, "phase": 3})),
     ]
     garbage = [(keys.rod(run_id, 1), b"\x00\x01"), (keys.obs(run_id, 2), _raw(v=1, type="obs")),

@@ -17,7 +17,7 @@ import zenoh
 from protocol import keys
 from protocol.config import RunConfig
 from protocol.messages import (
-    ActRequest, ActResult, Done, Joined, JoinRequest, Missed, Observation, ProtocolError, Rod,
+    ACTIONS, Done, Joined, JoinRequest, Missed, Observation, ProtocolError, Rod,
     SenseRequest, TickStart, decode, encode, error_payload,
 )
 from protocol.messages import safe_text
@@ -194,23 +194,13 @@ class WorldService:
 
     def _on_act(self, query: zenoh.Query) -> None:
         def handle(agent: int, payload: bytes) -> bytes:
-            req = decode(payload, (ActRequest, JoinRequest))
-            moved = True
+            req = decode(payload, (*ACTIONS, JoinRequest))
             with self._cond:
                 if isinstance(req, JoinRequest):
                     return encode(self._joined(agent))
                 self._check_turn(agent, req.tick)
-                if req.action == "drive":
-                    if req.t is None:
-                        raise RequestError("drive needs the time t")
-                    self.sim.drive(agent, req.tick, req.t)
-                elif req.action == "move":
-                    if req.offset is None:
-                        raise RequestError("move needs an offset")
-                    self.sim.move(agent, req.tick, req.offset)
-                else:
-                    moved = self.sim.snap(agent, req.tick)
-            return encode(ActResult(tick=req.tick, moved=moved))
+                # the agent validates the reply on decode; its numbers are the world's own
+                return encode(self.sim.act(agent, req), check=False)
         self._answer(query, handle)
 
     # --- subscribers ---------------------------------------------------------------------------

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol.config import RunConfig
-from protocol.messages import Sensing
+from protocol.messages import ActResult, ActSensing, Drive, Message, Move, Sensing, Snap
 from world import geometry
 from world.noise import gaussian, gaussian_scalar
 from world.surfaces import Surface, surface_leader_start
@@ -316,6 +316,24 @@ class WorldSim:
         state.lost = not seen
         state.settled[tick] = state.pos.copy()
         return seen
+
+    def act(self, agent: int, request: Message) -> ActResult | ActSensing:
+        """Carry out one typed action of ``agent`` and say how it went (SPEC §8): a
+        :class:`Drive` is answered with :class:`ActResult`; a :class:`Move` with the ``moved``
+        sensing and a :class:`Snap` with the ``settled`` sensing, both as :class:`ActSensing`.
+        The one dispatch of the Zenoh service and of the in-memory layout."""
+        if isinstance(request, Drive):
+            self.drive(agent, request.tick, request.t)
+            return ActResult(tick=request.tick, moved=True)
+        if isinstance(request, Move):
+            self.move(agent, request.tick, request.offset)
+            moved, phase = True, "moved"
+        elif isinstance(request, Snap):
+            moved, phase = self.snap(agent, request.tick), "settled"
+        else:
+            raise RequestError(f"{type(request).__name__} is not an action")
+        sensing = self.sense(agent, request.tick, phase)
+        return ActSensing(**{**sensing.__dict__, "moved": moved})
 
     # --- helpers -------------------------------------------------------------------------------
 
