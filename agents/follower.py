@@ -59,14 +59,16 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
 
 
 def _restore(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Policy,
-             state_dir: str | Path | None) -> tuple[StateLog | None, int]:
+             state_dir: str | Path | None) -> tuple[StateLog | None, int, int]:
     """Join the run, rebuild ``policy`` from the state log, roll back what the world has not
-    recorded; return the log (None without a state dir) and the last tick this agent is through.
+    recorded; return the log (None without a state dir), the last tick the policy has seen and
+    the last tick the world has this agent through.
 
-    The world says where it stands (tick W; whether it has this agent through W; whether the
-    agent may act at W now). Log entries past that point describe a tick the world will run
-    again (it restarted, or this agent died before reporting), so they are dropped and the tick
-    is redone from the same state: the numbers are those of an uninterrupted run.
+    The world says where this agent stands (the last tick it has the agent through, and up to
+    which tick the agent may act now). Log entries past that point describe ticks the world
+    will run again (it restarted from its checkpoint, or this agent died before reporting), so
+    they are dropped and the ticks are redone from the same state: the numbers are those of an
+    uninterrupted run.
     """
     joined = link.join(settings.start_timeout)
     through = joined.tick if joined.settled else joined.tick - 1
@@ -85,9 +87,7 @@ def _restore(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Po
                      state.path)
     else:
         last = -1
-    if joined.ready and not joined.settled:
-        link.advance(joined.tick)
-    return state, max(last, through) if joined.settled else last
+    return state, last, through
 
 
 def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
@@ -104,11 +104,12 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
         raise ValueError(f"--id must be in 1..{settings.followers} for this run, got {agent_id}")
     policy = make_policy(settings)
     link = AgentLink(session, settings.run_id, agent_id, agent_id - 1,
-                     query_timeout=max(settings.agent_timeout, QUERY_TIMEOUT_S))
+                     query_timeout=max(settings.agent_timeout, QUERY_TIMEOUT_S),
+                     lockstep=settings.mode == "lockstep")
     state = None
     try:
-        state, last = _restore(link, settings, agent_id, policy, state_dir)
-        tick, timeout = last, settings.start_timeout
+        state, last, tick = _restore(link, settings, agent_id, policy, state_dir)
+        timeout = settings.start_timeout
         while True:
             tick = link.wait_step(tick, timeout)
             timeout = settings.step_timeout

@@ -54,12 +54,16 @@ class AgentLink:
         leader, which waits for world ticks instead).
     query_timeout : float
         Seconds to wait for any world reply.
+    lockstep : bool
+        Lockstep mode: the agent does every tick, one after the other (its predecessor, or the
+        world, may be several ticks ahead in a pipelined run); else (realtime) it jumps to the
+        newest tick announced.
     """
 
     def __init__(self, session: zenoh.Session, run_id: str, agent_id: int, follow: int | None,
-                 query_timeout: float) -> None:
+                 query_timeout: float, lockstep: bool = True) -> None:
         self.session, self.run_id, self.agent_id = session, run_id, agent_id
-        self.query_timeout = query_timeout
+        self.query_timeout, self.lockstep = query_timeout, lockstep
         self._cond = threading.Condition()
         self._latest = -1  # newest tick announced by whatever this agent waits for
         self._world_tick = -1  # newest tick the world announced
@@ -168,7 +172,8 @@ class AgentLink:
     # --- waits ---------------------------------------------------------------------------------
 
     def wait_step(self, after: int, timeout: float) -> int:
-        """Block until a tick newer than ``after`` is announced; return it.
+        """Block until a tick newer than ``after`` is announced; return the next one to do
+        (``after + 1`` in lockstep, else the newest).
 
         Raises RunFinished on ``world/done`` and AgentAbort if the world vanishes or nothing
         comes within ``timeout`` seconds.
@@ -177,7 +182,7 @@ class AgentLink:
         with self._cond:
             while True:
                 if self._latest > after:
-                    return self._latest
+                    return after + 1 if self.lockstep else self._latest
                 if self._done is not None:
                     raise RunFinished(f"run finished: results in {self._done.results}",
                                       complete=self._done.complete)
@@ -240,8 +245,9 @@ class AgentLink:
                 self._cond.wait(left)
         joined = self._query(self._act_key, JoinRequest(tick=0), Joined)
         with self._cond:
-            self._world_tick = max(self._world_tick, joined.tick if joined.ready or joined.settled
-                                   else joined.tick - 1)
+            self._world_tick = max(self._world_tick, joined.world)
+        if joined.ready and not joined.settled:
+            self.advance(joined.until)
         return joined
 
     def sense(self, tick: int, phase: str) -> Sensing:

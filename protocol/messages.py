@@ -250,14 +250,18 @@ class JoinRequest(Message):
 
 @dataclass(frozen=True)
 class Joined(Message):
-    """Reply to :class:`JoinRequest`: the world is at ``tick``; ``settled``: it has this agent
-    through that tick (its rod, or a miss, is recorded); ``ready``: the agent may act at
-    ``tick`` now (the tick has started and, for a follower, its predecessor is through);
-    ``start``: the run's start nonce, which the agent's state file must carry."""
+    """Reply to :class:`JoinRequest`: this agent is at ``tick``; ``settled``: the world has it
+    through that tick (its rod, or a miss, is recorded; then ``tick`` is the world's newest);
+    else it must do ``tick`` next (whatever it did later is not recorded: it redoes it);
+    ``ready``: it may act at ``tick`` now, and at every tick up to ``until`` (they have started
+    and, for a follower, its predecessor is through them); ``world``: the newest tick the world
+    started; ``start``: the run's start nonce, which the agent's state file must carry."""
 
     TYPE: ClassVar[str] = "joined"
     settled: bool = _kind("flag", False)
     ready: bool = _kind("flag", False)
+    until: int = _kind("count", 0)
+    world: int = _kind("count", 0)
     start: str = _kind("text", "")
 
 

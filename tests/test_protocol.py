@@ -32,7 +32,7 @@ SAMPLES = [
     ErrorReply(tick=0, error="bad", code="missed"),
     Missed(tick=3, agent=2),
     JoinRequest(tick=0),
-    Joined(tick=12, settled=False, ready=True, start="9f3a"),
+    Joined(tick=12, settled=False, ready=True, until=14, world=15, start="9f3a"),
 ]
 
 
