@@ -67,6 +67,7 @@ class AgentLink:
         self._cond = threading.Condition()
         self._latest = -1  # newest tick announced by whatever this agent waits for
         self._world_tick = -1  # newest tick the world announced
+        self._held = -1  # newest predecessor tick held until the world announces its tick
         self._done: Done | None = None
         self._world_alive = False
         self._world_seen = False
@@ -125,8 +126,13 @@ class AgentLink:
             return
         with self._cond:
             self._world_tick = max(self._world_tick, msg.tick)
+            held = self._held if 0 <= self._held <= self._world_tick + 1 else -1
+            if held >= 0:
+                self._held = -1
         if self.follow is None:  # the leader's step is the world's tick
             self.advance(msg.tick)
+        elif held >= 0:
+            self.advance(held)
 
     def _on_rod(self, sample: zenoh.Sample) -> None:
         msg = self._decode(sample, Rod)
@@ -139,13 +145,17 @@ class AgentLink:
             self._predecessor_through(msg.tick, sample)
 
     def _predecessor_through(self, tick: int, sample: zenoh.Sample) -> None:
-        """The predecessor got through ``tick``; a tick more than one ahead of the world's
-        newest (which may arrive just after the rod) is not believed (SPEC §8)."""
+        """The predecessor got through ``tick``. A tick more than one ahead of the world's
+        newest is not believed (SPEC §8) until the world announces it: in a pipelined run the
+        predecessor's rods may overtake the world's announcements (they are not dropped, or
+        the agent would wait for them in vain)."""
         with self._cond:
             ahead = tick > self._world_tick + 1
+            if ahead:
+                self._held = max(self._held, tick)
         if ahead:
-            log.warning("agent %d: dropped sample on %s for tick %d: the world is at tick %d",
-                        self.agent_id, sample.key_expr, tick, self._world_tick)
+            log.debug("agent %d: holding the sample on %s for tick %d: the world is at tick %d",
+                      self.agent_id, sample.key_expr, tick, self._world_tick)
             return
         self.advance(tick)
 
