@@ -23,6 +23,7 @@ log = logging.getLogger(__name__)
 
 QUERY_TIMEOUT_S = 10.0  # the least time an agent waits for the world's reply to a query
 WAIT_RETRY_S = 0.002  # pause before asking again after a ``wait`` refusal
+MAX_HELD = 256  # most predecessor ticks held until the world announces them
 
 
 class AgentAbort(RuntimeError):
@@ -67,7 +68,7 @@ class AgentLink:
         self._cond = threading.Condition()
         self._latest = -1  # newest tick announced by whatever this agent waits for
         self._world_tick = -1  # newest tick the world announced
-        self._held = -1  # newest predecessor tick held until the world announces its tick
+        self._held: set[int] = set()  # predecessor ticks held until the world announces them
         self._done: Done | None = None
         self._world_alive = False
         self._world_seen = False
@@ -126,9 +127,9 @@ class AgentLink:
             return
         with self._cond:
             self._world_tick = max(self._world_tick, msg.tick)
-            held = self._held if 0 <= self._held <= self._world_tick + 1 else -1
-            if held >= 0:
-                self._held = -1
+            due = {t for t in self._held if t <= self._world_tick + 1}
+            self._held -= due
+            held = max(due, default=-1)
         if self.follow is None:  # the leader's step is the world's tick
             self.advance(msg.tick)
         elif held >= 0:
@@ -152,7 +153,9 @@ class AgentLink:
         with self._cond:
             ahead = tick > self._world_tick + 1
             if ahead:
-                self._held = max(self._held, tick)
+                self._held.add(tick)
+                if len(self._held) > MAX_HELD:  # a flood of far-future ticks: keep the nearest
+                    self._held.discard(max(self._held))
         if ahead:
             log.debug("agent %d: holding the sample on %s for tick %d: the world is at tick %d",
                       self.agent_id, sample.key_expr, tick, self._world_tick)
