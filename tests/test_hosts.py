@@ -66,6 +66,7 @@ class Hosts:
         self.router = f"{self.prefix}-router"
         self.names = names
         self.made: list[str] = []
+        self.etc_made = not Path("/etc/netns").exists()
 
     def ns(self, name: str) -> str:
         return f"{self.prefix}-{name}"
@@ -114,6 +115,8 @@ class Hosts:
             _ip("netns", "del", ns)  # its veth ends go with it
             shutil.rmtree(Path("/etc/netns") / ns, ignore_errors=True)
         self.made.clear()
+        if self.etc_made and Path("/etc/netns").exists() and not any(Path("/etc/netns").iterdir()):
+            Path("/etc/netns").rmdir()
 
 
 def _loopback_run(deployment: Deployment, volumes: Path) -> Path:

@@ -461,6 +461,8 @@ class WorldService:
         complete = not reason
         if reason:
             log.error("world: run ended early: %s", reason)
+        elif self.config.mode == "lockstep":  # an agent restarted meanwhile learns it is done
+            self._wait_all_live(self.config.agent_timeout)
         with self._cond:
             self.recorder.write_summary(complete=complete, reason=reason, wall_time=self._wall())
         self._done_pub.put(encode(Done(tick=max(self.recorder.ticks_done - 1, 0),
@@ -470,6 +472,15 @@ class WorldService:
         if complete:  # a world killed before this resumes into the end phase again
             checkpoint.discard(self.out_dir)
         return self.recorder.summary(complete=complete, reason=reason, wall_time=self._wall())
+
+    def _wait_all_live(self, timeout: float) -> None:
+        """Give an agent that vanished (pipelined, an agent may be through every tick long
+        before the run completes) up to ``timeout`` s to come back and see ``world/done``."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while (set(range(self.sim.n_agents)) - self._alive
+                   and (left := deadline - time.monotonic()) > 0):
+                self._cond.wait(left)
 
     def _wait_agents_gone(self, timeout: float) -> None:
         """Give agents time to see ``world/done`` and leave before the session closes."""
