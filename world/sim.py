@@ -1,10 +1,13 @@
 """The world's physics and bookkeeping, free of any transport (SPEC §3–§5, §7).
 
 :class:`WorldSim` owns the hidden surface and every agent's absolute pose. The Zenoh service
-(``world.service``) turns queries into calls of :meth:`sense`, :meth:`drive`, :meth:`move`
-and :meth:`snap`, and tick events into :meth:`start_tick` / :meth:`finish_tick`. Requests
-that break the protocol's rules raise :class:`RequestError` (answered as an error reply);
-conditions that end the run (leaving the surface's domain) raise :class:`RunEnded`.
+(``world.service``) and the in-memory layout (``swarm.local``) turn requests into calls of
+:meth:`sense` and :meth:`act` (:meth:`drive`, :meth:`move`, :meth:`snap`), and tick events
+into :meth:`open_tick` (or :meth:`start_tick`) and :meth:`finish_tick`. Agents may be at
+different ticks (pipelined lockstep, SPEC §4); each begins a tick with its first request for
+it. Requests that break the protocol's rules raise :class:`RequestError` (answered as an
+error reply); conditions that end the run (leaving the surface's domain) raise
+:class:`RunEnded`.
 """
 from __future__ import annotations
 
@@ -162,10 +165,6 @@ class WorldSim:
         state.estimate, state.acted, state.lost, state.missed = None, "", False, False
         state.tick = tick - 1
         self._rod_cache.pop((agent + 1, tick), None)
-
-    def agent_tick(self, agent: int) -> int:
-        """The tick ``agent`` is in (settled at it or not), -1 before its first."""
-        return self.agents[agent].tick
 
     def is_settled(self, agent: int, tick: int) -> bool:
         return tick in self.agents[agent].settled
