@@ -1,9 +1,9 @@
 """A follower: estimates its leader's rod end, moves there, snaps on it (``python -m agents.follower``).
 
 One tick (SPEC §4): sense the leader (``pre``) and ask the policy for its estimate; from tick
-``init_ticks`` on, move there and sense again (``moved``); snap onto the rod end if it is in range (else
-count a lost tick); sense once more (``settled``) and record the measurement; publish the
-observation and the rod.
+``init_ticks`` on, move there (the reply carries the ``moved`` sensing); snap onto the rod end
+if it is in range, else count a lost tick (the reply carries the ``settled`` sensing); record
+the measurement; publish the observation and the rod. Three round trips to the world per tick.
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from agents.cli import parser, run_cli
 from agents.link import QUERY_TIMEOUT_S, AgentAbort, AgentLink, RunFinished, TickMissed
 from agents.policies import NotReady, Policy, make_policy
 from protocol.config import AgentSettings
-from protocol.messages import ActRequest, Observation, Sensing
+from protocol.messages import Move, Observation, Sensing, Snap
 
 log = logging.getLogger(__name__)
 
@@ -47,10 +47,9 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
     if tick < settings.init_ticks:
         offset, rod = np.zeros(2), pre.rod
     else:
-        link.act(ActRequest(tick=tick, action="move", offset=(float(offset[0]), float(offset[1]))))
-        rod = link.sense(tick, "moved").rod
-    lost = not link.act(ActRequest(tick=tick, action="snap")).moved
-    settled = link.sense(tick, "settled")
+        rod = link.act(Move(tick=tick, offset=(float(offset[0]), float(offset[1])))).rod
+    snapped = link.act(Snap(tick=tick))
+    lost, settled = not snapped.moved, snapped.sensing
     target = None if lost or rod is None else offset + np.asarray(rod)
     measurement = policy.record(settled, target)
     observation = Observation(tick=tick, estimator=policy.name, measurement=measurement,
@@ -60,14 +59,16 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
 
 
 def _restore(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Policy,
-             state_dir: str | Path | None) -> tuple[StateLog | None, int]:
+             state_dir: str | Path | None) -> tuple[StateLog | None, int, int]:
     """Join the run, rebuild ``policy`` from the state log, roll back what the world has not
-    recorded; return the log (None without a state dir) and the last tick this agent is through.
+    recorded; return the log (None without a state dir), the last tick the policy has seen and
+    the last tick the world has this agent through.
 
-    The world says where it stands (tick W; whether it has this agent through W; whether the
-    agent may act at W now). Log entries past that point describe a tick the world will run
-    again (it restarted, or this agent died before reporting), so they are dropped and the tick
-    is redone from the same state: the numbers are those of an uninterrupted run.
+    The world says where this agent stands (the last tick it has the agent through, and up to
+    which tick the agent may act now). Log entries past that point describe ticks the world
+    will run again (it restarted from its checkpoint, or this agent died before reporting), so
+    they are dropped and the ticks are redone from the same state: the numbers are those of an
+    uninterrupted run.
     """
     joined = link.join(settings.start_timeout)
     through = joined.tick if joined.settled else joined.tick - 1
@@ -83,16 +84,14 @@ def _restore(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Po
         if last < through:  # ticks it was not there for (realtime misses): bridged
             kept.append(Entry(tick=through, skips=through - last - 1, settled=None, target=None))
             state.append(kept[-1])
+            last = through
         replay(policy, kept)
         if entries:
             log.info("follower %d: restored %d ticks of history from %s", agent_id, len(kept),
                      state.path)
-    else:  # no history kept: bridge the ticks it was not there for, as a log would
-        for _ in range(max(through, 0)):
-            policy.skip()
-    if joined.ready and not joined.settled:
-        link.advance(joined.tick)
-    return state, through
+    else:
+        last = -1
+    return state, last, through
 
 
 def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
@@ -109,11 +108,12 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
         raise ValueError(f"--id must be in 1..{settings.followers} for this run, got {agent_id}")
     policy = make_policy(settings)
     link = AgentLink(session, settings.run_id, agent_id, agent_id - 1,
-                     query_timeout=max(settings.agent_timeout, QUERY_TIMEOUT_S))
+                     query_timeout=max(settings.agent_timeout, QUERY_TIMEOUT_S),
+                     lockstep=settings.mode == "lockstep")
     state = None
     try:
-        state, last = _restore(link, settings, agent_id, policy, state_dir)
-        tick, timeout = last, settings.start_timeout
+        state, last, tick = _restore(link, settings, agent_id, policy, state_dir)
+        timeout = settings.start_timeout
         while True:
             tick = link.wait_step(tick, timeout)
             timeout = settings.step_timeout

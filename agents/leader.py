@@ -8,26 +8,26 @@ import zenoh
 from agents.cli import parser, run_cli
 from agents.link import QUERY_TIMEOUT_S, AgentLink, TickMissed
 from protocol.config import AgentSettings
-from protocol.messages import ActRequest
+from protocol.messages import Drive
 
 
 def run_leader(session: zenoh.Session, settings: AgentSettings) -> None:
     """Lockstep leader loop; returns by raising RunFinished when the world is done."""
-    link = AgentLink(session, settings.run_id, 0, None, query_timeout=max(settings.agent_timeout, QUERY_TIMEOUT_S))
+    link = AgentLink(session, settings.run_id, 0, None,
+                     query_timeout=max(settings.agent_timeout, QUERY_TIMEOUT_S),
+                     lockstep=settings.mode == "lockstep")
     try:
         # a restarted leader redoes the tick in progress if the world has not recorded its
         # rod (the world rolled its drive back), else waits for the next tick
         joined = link.join(settings.start_timeout)
         tick = joined.tick if joined.settled else joined.tick - 1
-        if joined.ready and not joined.settled:
-            link.advance(joined.tick)
         timeout = settings.start_timeout
         while True:
             tick = link.wait_step(tick, timeout)
             timeout = settings.step_timeout
             t = tick * settings.comm_period
             try:
-                link.act(ActRequest(tick=tick, action="drive", t=t))
+                link.act(Drive(tick=tick, t=t))
             except TickMissed:  # realtime: too late for this tick; the world keeps the pose
                 continue
             link.publish_rod(tick, settings.spacing, settings.side)

@@ -15,14 +15,15 @@ import zenoh
 
 from protocol import keys
 from protocol.messages import (
-    ActRequest, ActResult, Done, ErrorReply, Joined, JoinRequest, Message, Missed, Observation,
-    ProtocolError, Rod, Sensing, SenseRequest, TickStart, decode, encode,
+    ActResult, ActSensing, Done, Drive, ErrorReply, Joined, JoinRequest, Message, Missed, Observation,
+    Move, ProtocolError, Rod, Sensing, SenseRequest, Snap, TickStart, decode, encode,
 )
 
 log = logging.getLogger(__name__)
 
 QUERY_TIMEOUT_S = 10.0  # the least time an agent waits for the world's reply to a query
 WAIT_RETRY_S = 0.002  # pause before asking again after a ``wait`` refusal
+MAX_HELD = 256  # most predecessor ticks held until the world announces them
 
 
 class AgentAbort(RuntimeError):
@@ -54,15 +55,20 @@ class AgentLink:
         leader, which waits for world ticks instead).
     query_timeout : float
         Seconds to wait for any world reply.
+    lockstep : bool
+        Lockstep mode: the agent does every tick, one after the other (its predecessor, or the
+        world, may be several ticks ahead in a pipelined run); else (realtime) it jumps to the
+        newest tick announced.
     """
 
     def __init__(self, session: zenoh.Session, run_id: str, agent_id: int, follow: int | None,
-                 query_timeout: float) -> None:
+                 query_timeout: float, lockstep: bool = True) -> None:
         self.session, self.run_id, self.agent_id = session, run_id, agent_id
-        self.query_timeout = query_timeout
+        self.query_timeout, self.lockstep = query_timeout, lockstep
         self._cond = threading.Condition()
         self._latest = -1  # newest tick announced by whatever this agent waits for
         self._world_tick = -1  # newest tick the world announced
+        self._held: set[int] = set()  # predecessor ticks held until the world announces them
         self._done: Done | None = None
         self._world_alive = False
         self._world_seen = False
@@ -121,8 +127,13 @@ class AgentLink:
             return
         with self._cond:
             self._world_tick = max(self._world_tick, msg.tick)
+            due = {t for t in self._held if t <= self._world_tick + 1}
+            self._held -= due
+            held = max(due, default=-1)
         if self.follow is None:  # the leader's step is the world's tick
             self.advance(msg.tick)
+        elif held >= 0:
+            self.advance(held)
 
     def _on_rod(self, sample: zenoh.Sample) -> None:
         msg = self._decode(sample, Rod)
@@ -135,13 +146,19 @@ class AgentLink:
             self._predecessor_through(msg.tick, sample)
 
     def _predecessor_through(self, tick: int, sample: zenoh.Sample) -> None:
-        """The predecessor got through ``tick``; a tick more than one ahead of the world's
-        newest (which may arrive just after the rod) is not believed (SPEC §8)."""
+        """The predecessor got through ``tick``. A tick more than one ahead of the world's
+        newest is not believed (SPEC §8) until the world announces it: in a pipelined run the
+        predecessor's rods may overtake the world's announcements (they are not dropped, or
+        the agent would wait for them in vain)."""
         with self._cond:
             ahead = tick > self._world_tick + 1
+            if ahead:
+                self._held.add(tick)
+                if len(self._held) > MAX_HELD:  # a flood of far-future ticks: keep the nearest
+                    self._held.discard(max(self._held))
         if ahead:
-            log.warning("agent %d: dropped sample on %s for tick %d: the world is at tick %d",
-                        self.agent_id, sample.key_expr, tick, self._world_tick)
+            log.debug("agent %d: holding the sample on %s for tick %d: the world is at tick %d",
+                      self.agent_id, sample.key_expr, tick, self._world_tick)
             return
         self.advance(tick)
 
@@ -168,7 +185,8 @@ class AgentLink:
     # --- waits ---------------------------------------------------------------------------------
 
     def wait_step(self, after: int, timeout: float) -> int:
-        """Block until a tick newer than ``after`` is announced; return it.
+        """Block until a tick newer than ``after`` is announced; return the next one to do
+        (``after + 1`` in lockstep, else the newest).
 
         Raises RunFinished on ``world/done`` and AgentAbort if the world vanishes or nothing
         comes within ``timeout`` seconds.
@@ -177,7 +195,7 @@ class AgentLink:
         with self._cond:
             while True:
                 if self._latest > after:
-                    return self._latest
+                    return after + 1 if self.lockstep else self._latest
                 if self._done is not None:
                     raise RunFinished(f"run finished: results in {self._done.results}",
                                       complete=self._done.complete)
@@ -240,15 +258,18 @@ class AgentLink:
                 self._cond.wait(left)
         joined = self._query(self._act_key, JoinRequest(tick=0), Joined)
         with self._cond:
-            self._world_tick = max(self._world_tick, joined.tick if joined.ready or joined.settled
-                                   else joined.tick - 1)
+            self._world_tick = max(self._world_tick, joined.world)
+        if joined.ready and not joined.settled:
+            self.advance(joined.until)
         return joined
 
     def sense(self, tick: int, phase: str) -> Sensing:
         return self._query(self._sense_key, SenseRequest(tick=tick, phase=phase), Sensing)
 
-    def act(self, request: ActRequest) -> ActResult:
-        return self._query(self._act_key, request, ActResult)
+    def act(self, request: Drive | Move | Snap) -> ActResult | ActSensing:
+        """Ask the world to act; a move or snap is answered with the sensing after it."""
+        return self._query(self._act_key, request,
+                           ActResult if isinstance(request, Drive) else ActSensing)
 
     def publish_rod(self, tick: int, length: float, side: int) -> None:
         self._rod_pub.put(encode(Rod(tick=tick, length=length, side=side)))

@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from protocol import keys  # noqa: E402
 from protocol.config import RunConfig  # noqa: E402
-from protocol.messages import encode  # noqa: E402
+from protocol.messages import Rod, encode  # noqa: E402
 from protocol.session import free_tcp_endpoint, zenoh_config  # noqa: E402
 from swarm.launch import launch  # noqa: E402
 from world.main import resolve  # noqa: E402
@@ -68,6 +68,14 @@ def sensing_round_trip(n: int = 2000) -> dict:
         service = WorldService(world_session, config, make_surface(config.surface), tmp)
         service.sim.start_tick(0)
         service.sim.drive(0, 0, 0.0)
+        # the leader's rod, as the leader would publish it: then follower 1 may sense
+        world_session.put(keys.rod(config.run_id, 0),
+                          encode(Rod(tick=0, length=config.spacing, side=config.side_sign)))
+        deadline = time.monotonic() + 10.0
+        while service._through[0] < 0:
+            if time.monotonic() > deadline:
+                raise RuntimeError("the world never counted the leader's rod")
+            time.sleep(0.01)
         reply = encode(service.sim.sense(1, 0, "pre"))
         bare = world_session.declare_queryable("bench/bare/1", lambda q: q.reply(q.key_expr, reply))
         out = subprocess.run(

@@ -99,6 +99,7 @@ class RunConfig:
     seed: int = 0
     sensing_range: float = math.inf
     mode: str = "lockstep"
+    pipelined: bool = True
     time_scale: float = 1.0
     agent_timeout: float = 10.0
     start_timeout: float = 30.0
@@ -121,7 +122,7 @@ class RunConfig:
         _check_int("init_ticks", self.init_ticks, 2, self.ticks)
         for name, bounds in FLOAT_RANGES.items():
             _check_range(name, getattr(self, name), *bounds)
-        for name in ("online", "affine", "gps"):
+        for name in ("online", "affine", "gps", "pipelined"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
         if self.estimator == "edmd" and self.dictionary in GPS_DICTIONARIES and not self.gps:

@@ -144,7 +144,6 @@ _KINDS = {
     "vec3?": _optional(_vector(3)),
     "vec?": _optional(_vector(None)),
     "phase": _choice("pre", "moved", "settled"),
-    "action": _choice("drive", "move", "snap"),
     "error-code": _choice("bad-request", "missed", "ended", "wait"),
 }
 
@@ -210,18 +209,33 @@ class Sensing(Message):
 
 
 @dataclass(frozen=True)
-class ActRequest(Message):
-    """Query to ``world/act/<id>``.
+class Drive(Message):
+    """Query to ``world/act/0``: the leader follows its geodesic to time ``t``; the reply is
+    :class:`ActResult`."""
 
-    ``drive`` (leader only): follow the leader's geodesic to time ``t``.
-    ``move`` (followers): move by the xy ``offset`` in the local frame, keeping the heading.
-    ``snap`` (followers): move onto the leader's visible rod end and take the §3 heading.
-    """
+    TYPE: ClassVar[str] = "drive"
+    t: float = _kind("finite", 0.0)
 
-    TYPE: ClassVar[str] = "act"
-    action: str = _kind("action", "move")
-    t: float | None = field(default=None, metadata={"kind": "finite?"})
-    offset: tuple[float, float] | None = _kind("vec2?", None)
+
+@dataclass(frozen=True)
+class Move(Message):
+    """Query to ``world/act/<id>`` (followers): move by the xy ``offset`` in the local frame,
+    keeping the heading; the reply is :class:`ActSensing` with the ``moved`` sensing."""
+
+    TYPE: ClassVar[str] = "move"
+    offset: tuple[float, float] = _kind("vec2", (0.0, 0.0))
+
+
+@dataclass(frozen=True)
+class Snap(Message):
+    """Query to ``world/act/<id>`` (followers): move onto the leader's rod end if it is visible
+    and take the §3 heading; the reply is :class:`ActSensing` with the ``settled`` sensing."""
+
+    TYPE: ClassVar[str] = "snap"
+
+
+ACTIONS = (Drive, Move, Snap)
+"""The typed requests of ``world/act/<id>`` (besides :class:`JoinRequest`)."""
 
 
 @dataclass(frozen=True)
@@ -236,23 +250,43 @@ class JoinRequest(Message):
 
 @dataclass(frozen=True)
 class Joined(Message):
-    """Reply to :class:`JoinRequest`: the world is at ``tick``; ``settled``: it has this agent
-    through that tick (its rod, or a miss, is recorded); ``ready``: the agent may act at
-    ``tick`` now (the tick has started and, for a follower, its predecessor is through);
-    ``start``: the run's start nonce, which the agent's state file must carry."""
+    """Reply to :class:`JoinRequest`: this agent is at ``tick``; ``settled``: the world has it
+    through that tick (its rod, or a miss, is recorded; then ``tick`` is the world's newest);
+    else it must do ``tick`` next (whatever it did later is not recorded: it redoes it);
+    ``ready``: it may act at ``tick`` now, and at every tick up to ``until`` (they have started
+    and, for a follower, its predecessor is through them); ``world``: the newest tick the world
+    started; ``start``: the run's start nonce, which the agent's state file must carry."""
 
     TYPE: ClassVar[str] = "joined"
     settled: bool = _kind("flag", False)
     ready: bool = _kind("flag", False)
+    until: int = _kind("count", 0)
+    world: int = _kind("count", 0)
     start: str = _kind("text", "")
 
 
 @dataclass(frozen=True)
 class ActResult(Message):
-    """Reply of ``world/act/<id>``: ``moved`` is False when a snap found no visible rod end."""
+    """Reply of ``world/act/0`` to :class:`Drive`: the leader is at its new pose."""
 
     TYPE: ClassVar[str] = "acted"
     moved: bool = _kind("flag", True)
+
+
+@dataclass(frozen=True)
+class ActSensing(Sensing):
+    """Reply of ``world/act/<id>`` to :class:`Move` and :class:`Snap`: the sensing right after
+    the action (phase ``moved`` after a move, ``settled`` after a snap; SPEC §8), so a
+    follower tick needs at most three round trips. ``moved`` is False when a snap found no
+    visible rod end (a lost tick)."""
+
+    TYPE: ClassVar[str] = "acted-sensing"
+    moved: bool = _kind("flag", True)
+
+    @property
+    def sensing(self) -> Sensing:
+        """The sensing alone (what a ``world/sense`` query would have answered)."""
+        return Sensing(**{f.name: getattr(self, f.name) for f in fields(Sensing)})
 
 
 @dataclass(frozen=True)
@@ -312,11 +346,10 @@ class ErrorReply(Message):
     code: str = _kind("error-code", "bad-request")
 
 
-_KINDS["finite?"] = _optional(_finite)
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE: cls
-    for cls in (TickStart, SenseRequest, Sensing, ActRequest, JoinRequest, Joined, ActResult, Rod,
-                Observation, Missed, Done, ErrorReply)
+    for cls in (TickStart, SenseRequest, Sensing, Drive, Move, Snap, JoinRequest, Joined,
+                ActResult, ActSensing, Rod, Observation, Missed, Done, ErrorReply)
 }
 
 

@@ -51,6 +51,9 @@ RUN_FLAGS: dict[str, tuple[str, dict]] = {
     "--seed": ("seed", {"type": int}),
     "--sensing-range": ("sensing_range", {"type": float, "help": "R_s (inf = unlimited)"}),
     "--mode": ("mode", {"choices": ("lockstep", "realtime")}),
+    "--unpipelined": ("pipelined", {"action": "store_const", "const": False,
+                                    "help": "lockstep one agent at a time (for comparison; "
+                                            "default: pipelined, SPEC §4)"}),
     "--time-scale": ("time_scale", {"type": float}),
     "--agent-timeout": ("agent_timeout", {"type": float}),
     "--run-id": ("run_id", {}),
@@ -303,7 +306,10 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     args.out = args.out or "runs/experiment-paper"
     try:
         result = run_paper_experiment(args.out, QUICK if args.quick else FULL,
-                                      workers=args.workers)
+                                      workers=args.workers, scheduler=args.scheduler)
+    except RuntimeError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"interrupted: finished runs are in {Path(args.out) / 'runs'}", file=sys.stderr)
         return 130
@@ -327,11 +333,15 @@ def _print_experiment(result: dict, wall_line: str) -> int:
     return 1 if result["failed"] else 0
 
 
-def _run_sweep_and_print(name, base, axes, out, follower, workers) -> int:
+def _run_sweep_and_print(name, base, axes, out, follower, workers, scheduler=None) -> int:
     from swarm.sweep import format_means, run_sweep
 
     try:
-        result = run_sweep(name, base, axes, out, follower=follower, workers=workers)
+        result = run_sweep(name, base, axes, out, follower=follower, workers=workers,
+                           scheduler=scheduler)
+    except RuntimeError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"interrupted: finished runs are in {Path(out) / 'runs'}", file=sys.stderr)
         return 130
@@ -370,7 +380,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = Path(args.out) if args.out else Path("runs") / f"compare-{base.run_id}"
-    return _run_sweep_and_print("compare", base, axes, out, args.follower, args.workers)
+    return _run_sweep_and_print("compare", base, axes, out, args.follower, args.workers,
+                                args.scheduler)
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
@@ -384,7 +395,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = Path(args.out) if args.out else Path("runs") / f"sweep-{name}"
-    return _run_sweep_and_print(name, base, axes, out, follower, args.workers)
+    return _run_sweep_and_print(name, base, axes, out, follower, args.workers, args.scheduler)
 def cmd_terrain(args: argparse.Namespace) -> int:
     """``experiment terrain --dem PATH --leader-start X,Y,VX,VY [--leader-start ...]``."""
     from swarm.terrain import TerrainSpec, quick, run_terrain_experiment
@@ -504,6 +515,9 @@ def build_parser() -> argparse.ArgumentParser:
     terrain.add_argument("--comm-periods", help="comma-separated, default 0.32,0.64,1.28,2.56,5.12")
     experiment.add_argument("--workers", type=int, default=None,
                             help="runs in parallel (default min(2, CPU count))")
+    experiment.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                            help="address of a dask scheduler (tcp://host:8786): each run is "
+                                 "one task on its workers (default: a local process pool)")
     experiment.set_defaults(func=cmd_experiment)
     compare = sub.add_parser("compare", help="one setup, several estimators and seeds, one table")
     add_run_flags(compare)
@@ -515,12 +529,19 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--out", help="output folder (default runs/compare-<run id>)")
     compare.add_argument("--workers", type=int, default=None,
                          help="runs in parallel (default min(2, CPU count))")
+    compare.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                         help="address of a dask scheduler (tcp://host:8786): each run is one "
+                              "task on its workers (default: a local process pool)")
     compare.set_defaults(func=cmd_compare)
     sweep = sub.add_parser("sweep", help="run a grid file (surfaces × estimators × ...)")
     sweep.add_argument("grid", metavar="GRID.toml", help="the grid: [base] options and [axes]")
     sweep.add_argument("--out", help="output folder (default runs/sweep-<name>)")
     sweep.add_argument("--workers", type=int, default=None,
                        help="runs in parallel (default min(2, CPU count))")
+    sweep.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                       help="address of a dask scheduler (tcp://host:8786): each run is one "
+                            "task on its workers (default: a local process pool); finished "
+                            "runs in --out are not run again")
     sweep.set_defaults(func=cmd_sweep)
     dem = sub.add_parser("dem-from-npz", help="write matplotlib's sample DEM (Jacksboro fault, "
                                               "USGS, public domain) as a GeoTIFF")

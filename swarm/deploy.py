@@ -73,7 +73,7 @@ def _rule(rule_id: str, flow: str, messages: list[str], key_exprs: list[str]) ->
 def _agent_needs(run_id: str, agent: int) -> list[str]:
     """What agent ``agent`` subscribes to (agents/link.py): world ticks and ``world/done``; a
     follower also its predecessor's rod (a rod more than one tick ahead of the world's is
-    dropped) and the world's missed-tick notices."""
+    held until the world announces its tick) and the world's missed-tick notices."""
     if agent == 0:
         return [keys.tick(run_id), keys.done(run_id)]
     return [keys.rod(run_id, agent - 1), keys.tick(run_id), keys.missed(run_id),

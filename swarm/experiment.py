@@ -202,13 +202,15 @@ def draw_jobs(jobs: dict[str, Callable[[], Path]]) -> tuple[dict[str, Path], dic
 # --- the whole experiment ----------------------------------------------------------------------
 
 def run_paper_experiment(out_dir: str | Path, spec: GridSpec = FULL, workers: int | None = None,
-                         progress: bool = True) -> dict:
-    """Run the grid of ``spec`` into ``out_dir/runs``, then :func:`write_results`."""
+                         progress: bool = True, scheduler: str | None = None) -> dict:
+    """Run the grid of ``spec`` into ``out_dir/runs`` (on the dask scheduler at ``scheduler``
+    if given; runs already finished there are kept), then :func:`write_results`."""
     start = time.perf_counter()
     workers = workers or min(2, os.cpu_count() or 1)
     grid = paper_grid(spec)
     outcomes = run_grid([run for table in TABLE_COLUMNS for run in grid[table]],
-                        Path(out_dir) / "runs", workers=workers, progress=progress)
+                        Path(out_dir) / "runs", workers=workers, progress=progress,
+                        scheduler=scheduler)
     return write_results(out_dir, spec, outcomes, workers, time.perf_counter() - start)
 
 

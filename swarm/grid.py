@@ -3,7 +3,8 @@
 
 A :class:`GridRun` is a ``RunConfig`` with a table, a folder name and the key columns it fills;
 :func:`run_grid` runs a list of them (each one :func:`swarm.launch.launch` over Zenoh, in a
-process pool) and returns one :class:`RunOutcome` per run. :func:`write_table` /
+local process pool or as tasks on a dask cluster) and returns one :class:`RunOutcome` per run;
+runs already finished in the folder (an interrupted grid run again) are not run again. :func:`write_table` /
 :func:`read_table` write and read the CSV tables.
 """
 from __future__ import annotations
@@ -11,17 +12,19 @@ from __future__ import annotations
 import csv
 import hashlib
 import io
+import json
 import math
 import multiprocessing
 import os
 import re
+import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from protocol.config import RunConfig, write_atomic
+from protocol.config import RunConfig, load_config, write_atomic
 
 RUN_ATTEMPTS = 2
 
@@ -69,9 +72,11 @@ def execute(run: GridRun, runs_dir: Path, attempts: int = RUN_ATTEMPTS) -> RunOu
 
     start = time.perf_counter()
     error = ""
+    folder = runs_dir / run.folder
     for attempt in range(1, attempts + 1):
         try:
-            summary = launch(run.config, runs_dir / run.folder, in_process=True)
+            _clear_unfinished(run, folder)
+            summary = launch(run.config, folder, in_process=True)
         except (ValueError, RuntimeError, OSError) as exc:
             error = f"{type(exc).__name__}: {exc}"
             continue
@@ -81,47 +86,122 @@ def execute(run: GridRun, runs_dir: Path, attempts: int = RUN_ATTEMPTS) -> RunOu
     return RunOutcome(run, None, error, attempts, time.perf_counter() - start)
 
 
+def finished_summary(run: GridRun, folder: Path) -> dict | None:
+    """The summary of ``run`` if ``folder`` holds it complete (same run id and options), else
+    None: how an interrupted grid resumes without running finished runs again."""
+    try:
+        summary = json.loads((folder / "summary.json").read_text())
+        written = load_config(folder / "config.toml")
+    except (OSError, ValueError):
+        return None
+    if not (isinstance(summary, dict) and summary.get("complete") is True):
+        return None
+    wanted = run.config.to_dict()
+    if run.config.leader_start is None:  # the world writes the surface's default start
+        wanted.pop("leader_start", None)
+    have = written.to_dict()
+    return summary if all(have.get(k) == v for k, v in wanted.items()) else None
+
+
+def _clear_unfinished(run: GridRun, folder: Path) -> None:
+    """Remove what an interrupted attempt of ``run`` left in its folder (the world never
+    writes into a folder holding results); a folder of another run is refused."""
+    if not folder.exists():
+        return
+    try:
+        written = load_config(folder / "config.toml").run_id
+    except (OSError, ValueError):
+        written = None
+    if written != run.config.run_id:
+        raise ValueError(f"{folder} holds something other than run {run.config.run_id}: "
+                         "remove it or choose another output folder")
+    shutil.rmtree(folder)
+
+
 def run_grid(runs: list[GridRun], runs_dir: Path, workers: int | None = None,
-             progress: bool = True) -> list[RunOutcome]:
-    """Run ``runs`` in a process pool; return one outcome per run, in the order of ``runs``.
+             progress: bool = True, scheduler: str | None = None) -> list[RunOutcome]:
+    """Run ``runs``; return one outcome per run, in the order of ``runs``.
+
+    Runs whose folder already holds their complete results are not run again (their outcome
+    has ``attempts`` 0), so an interrupted grid run again with the same folder resumes.
 
     Parameters
     ----------
     runs : list of GridRun
     runs_dir : Path
-        Each run writes ``runs_dir / run.folder``.
+        Each run writes ``runs_dir / run.folder`` (on a cluster: a path every worker can
+        write, e.g. a shared file system; the summaries come back here either way).
     workers : int, optional
-        Pool size; default ``min(2, os.cpu_count())``.
+        Local pool size; default ``min(2, os.cpu_count())``. Ignored with ``scheduler``.
     progress : bool
         Show a tqdm bar over completed runs (on a terminal).
+    scheduler : str, optional
+        Address of a dask ``distributed`` scheduler (``tcp://host:8786``): each run is one
+        task, a whole run over Zenoh on the worker that takes it.
     """
     from tqdm import tqdm
 
-    workers = workers or min(2, os.cpu_count() or 1)
     outcomes: dict[str, RunOutcome] = {}
-    # spawn: workers start clean instead of inheriting this process's threads and sockets.
-    context = multiprocessing.get_context("spawn")
-    bar = tqdm(total=len(runs), unit="run", desc="experiment", disable=None if progress else True)
-    with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool, bar:
-        futures = {pool.submit(execute, run, runs_dir): run for run in runs}
+    todo = []
+    for run in runs:
+        summary = finished_summary(run, runs_dir / run.folder)
+        if summary is None:
+            todo.append(run)
+        else:
+            outcomes[run.folder] = RunOutcome(run, summary, "", attempts=0)
+    bar = tqdm(total=len(runs), initial=len(runs) - len(todo), unit="run", desc="experiment",
+               disable=None if progress else True)
+
+    def record(run: GridRun, future) -> None:
         try:
-            for future in as_completed(futures):
-                run = futures[future]
+            outcome = future.result()
+        except Exception as exc:  # a dead worker or an unexpected error: keep the rest
+            outcome = RunOutcome(run, None, f"{type(exc).__name__}: {exc}")
+        outcomes[run.folder] = outcome
+        bar.update(1)
+        failed = sum(not o.ok for o in outcomes.values())
+        if failed:
+            bar.set_postfix(failed=failed)
+
+    with bar:
+        if scheduler is not None:
+            _run_on_cluster(todo, runs_dir, scheduler, record)
+        elif todo:
+            workers = workers or min(2, os.cpu_count() or 1)
+            # spawn: workers start clean instead of inheriting this process's threads and sockets.
+            context = multiprocessing.get_context("spawn")
+            with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+                futures = {pool.submit(execute, run, runs_dir): run for run in todo}
                 try:
-                    outcome = future.result()
-                except Exception as exc:  # a dead worker or an unexpected error: keep the rest
-                    outcome = RunOutcome(run, None, f"{type(exc).__name__}: {exc}")
-                outcomes[run.folder] = outcome
-                bar.update(1)
-                failed = sum(not o.ok for o in outcomes.values())
-                if failed:
-                    bar.set_postfix(failed=failed)
-        except KeyboardInterrupt:
-            # Cancel the queued runs while the pool is still referenced (a pool collected
-            # before its manager thread sees the request would go on running them all).
-            pool.shutdown(wait=True, cancel_futures=True)
-            raise
+                    for future in as_completed(futures):
+                        record(futures[future], future)
+                except KeyboardInterrupt:
+                    # Cancel the queued runs while the pool is still referenced (a pool
+                    # collected before its manager thread sees the request would go on
+                    # running them all).
+                    pool.shutdown(wait=True, cancel_futures=True)
+                    raise
     return [outcomes[run.folder] for run in runs]
+
+
+def _run_on_cluster(runs: list[GridRun], runs_dir: Path, scheduler: str, record) -> None:
+    """Submit each run as one task to the dask scheduler at ``scheduler``; ``record`` each
+    finished one. Ctrl-C cancels the tasks not yet finished."""
+    from distributed import Client
+    from distributed import as_completed as completed
+
+    try:
+        client = Client(scheduler, timeout="30s")
+    except (OSError, TimeoutError) as exc:
+        raise RuntimeError(f"cannot reach the dask scheduler at {scheduler}: {exc}") from None
+    with client:
+        futures = {client.submit(execute, run, runs_dir, pure=False): run for run in runs}
+        try:
+            for future in completed(futures):
+                record(futures[future], future)
+        except KeyboardInterrupt:
+            client.cancel(list(futures))
+            raise
 
 
 def write_table(path: Path, columns: tuple[str, ...], rows: list[dict]) -> None:

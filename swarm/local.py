@@ -14,7 +14,7 @@ from pathlib import Path
 from agents.follower import follower_tick
 from agents.policies import Policy, make_policy
 from protocol.config import AgentSettings, RunConfig
-from protocol.messages import ActRequest, ActResult, Message, Sensing, decode, encode
+from protocol.messages import ActSensing, Message, Move, Observation, Sensing, Snap, decode, encode
 from world.main import resolve_with_surface
 from world.results import RunRecorder
 from world.sim import WorldSim
@@ -33,14 +33,8 @@ class LocalLink:
     def sense(self, tick: int, phase: str) -> Sensing:
         return self._wire(self.sim.sense(self.agent, tick, phase))
 
-    def act(self, request: ActRequest) -> ActResult:
-        request = self._wire(request)
-        moved = True
-        if request.action == "move":
-            self.sim.move(self.agent, request.tick, request.offset)
-        else:
-            moved = self.sim.snap(self.agent, request.tick)
-        return ActResult(tick=request.tick, moved=moved)
+    def act(self, request: Move | Snap) -> ActSensing:
+        return self._wire(self.sim.act(self.agent, self._wire(request)))
 
 
 def run_local(config: RunConfig, out_dir: str | Path | None = None,
@@ -60,15 +54,32 @@ def run_local(config: RunConfig, out_dir: str | Path | None = None,
     if out_dir is not None:
         recorder.open()
     rows: list[dict] = []
-    for tick in range(config.ticks):
-        observations = []
-        sim.start_tick(tick)
-        sim.drive(0, tick, sim.time_of(tick))
-        for k, (link, policy) in enumerate(zip(links, policies), start=1):
-            observations.append((k, follower_tick(link, policy, settings, tick).observation))
-        tick_rows = sim.finish_tick()
+
+    def follower(k: int, tick: int) -> tuple[int, Observation]:
+        return k, follower_tick(links[k - 1], policies[k - 1], settings, tick).observation
+
+    def finish(tick: int, observations: list[tuple[int, Observation]]) -> None:
+        tick_rows = sim.finish_tick(tick)
         rows.extend(tick_rows)
         recorder.add_tick(tick_rows, observations)
+
+    n, ticks = config.followers, config.ticks
+    if config.pipelined:  # a wavefront: at step s, agent k does tick s - k (SPEC §4)
+        pending: dict[int, list] = {}
+        for step in range(ticks + n):
+            if step < ticks:
+                sim.open_tick(step)
+                sim.drive(0, step, sim.time_of(step))
+            for k in range(1, n + 1):
+                if 0 <= step - k < ticks:
+                    pending.setdefault(step - k, []).append(follower(k, step - k))
+            if step - n >= 0:
+                finish(step - n, pending.pop(step - n))
+    else:  # one agent at a time
+        for tick in range(ticks):
+            sim.start_tick(tick)
+            sim.drive(0, tick, sim.time_of(tick))
+            finish(tick, [follower(k, tick) for k in range(1, n + 1)])
     if out_dir is not None:
         recorder.write_summary(complete=True)
         recorder.close()

@@ -91,12 +91,15 @@ def compare_axes(estimators: list[str], seeds: list[int]) -> list[Axis]:
 
 
 def run_sweep(name: str, base: RunConfig, axes: list[Axis], out_dir: str | Path,
-              follower: int = 1, workers: int | None = None, progress: bool = True) -> dict:
-    """Run the grid, write its tables; returns ``rows``, ``means``, ``outcomes``, ``tables``."""
+              follower: int = 1, workers: int | None = None, progress: bool = True,
+              scheduler: str | None = None) -> dict:
+    """Run the grid (on the dask scheduler at ``scheduler`` if given; runs already finished
+    in ``out_dir`` are kept), write its tables; returns ``rows``, ``means``, ``outcomes``,
+    ``tables``."""
     out_dir = Path(out_dir)
     runs = expand(name, base, axes)
     outcomes: list[RunOutcome] = run_grid(runs, out_dir / "runs", workers=workers,
-                                          progress=progress)
+                                          progress=progress, scheduler=scheduler)
     keys = tuple(axis.name for axis in axes)
     rows = [summary_row(o, follower) for o in outcomes]
     columns = keys + SUMMARY_COLUMNS + ("run",)

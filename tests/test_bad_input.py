@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from protocol import keys
 from protocol.config import RunConfig
 from protocol.messages import (
-    MESSAGE_TYPES, ActRequest, ErrorReply, Joined, JoinRequest, ProtocolError, Rod, SenseRequest,
+    MESSAGE_TYPES, Drive, ErrorReply, Joined, JoinRequest, ProtocolError, Rod, SenseRequest,
     decode, encode,
 )
 from protocol.session import free_tcp_endpoint, zenoh_config
@@ -98,7 +98,8 @@ def _raw(**body):
 
 
 GOOD_SENSE = {"v": 1, "type": "sense", "tick": 0, "phase": "pre"}
-GOOD_MOVE = {"v": 1, "type": "act", "tick": 0, "action": "move", "t": None, "offset": [0.1, 0.0]}
+GOOD_MOVE = {"v": 1, "type": "move", "tick": 0, "offset": [0.1, 0.0]}
+GOOD_DRIVE = {"v": 1, "type": "drive", "tick": 0, "t": 0.0}
 
 
 @pytest.mark.parametrize("key_agent, payload, fragment", [
@@ -136,9 +137,11 @@ def test_a_follower_ahead_of_its_predecessor_is_told_to_wait(world):
     (1, {**GOOD_MOVE, "offset": [1e9, 0.0]}, "move offset must be two finite numbers of size"),
     (1, {**GOOD_MOVE, "offset": [1.0]}, "'offset' must have length 2"),
     (1, GOOD_MOVE, "tick 0 is an initial tick"),
-    (1, {**GOOD_MOVE, "action": "teleport"}, "'action' must be one of"),
-    (1, {**GOOD_MOVE, "action": "drive", "t": 0.0}, "only the leader (agent 0) may drive"),
-    (0, {**GOOD_MOVE, "action": "drive", "t": 0.0}, "the leader already drove"),
+    (1, {**GOOD_MOVE, "type": "teleport"}, "message type 'teleport' not accepted"),
+    (1, {**GOOD_MOVE, "t": 0.0}, "unknown field(s) ['t']"),
+    (1, {"v": 1, "type": "move", "tick": 0}, "missing field 'offset'"),
+    (1, GOOD_DRIVE, "only the leader (agent 0) may drive"),
+    (0, GOOD_DRIVE, "the leader already drove"),
     (0, GOOD_MOVE, "agent 0 is the leader"),
     (7, GOOD_MOVE, "unknown agent id 7"),
 ])
@@ -161,7 +164,7 @@ def test_garbage_samples_are_dropped(world, caplog):
     assert service.rejected == 3
     assert "dropped rod sample" in caplog.text and "dropped observation" in caplog.text
     assert "published a rod without settling" in caplog.text
-    assert service._done == {0}  # only the leader, whose rod the fixture published
+    assert service._through[:2] == [0, -1]  # only the leader, whose rod the fixture published
     replies = list(client.get(keys.sense("bad", 1), payload=encode(SenseRequest(tick=0)),
                               timeout=5.0))
     assert replies and replies[0].ok is not None  # still serving
@@ -181,7 +184,7 @@ def _attack(endpoint: str, run_id: str, stop: threading.Event, counts: dict,
         (keys.sense(run_id, 1), b"\xff\x00garbage"),
         (keys.act(run_id, 1), _raw(**{**GOOD_MOVE, "offset": [math.inf, 1.0]})),
         (keys.act(run_id, 1), _raw(**{**GOOD_MOVE, "v": 99})),
-        (keys.act(run_id, 1), encode(ActRequest(tick=10**6, action="drive", t=1.0))),
+        (keys.act(run_id, 1), encode(Drive(tick=10**6, t=1.0))),
         (keys.sense(run_id, 1), _raw(**{**GOOD_SENSE, "phase": 3})),
     ]
     garbage = [(keys.rod(run_id, 1), b"\x00\x01"), (keys.obs(run_id, 2), _raw(v=1, type="obs")),
@@ -201,7 +204,7 @@ def _attack(endpoint: str, run_id: str, stop: threading.Event, counts: dict,
 
 
 def test_flood_of_malformed_queries_leaves_the_numbers_unchanged(tmp_path):
-    cfg = RunConfig(run_id="flood", surface="wavy", followers=2, ticks=40)
+    cfg = RunConfig(run_id="flood", surface="wavy", followers=8, ticks=40)
     counts = {"errors": 0, "answered": 0, "garbage": 0}
     clean, attacked = run_under_attack(cfg, tmp_path, lambda endpoint, credentials, stop: _attack(
         endpoint, cfg.run_id, stop, counts, credentials.passwords["follower-1"]))

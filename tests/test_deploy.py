@@ -170,7 +170,8 @@ def _sensing_log(monkeypatch, config: RunConfig) -> list[tuple[int, Sensing, lis
         return reply
 
     monkeypatch.setattr(WorldSim, "sense", sense)
-    run_local(config)
+    # one agent at a time, so every agent's current pose is the one its successor senses
+    run_local(config.replace(pipelined=False))
     return log
 
 

@@ -9,9 +9,9 @@ import pytest
 from protocol import keys
 from protocol.config import RunConfig, config_from_dict, dump_config, load_agent_settings, load_config
 from protocol.messages import (
-    MESSAGE_TYPES, ActRequest, ActResult, Done, ErrorReply, Joined, JoinRequest, Missed,
-    Observation, ProtocolError, Rod, SenseRequest, Sensing, TickStart, decode, encode, from_body,
-    to_body,
+    MESSAGE_TYPES, ActResult, ActSensing, Done, Drive, ErrorReply, Joined, JoinRequest, Missed,
+    Move, Observation, ProtocolError, Rod, SenseRequest, Sensing, Snap, TickStart, decode, encode,
+    from_body, to_body,
 )
 from protocol.session import free_tcp_endpoint, zenoh_config
 
@@ -20,16 +20,19 @@ SAMPLES = [
     SenseRequest(tick=4, phase="moved"),
     Sensing(tick=4, r=3.5, theta=-1.2, rod=(0.1, -0.2), velocity=None, oracle_velocity=(1.0, 0.0),
             gps=(1.0, 2.0, 3.0), leader_gps=(4.0, 5.0, 6.0)),
-    ActRequest(tick=5, action="drive", t=6.4),
-    ActRequest(tick=5, action="move", offset=(0.5, -0.25)),
-    ActResult(tick=5, moved=False),
+    Drive(tick=5, t=6.4),
+    Move(tick=5, offset=(0.5, -0.25)),
+    Snap(tick=5),
+    ActResult(tick=5, moved=True),
+    ActSensing(tick=5, r=3.5, theta=0.3, rod=None, velocity=(0.1, 0.2), oracle_velocity=None,
+               gps=(1.0, 2.0, 3.0), leader_gps=(4.0, 5.0, 6.0), moved=False),
     Rod(tick=7, length=3.57, side=-1),
     Observation(tick=7, estimator="edmd-b", measurement=(3.5, 0.1), prediction=None, lost=True),
     Done(tick=39, results="runs/x", complete=True, reason=""),
     ErrorReply(tick=0, error="bad", code="missed"),
     Missed(tick=3, agent=2),
     JoinRequest(tick=0),
-    Joined(tick=12, settled=False, ready=True, start="9f3a"),
+    Joined(tick=12, settled=False, ready=True, until=14, world=15, start="9f3a"),
 ]
 
 
@@ -104,6 +107,18 @@ def test_bad_choice_and_tick_order():
         decode(_raw(**req), SenseRequest)
     with pytest.raises(ProtocolError, match="older than tick 5"):
         decode(encode(Rod(tick=4, length=1.0, side=1)), Rod, min_tick=5)
+
+
+def test_an_act_reply_carries_the_sensing():
+    """A move or snap reply is the sensing after the action plus whether it moved (SPEC §8)."""
+    reply = ActSensing(tick=4, r=3.5, theta=0.1, rod=(0.2, 0.3), velocity=None,
+                       oracle_velocity=None, gps=None, leader_gps=None, moved=False)
+    sensing = decode(encode(reply), ActSensing).sensing
+    assert type(sensing) is Sensing and sensing.rod == (0.2, 0.3) and sensing.r == 3.5
+    with pytest.raises(ProtocolError, match="not accepted here"):
+        decode(encode(reply), Sensing)
+    with pytest.raises(ProtocolError, match="missing field 'moved'"):
+        decode(_raw(**{k: v for k, v in to_body(reply).items() if k != "moved"}), ActSensing)
 
 
 def test_encode_refuses_invalid_message():

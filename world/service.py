@@ -17,7 +17,7 @@ import zenoh
 from protocol import keys
 from protocol.config import RunConfig
 from protocol.messages import (
-    ActRequest, ActResult, Done, Joined, JoinRequest, Missed, Observation, ProtocolError, Rod,
+    ACTIONS, Done, Joined, JoinRequest, Missed, Observation, ProtocolError, Rod,
     SenseRequest, TickStart, decode, encode, error_payload,
 )
 from protocol.messages import safe_text
@@ -66,10 +66,12 @@ class WorldService:
         self.recorder = RunRecorder(out_dir, config)
         self.out_dir = self.recorder.out_dir
         self._cond = threading.Condition()
-        self._done: set[int] = set()  # agents through the current tick: settled or missed
-        self._obs: dict[int, Observation] = {}  # the current tick's observations by follower
-        self._rods: set[int] = set()  # agents whose rod for the current tick arrived
-        self._settled_at: dict[int, float] = {}  # when each of them got through
+        # per agent, the last tick the world has it through (its rod and, for a follower, its
+        # observation arrived; or it missed the tick): in pipelined lockstep they differ
+        self._through = [-1] * self.sim.n_agents
+        self._obs: dict[int, dict[int, Observation]] = {}  # per open tick, by follower
+        self._rods: dict[int, set[int]] = {}  # per open tick, agents whose rod arrived
+        self._progress = time.monotonic()  # when some agent last got through a tick
         self._tick_started = 0.0
         self._alive: set[int] = set()
         self._ended: str | None = None
@@ -124,7 +126,7 @@ class WorldService:
                 f"cannot resume {self.out_dir}: ticks.csv holds {self.recorder.ticks_done} ticks, "
                 f"the checkpoint {self.sim.tick + 1}")
         self.start, self._wall_before = state["start"], state["wall_time"]
-        self._done = set(range(self.sim.n_agents)) if self.sim.tick >= 0 else set()
+        self._through = [self.sim.tick] * self.sim.n_agents
         log.warning("world: resuming run %s after tick %d", self.config.run_id, self.sim.tick)
 
     def close(self) -> None:
@@ -165,10 +167,15 @@ class WorldService:
         query.reply_err(error_payload(self.sim.tick, problem, code))
 
     def _check_turn(self, agent: int, tick: int) -> None:
-        """(Lock held.) A follower acts at the current tick only once the world has its
-        predecessor through it: a predecessor that vanished before its rod reached the world
-        is rolled back, and its successor must not have seen it moved."""
-        if 0 < agent < self.sim.n_agents and tick == self.sim.tick and agent - 1 not in self._done:
+        """(Lock held.) An agent begins a tick only once the world has it through the tick
+        before, and a follower acts at a tick only once the world has its predecessor through
+        it: an agent that vanishes before its reports reach the world is rolled back by one
+        tick, and its successor must not have seen it moved."""
+        if not 0 <= agent < self.sim.n_agents:
+            return  # the simulation names the problem
+        if tick == self._through[agent] + 2 and self.sim.is_settled(agent, tick - 1):
+            raise NotYet(f"agent {agent}'s report of tick {tick - 1} has not reached the world yet")
+        if agent > 0 and tick <= self.sim.tick and self._through[agent - 1] < tick:
             raise NotYet(f"agent {agent - 1} is not through tick {tick} yet")
 
     def _on_sense(self, query: zenoh.Query) -> None:
@@ -185,32 +192,25 @@ class WorldService:
         if not 0 <= agent < self.sim.n_agents:
             raise RequestError(f"unknown agent id {agent} (this run has agents "
                                f"0..{self.sim.n_agents - 1})")
-        tick = self.sim.tick
-        if tick < 0:
-            return Joined(tick=0, settled=False, ready=False, start=self.start)
-        settled = agent in self._done
-        ready = not settled and (agent == 0 or agent - 1 in self._done)
-        return Joined(tick=tick, settled=settled, ready=ready, start=self.start)
+        opened, through = self.sim.tick, self._through[agent]
+        if opened < 0:
+            return Joined(tick=0, settled=False, ready=False, until=0, world=0, start=self.start)
+        if through >= opened:
+            return Joined(tick=opened, settled=True, ready=False, until=opened, world=opened,
+                          start=self.start)
+        until = opened if agent == 0 else self._through[agent - 1]
+        return Joined(tick=through + 1, settled=False, ready=until > through, until=max(until, 0),
+                      world=opened, start=self.start)
 
     def _on_act(self, query: zenoh.Query) -> None:
         def handle(agent: int, payload: bytes) -> bytes:
-            req = decode(payload, (ActRequest, JoinRequest))
-            moved = True
+            req = decode(payload, (*ACTIONS, JoinRequest))
             with self._cond:
                 if isinstance(req, JoinRequest):
                     return encode(self._joined(agent))
                 self._check_turn(agent, req.tick)
-                if req.action == "drive":
-                    if req.t is None:
-                        raise RequestError("drive needs the time t")
-                    self.sim.drive(agent, req.tick, req.t)
-                elif req.action == "move":
-                    if req.offset is None:
-                        raise RequestError("move needs an offset")
-                    self.sim.move(agent, req.tick, req.offset)
-                else:
-                    moved = self.sim.snap(agent, req.tick)
-            return encode(ActResult(tick=req.tick, moved=moved))
+                # the agent validates the reply on decode; its numbers are the world's own
+                return encode(self.sim.act(agent, req), check=False)
         self._answer(query, handle)
 
     # --- subscribers ---------------------------------------------------------------------------
@@ -220,24 +220,38 @@ class WorldService:
             agent = keys.agent_from_key(str(sample.key_expr))
             msg = decode(sample.payload, Rod)
             with self._cond:
-                if msg.tick != self.sim.tick:
-                    raise ValueError(f"rod for tick {msg.tick} while the world is at {self.sim.tick}")
-                if agent >= self.sim.n_agents or not self.sim.is_settled(agent):
-                    raise ValueError(f"agent {agent} published a rod without settling")
+                if agent >= self.sim.n_agents:
+                    raise ValueError(f"unknown agent id {agent}")
+                self._check_report("rod", agent, msg.tick)
                 if abs(msg.length - self.config.spacing) > 1e-12 or msg.side != self.config.side_sign:
                     raise ValueError(f"agent {agent}'s rod does not match the run's length/side")
-                self._rods.add(agent)
-                self._through_if_reported(agent)
+                if agent in self._rods.setdefault(msg.tick, set()):
+                    raise ValueError(f"agent {agent} already published its rod for tick {msg.tick}")
+                self._rods[msg.tick].add(agent)
+                self._through_if_reported(agent, msg.tick)
         except (ProtocolError, ValueError) as exc:
             self._drop("rod sample", sample, exc)
 
-    def _through_if_reported(self, agent: int) -> None:
-        """(Lock held.) An agent is through the tick once the world has its rod and, for a
+    def _check_report(self, what: str, agent: int, tick: int) -> None:
+        """(Lock held.) A rod or observation is for the tick after the last one the world has
+        the agent through, and the agent settled at it (SPEC §8: one per agent and tick)."""
+        expected = self._through[agent] + 1
+        if tick != expected or tick > self.sim.tick:
+            raise ValueError(f"{what} for tick {tick} while the world has agent {agent} at tick "
+                             f"{expected}")
+        if not self.sim.is_settled(agent, tick):
+            raise ValueError(f"agent {agent} published a {what} without settling")
+
+    def _through_if_reported(self, agent: int, tick: int) -> None:
+        """(Lock held.) An agent is through a tick once the world has its rod and, for a
         follower, its observation (the two samples may arrive in either order)."""
-        if agent in self._rods and (agent == 0 or agent in self._obs):
-            self._done.add(agent)
-            self._settled_at[agent] = time.monotonic()
-            self._cond.notify_all()
+        if agent in self._rods.get(tick, ()) and (agent == 0 or agent in self._obs.get(tick, {})):
+            self._got_through(agent, tick)
+
+    def _got_through(self, agent: int, tick: int) -> None:
+        self._through[agent] = tick
+        self._progress = time.monotonic()
+        self._cond.notify_all()
 
     def _on_obs(self, sample: zenoh.Sample) -> None:
         try:
@@ -245,16 +259,12 @@ class WorldService:
             msg = decode(sample.payload, Observation)
             if not 1 <= agent < self.sim.n_agents:
                 raise ValueError(f"unknown follower id {agent}")
-            with self._cond:  # one per follower and tick, for the tick in progress (SPEC §8)
-                if msg.tick != self.sim.tick:
-                    raise ValueError(f"observation for tick {msg.tick} while the world is at "
-                                     f"{self.sim.tick}")
-                if agent in self._obs or agent in self._done:
+            with self._cond:  # one per follower and tick, for its tick in progress (SPEC §8)
+                self._check_report("observation", agent, msg.tick)
+                if agent in self._obs.setdefault(msg.tick, {}):
                     raise ValueError(f"follower {agent} already reported tick {msg.tick}")
-                if not self.sim.is_settled(agent):
-                    raise ValueError(f"follower {agent} reported tick {msg.tick} before settling")
-                self._obs[agent] = msg
-                self._through_if_reported(agent)
+                self._obs[msg.tick][agent] = msg
+                self._through_if_reported(agent, msg.tick)
         except (ProtocolError, ValueError) as exc:
             self._drop("observation", sample, exc)
 
@@ -276,15 +286,16 @@ class WorldService:
                 self._alive.add(agent)
             else:
                 self._alive.discard(agent)
-                if 0 <= self.sim.tick and agent < self.sim.n_agents and agent not in self._done:
+                tick = self._through[agent] + 1 if agent < self.sim.n_agents else -1
+                if 0 <= tick <= self.sim.tick:
                     if self.config.mode == "realtime":
                         self._mark_missed(agent, "its process vanished")
                     else:  # lockstep: it redoes the tick when it is back (SPEC §4)
                         log.warning("world: agent %d vanished during tick %d; its tick is rolled "
-                                    "back until it is back", agent, self.sim.tick)
-                        self.sim.rollback(agent)
-                        self._obs.pop(agent, None)
-                        self._rods.discard(agent)
+                                    "back until it is back", agent, tick)
+                        self.sim.rollback(agent, tick)
+                        self._obs.get(tick, {}).pop(agent, None)
+                        self._rods.get(tick, set()).discard(agent)
             self._cond.notify_all()
 
     # --- the run -------------------------------------------------------------------------------
@@ -311,77 +322,95 @@ class WorldService:
                 self._cond.wait(left)
 
     def _mark_missed(self, agent: int, why: str) -> None:
-        """(Lock held.) ``agent`` did not settle this tick: it keeps its pose; tell the chain."""
+        """(Lock held, realtime.) ``agent`` did not settle this tick: it keeps its pose; tell
+        the chain."""
         log.warning("world: agent %d missed tick %d: %s", agent, self.sim.tick, why)
         self.sim.mark_missed(agent)
-        self._done.add(agent)
-        self._settled_at[agent] = time.monotonic()
+        self._got_through(agent, self.sim.tick)
         self._missed_pub.put(encode(Missed(tick=self.sim.tick, agent=agent)))
-        self._cond.notify_all()
 
-    def _first_pending(self) -> int | None:
-        pending = set(range(self.sim.n_agents)) - self._done
-        return min(pending) if pending else None
+    def _complete_tick(self, tick: int) -> list[dict]:
+        """(Lock held.) Every agent is through ``tick``: append its rows and observations in
+        agent order, then checkpoint (the checkpoint only ever describes complete ticks)."""
+        rows = self.sim.finish_tick(tick)
+        self.recorder.add_tick(rows, sorted(self._obs.pop(tick, {}).items()))
+        self._rods.pop(tick, None)
+        self._save_state(self._wall())
+        self.recorder.write_summary(complete=False, reason="running", wall_time=self._wall())
+        self.view.publish_tick(rows)
+        return rows
 
-    def _wait_rejoin(self, tick: int) -> str | None:
-        """(Lock held.) Before a tick, every agent must be live (a restarted one rejoins here)."""
-        deadline = time.monotonic() + self.config.agent_timeout
-        while self._ended is None:
-            gone = set(range(self.sim.n_agents)) - self._alive
-            if not gone:
-                return None
-            left = deadline - time.monotonic()
-            if left <= 0:
-                names = ", ".join(map(str, sorted(gone)))
-                return (f"agent(s) {names} gone before tick {tick} and not back within "
-                        f"{self.config.agent_timeout:g} s")
-            self._cond.wait(left)
-        return self._ended
+    def _stalled(self) -> str:
+        """(Lock held.) Why a lockstep run that made no progress for ``agent_timeout`` ends."""
+        waiting = min(range(self.sim.n_agents), key=lambda k: (self._through[k], k))
+        gone = "" if waiting in self._alive else " (it is no longer live)"
+        return (f"agent {waiting} did not settle at tick {self._through[waiting] + 1} within "
+                f"{self.config.agent_timeout:g} s{gone}")
 
-    def _run_tick(self, tick: int) -> str | None:
-        """Run one tick (lockstep or realtime); return why the run must end, or None."""
-        realtime = self.config.mode == "realtime"
+    def _run_lockstep(self) -> str | None:
+        """Run every remaining tick in lockstep; return why the run must end, or None.
+
+        Unpipelined, tick j+1 opens once every agent is through j; pipelined (SPEC §4), once the
+        leader is through j, and each agent begins j+1 as soon as the world has it through j and
+        its predecessor through j+1 (:meth:`_check_turn`), so the column moves as a wavefront.
+        Ticks complete, and are written, in order. A restarted agent rejoins through
+        ``JoinRequest``; a run in which nobody gets through a tick for ``agent_timeout`` s ends.
+        """
+        last = self.config.ticks - 1
+        while True:
+            with self._cond:
+                while True:
+                    if self._ended is not None:
+                        return self._ended
+                    if self.sim.complete >= last:
+                        return None
+                    if min(self._through) > self.sim.complete:
+                        tick = self.sim.complete + 1
+                        self._complete_tick(tick)
+                        opened = False
+                        break
+                    gate = self._through[0] if self.config.pipelined else min(self._through)
+                    if self.sim.tick < last and gate >= self.sim.tick:
+                        tick = self.sim.tick + 1
+                        self.sim.open_tick(tick)
+                        self._progress = time.monotonic()
+                        opened = True
+                        break
+                    left = self._progress + self.config.agent_timeout - time.monotonic()
+                    if left <= 0:
+                        return self._stalled()
+                    self._cond.wait(left)
+            if opened:
+                self._tick_pub.put(encode(TickStart(tick=tick, t=self.sim.time_of(tick))))
+            elif self.on_tick is not None:
+                self.on_tick(tick)
+
+    def _run_realtime_tick(self, tick: int) -> str | None:
+        """Run one realtime tick, paced by the wall clock; return why the run must end, or None."""
         with self._cond:
-            if not realtime:
-                reason = self._wait_rejoin(tick)
-                if reason is not None:
-                    return reason
             self.sim.start_tick(tick)
-            self._done.clear()
-            self._obs.clear()
-            self._rods.clear()
-            self._settled_at = {}
-            self._tick_started = time.monotonic()
+            self._tick_started = self._progress = time.monotonic()
         self._tick_pub.put(encode(TickStart(tick=tick, t=self.sim.time_of(tick))))
         limit = self.config.agent_timeout
         with self._cond:
-            if realtime:  # a dead agent misses at once: those behind it keep their time budget
-                for agent in sorted(set(range(self.sim.n_agents)) - self._alive):
-                    self._mark_missed(agent, "its process is not live")
-            while (waiting := self._first_pending()) is not None and self._ended is None:
+            # a dead agent misses at once: those behind it keep their time budget
+            for agent in sorted(set(range(self.sim.n_agents)) - self._alive):
+                self._mark_missed(agent, "its process is not live")
+            while self._ended is None and min(self._through) < tick:
+                waiting = min(k for k in range(self.sim.n_agents) if self._through[k] < tick)
                 # the clock restarts whenever some agent gets through the tick
-                deadline = max(self._settled_at.values(), default=self._tick_started) + limit
-                if realtime:
-                    deadline = min(deadline, self._tick_started + self.period)
+                deadline = min(self._progress + limit, self._tick_started + self.period)
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    if realtime:
-                        self._mark_missed(waiting, "did not settle in time")
-                        continue
-                    gone = "" if waiting in self._alive else " (it is no longer live)"
-                    return f"agent {waiting} did not settle at tick {tick} within {limit:g} s{gone}"
+                    self._mark_missed(waiting, "did not settle in time")
+                    continue
                 self._cond.wait(left)
             if self._ended is not None:
                 return self._ended
-            rows = self.sim.finish_tick()
-            self.recorder.add_tick(rows, sorted(self._obs.items()))
-            self._save_state(self._wall())
-            self.recorder.write_summary(complete=False, reason="running", wall_time=self._wall())
-            self.view.publish_tick(rows)
-            if realtime:  # pace by the wall clock
-                next_start = self._tick_started + self.period
-                while self._ended is None and (left := next_start - time.monotonic()) > 0:
-                    self._cond.wait(left)
+            self._complete_tick(tick)
+            next_start = self._tick_started + self.period
+            while self._ended is None and (left := next_start - time.monotonic()) > 0:
+                self._cond.wait(left)
         return None
 
     @property
@@ -414,13 +443,16 @@ class WorldService:
         self.view.publish_map(force=True)
         reason = ""
         try:
-            for tick in range(self.recorder.ticks_done, self.config.ticks):
-                ended = self._run_tick(tick)
-                if ended is not None:
-                    reason = ended
-                    break
-                if self.on_tick is not None:
-                    self.on_tick(tick)
+            if self.config.mode == "lockstep":
+                reason = self._run_lockstep() or ""
+            else:
+                for tick in range(self.recorder.ticks_done, self.config.ticks):
+                    ended = self._run_realtime_tick(tick)
+                    if ended is not None:
+                        reason = ended
+                        break
+                    if self.on_tick is not None:
+                        self.on_tick(tick)
         except BaseException:
             with self._cond:
                 self.recorder.write_summary(complete=False, reason="interrupted",
@@ -429,6 +461,8 @@ class WorldService:
         complete = not reason
         if reason:
             log.error("world: run ended early: %s", reason)
+        elif self.config.mode == "lockstep":  # an agent restarted meanwhile learns it is done
+            self._wait_all_live(self.config.agent_timeout)
         with self._cond:
             self.recorder.write_summary(complete=complete, reason=reason, wall_time=self._wall())
         self._done_pub.put(encode(Done(tick=max(self.recorder.ticks_done - 1, 0),
@@ -438,6 +472,15 @@ class WorldService:
         if complete:  # a world killed before this resumes into the end phase again
             checkpoint.discard(self.out_dir)
         return self.recorder.summary(complete=complete, reason=reason, wall_time=self._wall())
+
+    def _wait_all_live(self, timeout: float) -> None:
+        """Give an agent that vanished (pipelined, an agent may be through every tick long
+        before the run completes) up to ``timeout`` s to come back and see ``world/done``."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while (set(range(self.sim.n_agents)) - self._alive
+                   and (left := deadline - time.monotonic()) > 0):
+                self._cond.wait(left)
 
     def _wait_agents_gone(self, timeout: float) -> None:
         """Give agents time to see ``world/done`` and leave before the session closes."""

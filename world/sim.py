@@ -1,10 +1,13 @@
 """The world's physics and bookkeeping, free of any transport (SPEC §3–§5, §7).
 
 :class:`WorldSim` owns the hidden surface and every agent's absolute pose. The Zenoh service
-(``world.service``) turns queries into calls of :meth:`sense`, :meth:`drive`, :meth:`move`
-and :meth:`snap`, and tick events into :meth:`start_tick` / :meth:`finish_tick`. Requests
-that break the protocol's rules raise :class:`RequestError` (answered as an error reply);
-conditions that end the run (leaving the surface's domain) raise :class:`RunEnded`.
+(``world.service``) and the in-memory layout (``swarm.local``) turn requests into calls of
+:meth:`sense` and :meth:`act` (:meth:`drive`, :meth:`move`, :meth:`snap`), and tick events
+into :meth:`open_tick` (or :meth:`start_tick`) and :meth:`finish_tick`. Agents may be at
+different ticks (pipelined lockstep, SPEC §4); each begins a tick with its first request for
+it. Requests that break the protocol's rules raise :class:`RequestError` (answered as an
+error reply); conditions that end the run (leaving the surface's domain) raise
+:class:`RunEnded`.
 """
 from __future__ import annotations
 
@@ -14,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol.config import RunConfig
-from protocol.messages import Sensing
+from protocol.messages import ActResult, ActSensing, Drive, Message, Move, Sensing, Snap
 from world import geometry
 from world.noise import gaussian, gaussian_scalar
 from world.surfaces import Surface, surface_leader_start
@@ -34,13 +37,30 @@ class RunEnded(RuntimeError):
     """A condition that ends the run early (the result is written, marked incomplete)."""
 
 
+@dataclass(frozen=True)
+class TickRecord:
+    """What one agent did in one tick, kept until the tick is complete for every agent."""
+
+    estimate: np.ndarray | None
+    lost: bool
+    missed: bool
+
+
 @dataclass
 class AgentState:
-    """Absolute pose and per-tick record of one agent (world-private)."""
+    """Absolute pose, the tick it is in, and per-tick records of one agent (world-private).
+
+    In pipelined lockstep agents are at different ticks: everything another agent or a row
+    needs is read from the per-tick records (``settled``, ``headings``, ``records``), never
+    from the current pose."""
 
     pos: np.ndarray
     heading: np.ndarray
+    tick: int = -1
     settled: dict[int, np.ndarray] = field(default_factory=dict)
+    headings: dict[int, np.ndarray] = field(default_factory=dict)
+    records: dict[int, TickRecord] = field(default_factory=dict)
+    begun: tuple = ()  # (pos, heading[, leader velocity, leader time]) when ``tick`` began
     estimate: np.ndarray | None = None
     acted: str = ""
     lost: bool = False
@@ -90,8 +110,10 @@ class WorldSim:
         self.agents = [AgentState(pos=p.copy(), heading=h.copy()) for p, h in zip(positions, headings)]
         self.leader_velocity = start[2:].copy()
         self.leader_time = 0.0
-        self.tick = -1
-        self._rod_cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._leader_at: dict[int, tuple[np.ndarray, float]] = {}  # (velocity, time) per tick
+        self.tick = -1  # the newest tick opened (agents may be behind it)
+        self.complete = -1  # the newest tick every agent is through (its rows are out)
+        self._rod_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
     # --- ticks ---------------------------------------------------------------------------------
 
@@ -102,52 +124,81 @@ class WorldSim:
     def time_of(self, tick: int) -> float:
         return tick * self.config.comm_period
 
-    def start_tick(self, tick: int) -> None:
-        """Open tick ``tick`` (must follow the previous one)."""
+    def open_tick(self, tick: int) -> None:
+        """Let agents begin tick ``tick`` (must follow the previous one); each agent begins it
+        with its first request for it, once it has settled at the tick before."""
         if tick != self.tick + 1:
             raise RuntimeError(f"tick {tick} cannot follow tick {self.tick}")
         self.tick = tick
-        self._rod_cache.clear()
-        for agent in self.agents:
-            agent.estimate, agent.acted, agent.lost, agent.missed = None, "", False, False
-        self._tick_start = ([(a.pos.copy(), a.heading.copy()) for a in self.agents],
-                            self.leader_velocity.copy(), self.leader_time)
 
-    def rollback(self, agent: int) -> None:
-        """Undo whatever ``agent`` did in the current tick (its process vanished before it
-        settled): it will redo the tick from the pose it had when the tick started, and draw the
-        same noise, so the tick's numbers are those of an uninterrupted run."""
-        poses, velocity, leader_time = self._tick_start
+    def start_tick(self, tick: int) -> None:
+        """Open tick ``tick`` and begin it for every agent at once (all must be through the
+        tick before): the unpipelined order of the in-memory layout and of realtime mode."""
+        self.open_tick(tick)
+        for agent in range(self.n_agents):
+            self._begin(agent, tick)
+
+    def _begin(self, agent: int, tick: int) -> None:
         state = self.agents[agent]
-        state.pos, state.heading = poses[agent][0].copy(), poses[agent][1].copy()
-        state.settled.pop(self.tick, None)
+        if state.tick != tick - 1 or (tick > 0 and tick - 1 not in state.settled):
+            raise RequestError(f"agent {agent} has not settled at tick {tick - 1}")
+        state.tick = tick
         state.estimate, state.acted, state.lost, state.missed = None, "", False, False
+        state.begun = (state.pos.copy(), state.heading.copy())
         if agent == 0:
-            self.leader_velocity, self.leader_time = velocity.copy(), leader_time
-        self._rod_cache.pop(agent + 1, None)
+            state.begun += (self.leader_velocity.copy(), self.leader_time)
 
-    def is_settled(self, agent: int, tick: int | None = None) -> bool:
-        return (self.tick if tick is None else tick) in self.agents[agent].settled
+    def rollback(self, agent: int, tick: int) -> None:
+        """Undo whatever ``agent`` did in tick ``tick`` (its process vanished before the world
+        had it through): it will redo the tick from the pose it had when it began it, and draw
+        the same noise, so the tick's numbers are those of an uninterrupted run. Nothing to do
+        if the agent has not begun ``tick``."""
+        state = self.agents[agent]
+        if state.tick != tick:
+            return
+        state.pos, state.heading = state.begun[0].copy(), state.begun[1].copy()
+        if agent == 0:
+            self.leader_velocity, self.leader_time = state.begun[2].copy(), state.begun[3]
+            self._leader_at.pop(tick, None)
+        for record in (state.settled, state.headings, state.records):
+            record.pop(tick, None)
+        state.estimate, state.acted, state.lost, state.missed = None, "", False, False
+        state.tick = tick - 1
+        self._rod_cache.pop((agent + 1, tick), None)
+
+    def is_settled(self, agent: int, tick: int) -> bool:
+        return tick in self.agents[agent].settled
+
+    def _settle(self, agent: int, tick: int) -> None:
+        state = self.agents[agent]
+        state.settled[tick] = state.pos.copy()
+        state.headings[tick] = state.heading.copy()
+        state.records[tick] = TickRecord(state.estimate, state.lost, state.missed)
+        if agent == 0:
+            self._leader_at[tick] = (self.leader_velocity.copy(), self.leader_time)
 
     def mark_missed(self, agent: int) -> None:
-        """``agent`` did not settle this tick (too late in realtime mode, or its process
-        vanished): it keeps its pose, and its requests for this tick are refused."""
+        """``agent`` did not settle at the tick it is in (too late in realtime mode, or its
+        process vanished): it keeps its pose, and its requests for this tick are refused."""
         state = self.agents[agent]
         state.missed = True
-        state.settled[self.tick] = state.pos.copy()
+        self._settle(agent, state.tick)
 
-    def finish_tick(self) -> list[dict]:
-        """Ground-truth rows of the current tick, one per agent (SPEC §7 columns)."""
-        j, cfg = self.tick, self.config
+    def finish_tick(self, tick: int) -> list[dict]:
+        """Ground-truth rows of tick ``tick`` (the one after the last complete tick; every
+        agent must have settled at it), one per agent (SPEC §7 columns)."""
+        j, cfg = tick, self.config
+        if j != self.complete + 1:
+            raise RuntimeError(f"tick {j} cannot be finished after tick {self.complete}")
         rows = []
         for k, state in enumerate(self.agents):
             if j not in state.settled:
                 raise RuntimeError(f"agent {k} has not settled at tick {j}")
-            pos = state.settled[j]
+            pos, record = state.settled[j], state.records[j]
             row = {"tick": j, "t": self.time_of(j), "agent": k, "pos_x": pos[0], "pos_y": pos[1],
-                   "missed": int(state.missed)}
+                   "missed": int(record.missed)}
             if k > 0:
-                ideal = self._leader_rod(k)[0]
+                ideal = self._leader_rod(k, j)[0]
                 prev = state.settled.get(j - 1, pos)
                 lead_now = self.agents[k - 1].settled[j]
                 lead_prev = self.agents[k - 1].settled.get(j - 1, lead_now)
@@ -157,28 +208,45 @@ class WorldSim:
                     stay_range=_dist(prev, ideal),
                     persist_range=_dist(self._sensed_persist(k, j), ideal),
                     persist_range_noise_free=_dist(persist_noise_free, ideal),
-                    lost=int(state.lost),
+                    lost=int(record.lost),
                     formation_error=_finite_or_none(_dist(pos, self.ideal[k, j])),
                 )
-                if state.estimate is not None:
-                    row.update(est_x=state.estimate[0], est_y=state.estimate[1],
-                               required_range=_dist(state.estimate, ideal))
+                if record.estimate is not None:
+                    row.update(est_x=record.estimate[0], est_y=record.estimate[1],
+                               required_range=_dist(record.estimate, ideal))
             rows.append(row)
+        self.complete = j
         for state in self.agents:  # keep only what velocities and baselines still need
             for old in [t for t in state.settled if t < j - 1]:
                 del state.settled[old]
+            for old in [t for t in state.headings if t < j - 1]:
+                del state.headings[old]
+            for old in [t for t in state.records if t <= j]:
+                del state.records[old]
+        for old in [t for t in self._leader_at if t < j]:
+            del self._leader_at[old]
+        for key in [key for key in self._rod_cache if key[1] <= j]:
+            del self._rod_cache[key]
         return rows
 
     def state(self) -> dict:
-        """JSON-ready state after the current (complete) tick, for :meth:`restore`."""
+        """JSON-ready state after the last complete tick, for :meth:`restore` (what agents
+        already did in later ticks is left out: they redo it after a restart)."""
+        j = self.complete
+        if j < 0:
+            velocity, time = self.leader_velocity, self.leader_time
+            poses = [(a.pos, a.heading) for a in self.agents]
+        else:
+            velocity, time = self._leader_at[j]
+            poses = [(a.settled[j], a.headings[j]) for a in self.agents]
         return {
-            "tick": self.tick,
-            "leader_velocity": self.leader_velocity.tolist(),
-            "leader_time": self.leader_time,
+            "tick": j,
+            "leader_velocity": velocity.tolist(),
+            "leader_time": time,
             "agents": [
-                {"pos": a.pos.tolist(), "heading": a.heading.tolist(),
-                 "settled": {str(t): p.tolist() for t, p in a.settled.items()}}
-                for a in self.agents
+                {"pos": pos.tolist(), "heading": heading.tolist(),
+                 "settled": {str(t): p.tolist() for t, p in a.settled.items() if t <= j}}
+                for a, (pos, heading) in zip(self.agents, poses)
             ],
         }
 
@@ -186,40 +254,49 @@ class WorldSim:
         """Continue from a :meth:`state` snapshot (floats round-trip exactly through JSON)."""
         if len(state["agents"]) != self.n_agents:
             raise ValueError(f"checkpoint has {len(state['agents'])} agents, config {self.n_agents}")
-        self.tick = int(state["tick"])
+        self.tick = self.complete = int(state["tick"])
         self.leader_velocity = np.array(state["leader_velocity"], dtype=float)
         self.leader_time = float(state["leader_time"])
+        self._leader_at = {self.tick: (self.leader_velocity.copy(), self.leader_time)}
         for agent, saved in zip(self.agents, state["agents"]):
             agent.pos = np.array(saved["pos"], dtype=float)
             agent.heading = np.array(saved["heading"], dtype=float)
+            agent.tick = self.tick
             agent.settled = {int(t): np.array(p, dtype=float) for t, p in saved["settled"].items()}
+            agent.headings = {self.tick: agent.heading.copy()}
+            agent.records = {}
 
     # --- requests ------------------------------------------------------------------------------
 
     def _check_request(self, agent: int, tick: int) -> None:
+        """Refuse a request out of turn; an agent's first request for the tick after the one it
+        settled at begins that tick for it."""
         if not 0 <= agent < self.n_agents:
             raise RequestError(f"unknown agent id {agent} (this run has agents 0..{self.n_agents - 1})")
-        if tick < self.tick:
+        state = self.agents[agent]
+        if tick < state.tick:
             raise TickMissed(f"tick {tick} is over: the world is at tick {self.tick}")
-        if tick != self.tick:
+        if tick > self.tick:
             raise RequestError(f"request for tick {tick}, but the world is at tick {self.tick}")
-        if self.agents[agent].missed:
+        if tick > state.tick:
+            self._begin(agent, tick)
+        if state.missed:
             raise TickMissed(f"agent {agent} missed tick {tick}; wait for the next tick")
 
-    def _check_follower_turn(self, agent: int, *, settled_ok: bool = False) -> None:
+    def _check_follower_turn(self, agent: int, tick: int, *, settled_ok: bool = False) -> None:
         if agent == 0:
             raise RequestError("agent 0 is the leader: it has no leader to sense or follow")
-        if not self.is_settled(agent - 1):
-            raise RequestError(f"agent {agent - 1} has not settled at tick {self.tick} yet")
-        if self.is_settled(agent) and not settled_ok:
-            raise RequestError(f"agent {agent} already settled at tick {self.tick}")
+        if not self.is_settled(agent - 1, tick):
+            raise RequestError(f"agent {agent - 1} has not settled at tick {tick} yet")
+        if self.is_settled(agent, tick) and not settled_ok:
+            raise RequestError(f"agent {agent} already settled at tick {tick}")
 
     def drive(self, agent: int, tick: int, t: float) -> None:
         """The leader follows its geodesic to time ``t`` (which must be this tick's time)."""
         self._check_request(agent, tick)
         if agent != 0:
             raise RequestError(f"only the leader (agent 0) may drive, not agent {agent}")
-        if self.is_settled(0):
+        if self.is_settled(0, tick):
             raise RequestError(f"the leader already drove at tick {tick}")
         target = self.time_of(tick)
         if not math.isclose(t, target, rel_tol=1e-9, abs_tol=1e-9):
@@ -234,7 +311,7 @@ class WorldSim:
                 raise RunEnded(f"the leader left the surface's domain: {exc}") from None
             leader.heading = self.leader_velocity.copy()
             self.leader_time = target
-        leader.settled[tick] = leader.pos.copy()
+        self._settle(0, tick)
 
     def _relative_reading(self, agent: int, tick: int, phase: str, leader_pos: np.ndarray,
                           own_pos: np.ndarray) -> tuple[float, float]:
@@ -263,22 +340,22 @@ class WorldSim:
     def sense(self, agent: int, tick: int, phase: str) -> Sensing:
         """What follower ``agent``'s sensors read now, in its local frame (SPEC §5)."""
         self._check_request(agent, tick)
-        self._check_follower_turn(agent, settled_ok=phase == "settled")
+        self._check_follower_turn(agent, tick, settled_ok=phase == "settled")
         cfg, state = self.config, self.agents[agent]
-        leader = self.agents[agent - 1]
-        r, theta = self._relative_reading(agent, tick, phase, leader.pos, state.pos)
+        leader_pos = self.agents[agent - 1].settled[tick]
+        r, theta = self._relative_reading(agent, tick, phase, leader_pos, state.pos)
         fx, fy = state.pos.tolist()
-        ex, ey = self._leader_rod(agent)[0].tolist()
+        ex, ey = self._leader_rod(agent, tick)[0].tolist()
         offset = (ex - fx, ey - fy)
         visible = self._sees_rod(tick, math.hypot(*offset))
         velocity = self._odometry(agent, tick, phase)
         oracle = None
-        if cfg.velocity == "oracle" and self.is_settled(agent):
+        if cfg.velocity == "oracle" and self.is_settled(agent, tick):
             oracle = (self.ideal[agent, tick + 1] - state.pos) / cfg.comm_period
             oracle = oracle if np.all(np.isfinite(oracle)) else None
         gps = leader_gps = None
         if cfg.gps:
-            gps, leader_gps = self._gps(state.pos), self._gps(leader.pos)
+            gps, leader_gps = self._gps(state.pos), self._gps(leader_pos)
         return Sensing(
             tick=tick, r=r, theta=theta, rod=offset if visible else None,
             velocity=velocity, oracle_velocity=_tup(oracle), gps=gps, leader_gps=leader_gps,
@@ -287,7 +364,7 @@ class WorldSim:
     def move(self, agent: int, tick: int, offset: tuple[float, float]) -> None:
         """Follower moves by the local-frame ``offset`` toward its estimate (with actuation noise)."""
         self._check_request(agent, tick)
-        self._check_follower_turn(agent)
+        self._check_follower_turn(agent, tick)
         state, cfg = self.agents[agent], self.config
         step = np.asarray(offset, dtype=float)
         if step.shape != (2,) or not np.all(np.isfinite(step)) or _norm(step) > MAX_OFFSET:
@@ -304,32 +381,52 @@ class WorldSim:
     def snap(self, agent: int, tick: int) -> bool:
         """Follower moves onto its leader's rod end if it sees it; returns False (lost) if not."""
         self._check_request(agent, tick)
-        self._check_follower_turn(agent)
+        self._check_follower_turn(agent, tick)
         state, cfg = self.agents[agent], self.config
         if tick >= cfg.init_ticks and state.acted != "move":
             raise RequestError(f"agent {agent} must move to its estimate before snapping")
-        end, u = self._leader_rod(agent)
+        end, u = self._leader_rod(agent, tick)
         seen = self._sees_rod(tick, _norm(end - state.pos))
         if seen:
             self._relocate(agent, end)
             state.heading = geometry.heading_at_rod_end(self.surface, end, u, self.side)
         state.lost = not seen
-        state.settled[tick] = state.pos.copy()
+        self._settle(agent, tick)
         return seen
+
+    def act(self, agent: int, request: Message) -> ActResult | ActSensing:
+        """Carry out one typed action of ``agent`` and say how it went (SPEC §8): a
+        :class:`Drive` is answered with :class:`ActResult`; a :class:`Move` with the ``moved``
+        sensing and a :class:`Snap` with the ``settled`` sensing, both as :class:`ActSensing`.
+        The one dispatch of the Zenoh service and of the in-memory layout."""
+        if isinstance(request, Drive):
+            self.drive(agent, request.tick, request.t)
+            return ActResult(tick=request.tick, moved=True)
+        if isinstance(request, Move):
+            self.move(agent, request.tick, request.offset)
+            moved, phase = True, "moved"
+        elif isinstance(request, Snap):
+            moved, phase = self.snap(agent, request.tick), "settled"
+        else:
+            raise RequestError(f"{type(request).__name__} is not an action")
+        sensing = self.sense(agent, request.tick, phase)
+        return ActSensing(**{**sensing.__dict__, "moved": moved})
 
     # --- helpers -------------------------------------------------------------------------------
 
-    def _leader_rod(self, agent: int) -> tuple[np.ndarray, np.ndarray]:
-        """End and end tangent of agent ``agent - 1``'s rod at its current pose (cached per tick)."""
-        if agent not in self._rod_cache:
+    def _leader_rod(self, agent: int, tick: int) -> tuple[np.ndarray, np.ndarray]:
+        """End and end tangent of agent ``agent - 1``'s rod where it settled at ``tick`` (cached)."""
+        key = (agent, tick)
+        if key not in self._rod_cache:
             leader = self.agents[agent - 1]
             try:
-                self._rod_cache[agent] = geometry.rod_end(
-                    self.surface, leader.pos, leader.heading, self.config.spacing, self.side
+                self._rod_cache[key] = geometry.rod_end(
+                    self.surface, leader.settled[tick], leader.headings[tick],
+                    self.config.spacing, self.side
                 )
             except geometry.SurfaceDomainError as exc:
                 raise RunEnded(f"agent {agent - 1}'s rod leaves the surface's domain: {exc}") from None
-        return self._rod_cache[agent]
+        return self._rod_cache[key]
 
     def _sees_rod(self, tick: int, distance: float) -> bool:
         """Whether a rod end ``distance`` away is in sensing range (always, in initial ticks)."""

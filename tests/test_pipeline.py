@@ -1,0 +1,78 @@
+"""Pipelined lockstep (SPEC §4): the column advances as a wavefront, and the numbers are
+byte-identical to the unpipelined order, with noise, for 1, 3 and 10 followers, in memory,
+in-process over Zenoh and as processes."""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+
+from protocol.config import RunConfig
+from swarm.launch import launch
+from swarm.local import run_local
+
+RESULTS = ("ticks.csv", "observations.csv")
+
+
+def _config(followers: int, pipelined: bool) -> RunConfig:
+    return RunConfig(run_id=f"pipe{followers}", surface="wavy", followers=followers, ticks=16,
+                     estimator="auto", velocity="estimated", noise_range=0.01,
+                     noise_bearing=0.005, noise_velocity=0.02, noise_move=0.01, seed=5,
+                     agent_timeout=30.0, pipelined=pipelined)
+
+
+def _same(out: Path, reference: Path) -> None:
+    for name in RESULTS:
+        assert (out / name).read_bytes() == (reference / name).read_bytes(), name
+
+
+@pytest.fixture(scope="module")
+def unpipelined(tmp_path_factory):
+    """The unpipelined order, in memory (tests/test_end_to_end.py shows that it equals the
+    Zenoh layouts), per number of followers."""
+    refs = {}
+    for n in (1, 3, 10):
+        refs[n] = tmp_path_factory.mktemp(f"ref{n}")
+        run_local(_config(n, pipelined=False), refs[n])
+    return refs
+
+
+@pytest.mark.parametrize("followers", [1, 3, 10])
+def test_in_memory_wavefront_matches(tmp_path, unpipelined, followers):
+    run_local(_config(followers, pipelined=True), tmp_path)
+    _same(tmp_path, unpipelined[followers])
+
+
+@pytest.mark.parametrize("in_process", [True, False], ids=["in-process", "processes"])
+@pytest.mark.parametrize("followers", [1, 3, 10])
+def test_pipelined_run_matches_unpipelined(tmp_path, unpipelined, followers, in_process):
+    summary = launch(_config(followers, pipelined=True), tmp_path / "run", in_process=in_process)
+    assert summary["complete"], summary["reason"]
+    _same(tmp_path / "run", unpipelined[followers])
+
+
+def test_unpipelined_over_zenoh_matches(tmp_path, unpipelined):
+    """The comparison option: ``pipelined = false`` still gives the same numbers."""
+    summary = launch(_config(3, pipelined=False), tmp_path / "run", in_process=True)
+    assert summary["complete"], summary["reason"]
+    _same(tmp_path / "run", unpipelined[3])
+
+
+def test_the_column_really_overlaps_ticks(tmp_path, monkeypatch):
+    """In a pipelined run the leader gets ahead of the last follower: when tick 0 completes
+    (the last follower is through it) the world has already opened later ticks."""
+    from world.service import WorldService
+
+    opened_at_first_complete = []
+    original = WorldService._complete_tick
+
+    def spy(self, tick):
+        if tick == 0:
+            opened_at_first_complete.append(self.sim.tick)
+        return original(self, tick)
+
+    monkeypatch.setattr(WorldService, "_complete_tick", spy)
+    config = dataclasses.replace(_config(10, pipelined=True), ticks=30)
+    assert launch(config, tmp_path / "run", in_process=True)["complete"]
+    assert opened_at_first_complete and opened_at_first_complete[0] > 0
