@@ -150,6 +150,7 @@ def test_any_process_killed_at_random_moments_changes_nothing(tmp_path, kind):
         out = folder / "results"
         run = Run(out, folder / "config.toml")
         finished = False
+        gone_after_end: set[int] = set()
         try:
             run.start_world(resume=False)
             for agent in range(3):
@@ -173,11 +174,15 @@ def test_any_process_killed_at_random_moments_changes_nothing(tmp_path, kind):
                 else:
                     if not run.kill(run.agents[agent]):
                         break
+                    if _complete(out):  # pipelined, the run may end within the kill window:
+                        gone_after_end.add(agent)  # there is nothing left to rejoin
+                        break
                     run.start_agent(agent)
             if not finished:
                 assert run.world.wait(timeout=WAIT_S * 2) == 0, run.failure_logs()
-                for proc in run.agents:
-                    assert proc.wait(timeout=WAIT_S) == 0, run.failure_logs()
+                for k, proc in enumerate(run.agents):
+                    if k not in gone_after_end:
+                        assert proc.wait(timeout=WAIT_S) == 0, run.failure_logs()
         finally:
             run.close()
         for name in ("ticks.csv", "observations.csv"):

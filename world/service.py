@@ -75,6 +75,7 @@ class WorldService:
         self._tick_started = 0.0
         self._alive: set[int] = set()
         self._ended: str | None = None
+        self._finished: bytes | None = None  # the world/done message, once published
         self._rejected = 0
         self._wall_before = 0.0  # wall time of earlier starts of this run (resume)
         self._started = time.monotonic()
@@ -207,6 +208,8 @@ class WorldService:
             req = decode(payload, (*ACTIONS, JoinRequest))
             with self._cond:
                 if isinstance(req, JoinRequest):
+                    if self._finished is not None:  # an agent restarted after the end
+                        self._done_pub.put(self._finished)
                     return encode(self._joined(agent))
                 self._check_turn(agent, req.tick)
                 # the agent validates the reply on decode; its numbers are the world's own
@@ -465,9 +468,11 @@ class WorldService:
             self._wait_all_live(self.config.agent_timeout)
         with self._cond:
             self.recorder.write_summary(complete=complete, reason=reason, wall_time=self._wall())
-        self._done_pub.put(encode(Done(tick=max(self.recorder.ticks_done - 1, 0),
-                                       results=str(self.out_dir), complete=complete,
-                                       reason=safe_text(reason))))
+        done = encode(Done(tick=max(self.recorder.ticks_done - 1, 0), results=str(self.out_dir),
+                           complete=complete, reason=safe_text(reason)))
+        with self._cond:
+            self._finished = done
+        self._done_pub.put(done)
         self._wait_agents_gone(timeout=5.0)
         if complete:  # a world killed before this resumes into the end phase again
             checkpoint.discard(self.out_dir)
