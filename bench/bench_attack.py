@@ -18,10 +18,11 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # its shared helpers
 
 from protocol.config import RunConfig  # noqa: E402
 from protocol.session import free_tcp_endpoint  # noqa: E402
-from swarm.launch import launch  # noqa: E402
+from swarm.launch import RunCredentials, launch  # noqa: E402
 from tests.test_limits import ATTACK_ROUNDS, attack  # noqa: E402
 
 TARGET = 1.5
@@ -31,13 +32,16 @@ def timed_run(config: RunConfig, rounds: int) -> tuple[float, str]:
     """Seconds for one run (``rounds`` of attack, 0 for a clean run) and its ticks.csv."""
     endpoint = free_tcp_endpoint()
     stop, counts = threading.Event(), {"answered": 0, "refusals": [], "samples": 0}
-    attacker = threading.Thread(target=attack, args=(endpoint, config.run_id, rounds, stop, counts))
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryDirectory() as secrets:
+        credentials = RunCredentials.create(Path(secrets) / "run", config.followers)
+        attacker = threading.Thread(target=attack, args=(
+            endpoint, config.run_id, credentials.passwords["follower-1"], rounds, stop, counts))
         if rounds:
             attacker.start()
         start = time.perf_counter()
         try:
-            summary = launch(config, tmp, in_process=True, endpoint=endpoint)
+            summary = launch(config, tmp, in_process=True, endpoint=endpoint,
+                             credentials=credentials)
         finally:
             stop.set()
             if rounds:
@@ -64,7 +68,8 @@ def main() -> None:
         same &= ticks == reference
     ratio = statistics.median(attacked) / statistics.median(clean)
     print(f"run: wavy, 2 followers, {args.ticks} ticks, in-process; attack: {args.rounds} rounds "
-          f"({3 * args.rounds} queries, {4 * args.rounds} samples, 3/4 of them 8-10 MB)")
+          f"({3 * args.rounds} queries, {4 * args.rounds} samples as follower 1: 512 KiB deep, "
+          f"wide and long-string payloads, 4 KiB nests, 9 MB ones)")
     for name, times in (("clean", clean), ("attacked", attacked)):
         print(f"{name:>8} s: {' '.join(f'{x:.2f}' for x in times)}  "
               f"median {statistics.median(times):.2f}")
