@@ -18,7 +18,6 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # its shared helpers
 
 from protocol.config import RunConfig  # noqa: E402
 from protocol.session import free_tcp_endpoint  # noqa: E402

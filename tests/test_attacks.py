@@ -21,7 +21,7 @@ from protocol import keys
 from protocol.config import RunConfig, dump_config
 from protocol.messages import Observation, Rod, encode
 from protocol.session import free_tcp_endpoint, zenoh_config
-from attacking import run_under_attack, same_results, wait_for_world
+from tests.attacking import run_under_attack, same_results, wait_for_world
 from swarm.launch import RunCredentials, agent_commands, launch
 from world.results import read_observations, read_ticks
 

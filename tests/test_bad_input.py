@@ -19,7 +19,7 @@ from protocol.messages import (
     decode, encode,
 )
 from protocol.session import free_tcp_endpoint, zenoh_config
-from attacking import run_under_attack, same_results, wait_for_world
+from tests.attacking import run_under_attack, same_results, wait_for_world
 from world.main import resolve
 from world.service import WorldService
 from world.surfaces import make_surface

@@ -16,6 +16,7 @@ from swarm.launch import agent_commands, launch
 from world import ideal_formation
 from world.results import TICK_COLUMNS, read_ticks
 from world.surfaces import make_surface
+from tests.boundaries import check_imports
 
 ROOT = Path(__file__).resolve().parents[1]
 SUMMARY_KEYS = {"mean_required_range", "rmse", "mean_stay_range", "mean_persist_range",
@@ -139,25 +140,8 @@ def test_agent_without_world_exits(tmp_path):
 
 def test_agents_never_import_world():
     """Static check of every module in agents/, and a live import check in a fresh interpreter."""
-    import ast
-
-    for path in (ROOT / "agents").rglob("*.py"):
-        tree = ast.parse(path.read_text())
-        for node in ast.walk(tree):
-            names = []
-            if isinstance(node, ast.Import):
-                names = [a.name for a in node.names]
-            elif isinstance(node, ast.ImportFrom) and node.module:
-                names = [node.module]
-            for name in names:
-                top = name.split(".")[0]
-                assert top not in ("world", "scipy", "swarm"), f"{path.name} imports {name}"
-    code = ("import sys, agents.leader, agents.follower, agents.policies, agents.estimators; "
-            "bad = [m for m in ('world', 'scipy', 'swarm') if m in sys.modules]; "
-            "print(bad); sys.exit(1 if bad else 0)")
-    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
-                          timeout=60)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+    check_imports(ROOT / "agents", ("agents.leader", "agents.follower", "agents.policies",
+                                    "agents.estimators"), ("world", "scipy", "swarm"))
 
 
 def test_leaving_the_domain_ends_the_run_cleanly(tmp_path):

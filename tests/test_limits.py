@@ -19,7 +19,7 @@ from protocol.messages import (
     error_payload, safe_text,
 )
 from protocol.session import MAX_MESSAGE_SIZE, zenoh_config
-from attacking import run_under_attack, same_results, wait_for_world
+from tests.attacking import run_under_attack, same_results, wait_for_world
 from world.results import _cell
 
 ALL_TYPES = tuple(MESSAGE_TYPES.values())

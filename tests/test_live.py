@@ -11,7 +11,6 @@ else to the test's temporary folder.
 """
 from __future__ import annotations
 
-import ast
 import json
 import math
 import os
@@ -42,6 +41,8 @@ from swarm.live.store import COMPLETE, INCOMPLETE, RUNNING, Frame, RunStore, loa
 from world.main import resolve_with_surface
 from world.sim import WorldSim
 from world.view import map_payload
+from tests.boundaries import check_imports
+from tests.deployment import Inbox
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = Path("/usr/bin/chromium")
@@ -204,22 +205,9 @@ def test_hillshade_lights_slopes_facing_the_light():
 
 def test_observer_does_not_import_world():
     """Static check of swarm/live, and a fresh interpreter that loads every live module."""
-    for path in (ROOT / "swarm" / "live").glob("*.py"):
-        for node in ast.walk(ast.parse(path.read_text())):
-            names = []
-            if isinstance(node, ast.Import):
-                names = [a.name for a in node.names]
-            elif isinstance(node, ast.ImportFrom) and node.module:
-                names = [node.module]
-            for name in names:
-                assert name.split(".")[0] not in ("world", "agents"), f"{path.name} imports {name}"
-    code = ("import sys, swarm.live.observer, swarm.live.page, swarm.live.server, "
-            "swarm.live.store, swarm.live.feed, swarm.live.draw; "
-            "bad = [m for m in ('world', 'agents') if m in sys.modules]; "
-            "print(bad); sys.exit(1 if bad else 0)")
-    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
-                          timeout=60)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+    check_imports(ROOT / "swarm" / "live",
+                  tuple(f"swarm.live.{m}" for m in ("observer", "page", "server", "store", "feed",
+                                                    "draw")), ("world", "agents"))
 
 
 # --- the observer role on a router with access control -------------------------------------------
@@ -253,21 +241,6 @@ def _acl_router(endpoint: str, folder: Path) -> zenoh.Config:
                       json.dumps(str(folder / "credentials.txt")))
     conf.insert_json5("access_control", json.dumps(acl))
     return conf
-
-
-class Inbox:
-    def __init__(self) -> None:
-        self._cond = threading.Condition()
-        self.items: list[tuple[str, bytes]] = []
-
-    def __call__(self, sample: zenoh.Sample) -> None:
-        with self._cond:
-            self.items.append((str(sample.key_expr), sample.payload.to_bytes()))
-            self._cond.notify_all()
-
-    def wait_for(self, item: tuple[str, bytes], timeout: float) -> bool:
-        with self._cond:
-            return self._cond.wait_for(lambda: item in self.items, timeout)
 
 
 def _until(condition, timeout: float = WAIT_S) -> bool:
