@@ -58,6 +58,21 @@ class Velocity(Dictionary):
         return v, tuple(v)
 
 
+def polar_offset(pre: Sensing, z: np.ndarray) -> np.ndarray:
+    """Offset to the estimate ``l_{j+1} - r* (cos, sin) theta*`` of a predicted ``z = (r*,
+    theta*, ...)``, with the leader as sensed before moving."""
+    return relative(pre) - polar(z[0], z[1])
+
+
+def settled_polar(unwrap: Unwrapper, settled: Sensing,
+                  predicted: np.ndarray | None) -> tuple[float, float]:
+    """The ``(r, theta)`` to record: the settled reading, or the prediction on a lost tick
+    (multi-step), with theta unwrapped."""
+    theta = settled.theta if predicted is None else float(predicted[1])
+    r = settled.r if predicted is None else float(predicted[0])
+    return (r, unwrap(theta))
+
+
 class RelativePolar(Dictionary):
     """b: the relative position ``(r, theta)``; estimate ``l_{j+1} - r* (cos, sin) theta*``."""
 
@@ -68,12 +83,10 @@ class RelativePolar(Dictionary):
         self.unwrap = Unwrapper()
 
     def offset(self, pre: Sensing, z: np.ndarray) -> np.ndarray:
-        return relative(pre) - polar(z[0], z[1])
+        return polar_offset(pre, z)
 
     def lift(self, settled: Sensing, predicted: np.ndarray | None) -> Sample:
-        theta = settled.theta if predicted is None else float(predicted[1])
-        r = settled.r if predicted is None else float(predicted[0])
-        rel = (r, self.unwrap(theta))
+        rel = settled_polar(self.unwrap, settled, predicted)
         return np.asarray(rel), rel
 
     def bridge(self, z: np.ndarray) -> np.ndarray:
@@ -147,12 +160,10 @@ class RelativeVelocity(Dictionary):
         return np.r_[self.last_rel, self._current_velocity()]
 
     def offset(self, pre: Sensing, z: np.ndarray) -> np.ndarray:
-        return relative(pre) - polar(z[0], z[1])
+        return polar_offset(pre, z)
 
     def lift(self, settled: Sensing, predicted: np.ndarray | None) -> Sample:
-        theta = settled.theta if predicted is None else float(predicted[1])
-        r = settled.r if predicted is None else float(predicted[0])
-        rel = (r, self.unwrap(theta))
+        rel = settled_polar(self.unwrap, settled, predicted)
         velocity = None if settled.velocity is None else np.asarray(settled.velocity, dtype=float)
         sample = None
         if self.variant == "oracle":
