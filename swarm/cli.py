@@ -511,13 +511,10 @@ def build_parser() -> argparse.ArgumentParser:
     terrain.add_argument("--followers", type=int, help="column length, default 10")
     terrain.add_argument("--ticks", type=int, help="ticks per run, default 40")
     terrain.add_argument("--smoothing", type=float, help="spline smoothing s, default 0")
-    terrain.add_argument("--estimators", help="comma-separated, default stay,persist,edmd-b,auto")
+    terrain.add_argument("--estimators", help="comma-separated, default "
+                                              "stay,persist,edmd-b,cv,kalman,arx,gp,auto")
     terrain.add_argument("--comm-periods", help="comma-separated, default 0.32,0.64,1.28,2.56,5.12")
-    experiment.add_argument("--workers", type=int, default=None,
-                            help="runs in parallel (default min(2, CPU count))")
-    experiment.add_argument("--scheduler", metavar="ADDRESS", default=None,
-                            help="address of a dask scheduler (tcp://host:8786): each run is "
-                                 "one task on its workers (default: a local process pool)")
+    add_grid_flags(experiment)
     experiment.set_defaults(func=cmd_experiment)
     compare = sub.add_parser("compare", help="one setup, several estimators and seeds, one table")
     add_run_flags(compare)
@@ -527,21 +524,12 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--seeds", help="comma-separated seeds (default: --seed)")
     compare.add_argument("--follower", type=int, default=1, help="whose metrics (default 1)")
     compare.add_argument("--out", help="output folder (default runs/compare-<run id>)")
-    compare.add_argument("--workers", type=int, default=None,
-                         help="runs in parallel (default min(2, CPU count))")
-    compare.add_argument("--scheduler", metavar="ADDRESS", default=None,
-                         help="address of a dask scheduler (tcp://host:8786): each run is one "
-                              "task on its workers (default: a local process pool)")
+    add_grid_flags(compare)
     compare.set_defaults(func=cmd_compare)
     sweep = sub.add_parser("sweep", help="run a grid file (surfaces × estimators × ...)")
     sweep.add_argument("grid", metavar="GRID.toml", help="the grid: [base] options and [axes]")
     sweep.add_argument("--out", help="output folder (default runs/sweep-<name>)")
-    sweep.add_argument("--workers", type=int, default=None,
-                       help="runs in parallel (default min(2, CPU count))")
-    sweep.add_argument("--scheduler", metavar="ADDRESS", default=None,
-                       help="address of a dask scheduler (tcp://host:8786): each run is one "
-                            "task on its workers (default: a local process pool); finished "
-                            "runs in --out are not run again")
+    add_grid_flags(sweep)
     sweep.set_defaults(func=cmd_sweep)
     dem = sub.add_parser("dem-from-npz", help="write matplotlib's sample DEM (Jacksboro fault, "
                                               "USGS, public domain) as a GeoTIFF")
@@ -575,6 +563,16 @@ def build_parser() -> argparse.ArgumentParser:
     add_live_port(replay)
     replay.set_defaults(func=cmd_replay)
     return p
+
+
+def add_grid_flags(parser: argparse.ArgumentParser) -> None:
+    """``--workers`` and ``--scheduler``: where a grid of runs executes (swarm.grid.run_grid)."""
+    parser.add_argument("--workers", type=int, default=None,
+                        help="runs in parallel (default min(2, CPU count))")
+    parser.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                        help="address of a dask scheduler (tcp://host:8786): each run is one "
+                             "task on its workers (default: a local process pool); finished "
+                             "runs in --out are not run again")
 
 
 def add_live_port(parser: argparse.ArgumentParser) -> None:
