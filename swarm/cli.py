@@ -199,22 +199,19 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
 
     from swarm.launch import launch
 
-    observe = None
-    if live is not None:
+    def observe(credentials) -> None:  # the live view joins as the run's observer user
         from protocol.session import zenoh_config
-
         from swarm.deploy import OBSERVER
 
-        def observe(credentials) -> None:
-            password = credentials.password_file(OBSERVER).read_text(encoding="utf-8").strip()
-            live.connect(zenoh_config("client", connect=[endpoint], user=OBSERVER,
-                                      password=password))
+        live.connect(zenoh_config("client", connect=[endpoint], user=OBSERVER,
+                                  password=credentials.passwords[OBSERVER]))
 
     bar = tqdm(total=config.ticks, desc=f"{config.surface} {config.estimator}", unit="tick",
                disable=None)
     try:
         summary = launch(config, out, in_process=args.in_process, on_tick=lambda j: bar.update(1),
-                         endpoint=endpoint, before_agents=observe)
+                         endpoint=endpoint,
+                         before_agents=None if live is None else observe)
     except OSError as exc:  # the results disk failed during the run (read-only, full)
         bar.close()
         print(f"error: cannot write the results in {out}: {describe(exc)}", file=sys.stderr)

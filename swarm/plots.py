@@ -28,6 +28,7 @@ from matplotlib.ticker import NullLocator
 from protocol.config import RunConfig, load_config
 from world.dem import DemSurface
 from world.results import read_ticks
+from world.view import height_grid
 from world.surfaces import make_surface
 
 DPI = 110
@@ -152,13 +153,7 @@ def _surface_contours(ax, surface, low: np.ndarray, high: np.ndarray):
     if isinstance(surface, DemSurface):
         return terrain_relief(ax, surface, low, high)[1]
     xs, ys = np.linspace(low[0], high[0], 160), np.linspace(low[1], high[1], 100)
-    contains = getattr(surface, "contains", None)
-    z = np.full((ys.size, xs.size), np.nan)
-    for i, y in enumerate(ys):
-        for j, x in enumerate(xs):
-            p = np.array([x, y])
-            if contains is None or contains(p):
-                z[i, j] = surface.height(p)
+    z = height_grid(surface, low, high, (ys.size, xs.size))
     return ax.contour(xs, ys, z, levels=14, cmap="viridis", linewidths=0.8, alpha=0.8)
 
 

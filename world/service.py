@@ -18,9 +18,8 @@ from protocol import keys
 from protocol.config import RunConfig
 from protocol.messages import (
     ACTIONS, Done, Joined, JoinRequest, Missed, Observation, ProtocolError, Rod,
-    SenseRequest, TickStart, decode, encode, error_payload,
+    SenseRequest, TickStart, decode, encode, error_payload, safe_text,
 )
-from protocol.messages import safe_text
 from world import checkpoint
 from world.results import RunRecorder
 from world.sim import RequestError, RunEnded, TickMissed, WorldSim
