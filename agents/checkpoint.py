@@ -11,14 +11,13 @@ transparent recovery needs when the world restarts a tick (SPEC §4).
 
 The file is JSON lines. The first line is the header ``{"schema", "run_id", "agent",
 "start"}``; ``start`` is the world's per-start nonce, so a file from another start of the same
-run id is refused. Every line carries ``"sum"``, the first 16 hex digits of the SHA-256 of its
-canonical JSON without that key. A torn last line (a crash in the middle of an append: no
+run id is refused. Every line carries ``"sum"``, the SHA-256 of its canonical JSON without
+that key (:func:`protocol.config.json_checksum`, as for the world's checkpoint). A torn last line (a crash in the middle of an append: no
 final newline) is dropped, since its tick was never reported to anyone; any other defect
 refuses the whole file with one line naming the file and the reason (:class:`StateError`).
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
@@ -27,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.config import write_atomic
+from protocol.config import json_checksum, write_atomic
 from protocol.messages import ProtocolError, Sensing, from_body, to_body
 
 SCHEMA = 1
@@ -58,13 +57,9 @@ def state_path(state_dir: str | os.PathLike[str], agent: int) -> Path:
     return Path(state_dir) / f"agent-{agent}.state"
 
 
-def _checksum(body: dict) -> str:
-    canonical = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
-    return hashlib.sha256(canonical.encode()).hexdigest()[:16]
-
 
 def _line(body: dict) -> str:
-    return json.dumps({**body, "sum": _checksum(body)}, allow_nan=False) + "\n"
+    return json.dumps({**body, "sum": json_checksum(body)}, allow_nan=False) + "\n"
 
 
 class StateLog:
@@ -114,7 +109,7 @@ class StateLog:
             if not isinstance(body, dict) or not isinstance(body.get("sum"), str):
                 raise self._refuse(f"line {number} is not a checksummed map")
             given = body.pop("sum")
-            if _checksum(body) != given:
+            if json_checksum(body) != given:
                 raise self._refuse(f"line {number} fails its checksum (corrupt or edited)")
             bodies.append(body)
         header = bodies[0]

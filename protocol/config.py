@@ -8,6 +8,8 @@ overrides with validation. Agents read only :class:`AgentSettings` (via
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import math
 import os
 import re
@@ -289,6 +291,13 @@ def dump_config(config: RunConfig, path: str | os.PathLike[str]) -> None:
         lines.append(f"\n[{key}]")
         lines.extend(f"{k} = {_toml_value(v)}" for k, v in sorted(table.items()))
     write_atomic(Path(path), "\n".join(lines) + "\n")
+
+
+def json_checksum(body: dict) -> str:
+    """SHA-256 (hex) of ``body``'s canonical JSON (sorted keys, no spaces): the checksum of
+    every state file (the world's checkpoint, a follower's replay log lines)."""
+    canonical = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(canonical.encode()).hexdigest()
 
 
 def write_atomic(path: Path, text: str) -> None:

@@ -10,12 +10,11 @@ The file is deleted once the run is complete.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import secrets
 from pathlib import Path
 
-from protocol.config import write_atomic
+from protocol.config import json_checksum, write_atomic
 from world.results import RESULT_FILES, SUMMARY_FILE
 
 STATE_FILE = "world_state.json"
@@ -35,17 +34,13 @@ def new_start() -> str:
     return secrets.token_hex(8)
 
 
-def _checksum(body: dict) -> str:
-    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":"),
-                                     allow_nan=False).encode()).hexdigest()
-
 
 def save(out_dir: Path, *, run_id: str, start: str, sim: dict, offsets: dict[str, int],
          wall_time: float) -> None:
     """Replace the checkpoint atomically (after the tick's rows are on disk)."""
     body = {"schema": SCHEMA, "run_id": run_id, "start": start, "sim": sim,
             "offsets": offsets, "wall_time": wall_time}
-    write_atomic(out_dir / STATE_FILE, json.dumps({**body, "sha256": _checksum(body)}) + "\n")
+    write_atomic(out_dir / STATE_FILE, json.dumps({**body, "sha256": json_checksum(body)}) + "\n")
 
 
 def load(out_dir: Path, run_id: str) -> dict:
@@ -68,7 +63,7 @@ def load(out_dir: Path, run_id: str) -> dict:
     if not isinstance(body, dict) or not isinstance(body.get("sha256"), str):
         raise StateError(f"checkpoint {path} is not a checksummed map; refusing it")
     given = body.pop("sha256")
-    if _checksum(body) != given:
+    if json_checksum(body) != given:
         raise StateError(f"checkpoint {path} fails its checksum (corrupt or edited); refusing it")
     if body.get("schema") != SCHEMA:
         raise StateError(f"checkpoint {path} has schema {body.get('schema')!r}, this build "
