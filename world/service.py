@@ -28,8 +28,6 @@ from world.view import ViewPublisher
 
 log = logging.getLogger(__name__)
 
-STATE_FILE = checkpoint.STATE_FILE
-
 
 class NotYet(RequestError):
     """A follower's request before the world has its predecessor through the tick (the rod
@@ -118,7 +116,7 @@ class WorldService:
         try:
             self.sim.restore(state["sim"])
         except (KeyError, TypeError, ValueError) as exc:
-            raise checkpoint.StateError(f"checkpoint {self.out_dir / STATE_FILE}: bad simulation "
+            raise checkpoint.StateError(f"checkpoint {self.out_dir / checkpoint.STATE_FILE}: bad simulation "
                                         f"state ({exc}); refusing it") from None
         self.recorder.open(resume_offsets=state["offsets"])
         if self.recorder.ticks_done != self.sim.tick + 1:
