@@ -18,6 +18,7 @@ from protocol.messages import (
     ActResult, ActSensing, Done, Drive, ErrorReply, Joined, JoinRequest, Message, Missed, Observation,
     Move, ProtocolError, Rod, Sensing, SenseRequest, Snap, TickStart, decode, encode,
 )
+from protocol.session import token_live
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +74,7 @@ class AgentLink:
         self._world_alive = False
         self._world_seen = False
         self._declared = []
-        if self._id_in_use():
+        if token_live(session, keys.alive(run_id, agent_id)):
             raise AgentAbort(f"agent id {agent_id} is already live in run {run_id}: refusing to start")
         self.follow = follow
         self._declared.append(session.declare_subscriber(keys.tick(run_id), self._on_tick))
@@ -108,10 +109,6 @@ class AgentLink:
         self._declared.clear()
 
     # --- callbacks -----------------------------------------------------------------------------
-
-    def _id_in_use(self) -> bool:
-        replies = self.session.liveliness().get(keys.alive(self.run_id, self.agent_id), timeout=0.5)
-        return any(reply.ok is not None for reply in replies)
 
     def _decode(self, sample: zenoh.Sample, kind: type[Message]) -> Message | None:
         """The sample's message, or None (logged and dropped) if it is malformed."""

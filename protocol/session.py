@@ -118,6 +118,11 @@ def zenoh_config(
     return conf
 
 
+def token_live(session: zenoh.Session, key: str, timeout: float = 0.5) -> bool:
+    """Whether a liveliness token on ``key`` is live now (a world or agent id in use)."""
+    return any(reply.ok is not None for reply in session.liveliness().get(key, timeout=timeout))
+
+
 def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
     """A ``tcp/host:port`` endpoint on a port that is free right now (loopback by default)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:

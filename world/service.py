@@ -20,6 +20,7 @@ from protocol.messages import (
     ACTIONS, Done, Joined, JoinRequest, Missed, Observation, ProtocolError, Rod,
     SenseRequest, TickStart, decode, encode, error_payload, safe_text,
 )
+from protocol.session import token_live
 from world import checkpoint
 from world.results import RunRecorder
 from world.sim import RequestError, RunEnded, TickMissed, WorldSim
@@ -56,7 +57,7 @@ class WorldService:
                  resume: bool = False) -> None:
         self.session, self.config = session, config
         run = config.run_id
-        if self._world_live(session, run):
+        if token_live(session, keys.alive(run, "world")):
             raise RuntimeError(f"run id {run!r} is already live: another world serves it "
                                "(refusing to join it)")
         self.sim = WorldSim(config, surface)
@@ -103,11 +104,6 @@ class WorldService:
             keys.done(run), congestion_control=zenoh.CongestionControl.BLOCK)
         self._token = session.liveliness().declare_token(keys.alive(run, "world"))
         self._declared += [self._tick_pub, self._missed_pub, self._done_pub, self._token]
-
-    @staticmethod
-    def _world_live(session: zenoh.Session, run: str) -> bool:
-        replies = session.liveliness().get(keys.alive(run, "world"), timeout=0.5)
-        return any(reply.ok is not None for reply in replies)
 
     def _resume(self) -> None:
         """Continue from the checkpoint: the state after the last complete tick, the CSV files
