@@ -28,7 +28,7 @@ from pathlib import Path
 
 from protocol import keys
 from protocol.config import RunConfig
-from protocol.session import MAX_MESSAGE_SIZE, tls_settings
+from protocol.session import MAX_MESSAGE_SIZE, scouting_settings, tls_settings
 
 ZENOH_IMAGE = "eclipse/zenoh:1.10.2"  # kept at the eclipse-zenoh version of pyproject.toml
 SWARM_IMAGE = "koopman-swarm:local"
@@ -184,7 +184,7 @@ def router_config(run_id: str, followers: int, *, listen: list[str], dictionary_
     return {
         "mode": "router",
         "listen": {"endpoints": list(listen)},
-        "scouting": {"multicast": {"enabled": False}},
+        "scouting": scouting_settings(),
         "transport": {"auth": {"usrpwd": {"dictionary_file": dictionary_file}}, "link": link},
         "access_control": access_control(run_id, followers, cert_names=tls is not None),
     }
