@@ -278,10 +278,10 @@ def settle_time(agent: int, tick: int, hop_s: float, init_ticks: int) -> float:
     (2 hops to the world and to follower 1). Follower ``k`` starts when its predecessor's rod
     arrives, makes its round trips one after the other and publishes its observation and rod
     (2 hops to the world and to follower ``k + 1``)."""
-    hop = 2 * hop_s  # world <-> agent, one way
-    elapsed = hop + LEADER_ROUND_TRIPS * 2 * hop + hop
+    one_way = 2 * hop_s  # world <-> agent, through the router
+    elapsed = one_way + LEADER_ROUND_TRIPS * 2 * one_way + one_way
     for _ in range(agent):
-        elapsed += follower_round_trips(tick, init_ticks) * 2 * hop + hop
+        elapsed += follower_round_trips(tick, init_ticks) * 2 * one_way + one_way
     return elapsed
 
 
