@@ -7,18 +7,28 @@ and with ``tc netem`` delay (10 ms) and loss (1%) on every link.
 Needs root, ``ip netns`` and veth links; the netem case also needs the kernel's ``sch_netem``.
 Each part is skipped, with the reason, where the machine does not allow it. The namespaces,
 links and ``/etc/netns/<ns>`` files are made by the test and removed at its end.
+
+Realtime mode over delayed links: see :func:`test_realtime_misses_match_the_injected_delay`.
 """
 from __future__ import annotations
 
+import contextlib
+import csv
+import json
 import os
 import shutil
+import socket
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import pytest
 
 from protocol.config import load_config
+from tests.delay_relay import main as relay_main
+from tests.delay_relay import relay_process
 from tests.deployment import (ROUTER_IN_COMPOSE, Deployment, check_complete_run, free_ports,
                               generate, run_processes)
 
@@ -119,11 +129,18 @@ class Hosts:
             Path("/etc/netns").rmdir()
 
 
-def _loopback_run(deployment: Deployment, volumes: Path) -> Path:
+def _loopback_run(deployment: Deployment, volumes: Path, hop_ms: float | None = None) -> Path:
+    """Run every service on loopback; with ``hop_ms``, each one connects through a relay
+    (:mod:`tests.delay_relay`) that delays its link to the router by ``hop_ms`` each way."""
     listen, connect = free_ports()
-    commands = {s: deployment.local_command(s, connect, volumes) for s in SERVICES}
-    codes, output = run_processes(deployment.router_config(listen), commands, volumes, ROOT,
-                                  RUN_TIMEOUT_S)
+    relay = (contextlib.nullcontext(None) if hop_ms is None
+             else relay_process(f"127.0.0.1:{listen.rpartition(':')[2]}", hop_ms))
+    with relay as port:
+        if port is not None:
+            connect = f"tls/localhost:{port}"
+        commands = {s: deployment.local_command(s, connect, volumes) for s in SERVICES}
+        codes, output = run_processes(deployment.router_config(listen), commands, volumes, ROOT,
+                                      RUN_TIMEOUT_S)
     assert codes == dict.fromkeys(commands, 0), output
     return Path(deployment.local_path(deployment.option("world", "--out"),
                                       deployment.mounts("world", volumes)))
@@ -193,3 +210,180 @@ def test_a_run_across_namespaces_matches_loopback(deployment, loopback, tmp_path
     check_complete_run(out, load_config(deployment.folder / "run.toml"))
     for name in RESULTS:
         assert (out / name).read_bytes() == (loopback / name).read_bytes(), name
+
+
+# --- realtime mode over delayed links --------------------------------------------------------
+
+def test_the_delay_relay_delays_each_direction_and_keeps_order():
+    """Through the relay each direction takes at least the delay, bytes arrive in order and
+    intact, and a close reaches the other side."""
+    delay_s, arrivals, echoed = 0.05, [], []
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        server.settimeout(10)
+
+        def echo() -> None:
+            with server.accept()[0] as conn:
+                conn.settimeout(10)
+                while data := conn.recv(65536):
+                    arrivals.append(time.monotonic())
+                    conn.sendall(data)
+                echoed.append(True)
+
+        echoer = threading.Thread(target=echo)
+        echoer.start()
+        try:
+            with relay_process(f"127.0.0.1:{server.getsockname()[1]}", delay_s * 1000) as port:
+                with socket.create_connection(("127.0.0.1", port), timeout=10) as client:
+                    sent = time.monotonic()
+                    client.sendall(b"ping")
+                    assert client.recv(16) == b"ping"
+                    back = time.monotonic()
+                    assert arrivals[0] - sent >= delay_s and back - arrivals[0] >= delay_s
+                    message = bytes(range(256)) * 4096  # 1 MiB, many chunks
+                    client.sendall(message)
+                    received = b""
+                    while len(received) < len(message):
+                        received += client.recv(65536)
+                    assert received == message
+                    client.shutdown(socket.SHUT_WR)
+                    assert client.recv(16) == b""  # the echo server saw the end and closed
+        finally:
+            echoer.join(timeout=10)
+    assert echoed == [True]
+    with pytest.raises(ValueError, match="--listen"):
+        relay_main(["--listen", "nowhere", "--to", "127.0.0.1:1", "--delay-ms", "1"])
+    with pytest.raises(ValueError, match="--delay-ms"):
+        relay_main(["--listen", "127.0.0.1:0", "--to", "127.0.0.1:1", "--delay-ms", "-1"])
+
+
+HOP_MS = 10.0  # one-way delay injected on each process's link to the router, milliseconds
+RT_TICKS, RT_INIT_TICKS = 6, 2
+REALTIME = ("\nmode = \"realtime\"\nsurface = \"wavy\"\nseed = 3\nticks = {ticks}\n"
+            "init_ticks = {init}\ntime_scale = {scale!r}\n")
+LEADER_ROUND_TRIPS = 1  # drive (agents/leader.py)
+
+
+def follower_round_trips(tick: int, init_ticks: int) -> int:
+    """Sequential queries of a follower tick (agents/follower.py): sense, move (from
+    ``init_ticks`` on; the reply carries the sensing after it), snap."""
+    return 2 if tick < init_ticks else 3
+
+
+def settle_time(agent: int, tick: int, hop_s: float, init_ticks: int) -> float:
+    """Least wall time (s) from the start of a realtime tick until the world has ``agent``
+    through it, when every process's link to the router delays each message by ``hop_s`` one
+    way (so world <-> agent takes two hops); computing time is not counted.
+
+    The leader learns of the tick (2 hops), drives (a round trip, 4 hops) and publishes its rod
+    (2 hops to the world and to follower 1). Follower ``k`` starts when its predecessor's rod
+    arrives, makes its round trips one after the other and publishes its observation and rod
+    (2 hops to the world and to follower ``k + 1``)."""
+    one_way = 2 * hop_s  # world <-> agent, through the router
+    elapsed = one_way + LEADER_ROUND_TRIPS * 2 * one_way + one_way
+    for _ in range(agent):
+        elapsed += follower_round_trips(tick, init_ticks) * 2 * one_way + one_way
+    return elapsed
+
+
+def _missed_cells(out: Path) -> dict[tuple[int, int], bool]:
+    """(agent, tick) -> whether the world recorded the agent as having missed the tick."""
+    with (out / "ticks.csv").open() as fh:
+        return {(int(r["agent"]), int(r["tick"])): r["missed"] == "1" for r in csv.DictReader(fh)}
+
+
+def _check_realtime_record(out: Path) -> dict[tuple[int, int], bool]:
+    """The run is complete and its three records of misses agree (ticks.csv, the summary's
+    ``missed_ticks``, and observations.csv, which holds a row exactly for each follower-tick
+    not missed); return the misses."""
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["complete"] and summary["ticks_completed"] == RT_TICKS, summary
+    missed = _missed_cells(out)
+    assert set(missed) == {(a, t) for a in range(FOLLOWERS + 1) for t in range(RT_TICKS)}
+    for k in range(1, FOLLOWERS + 1):
+        assert summary["followers"][str(k)]["missed_ticks"] == sum(
+            missed[(k, t)] for t in range(RT_TICKS)), k
+    with (out / "observations.csv").open() as fh:
+        observed = {(int(r["agent"]), int(r["tick"])) for r in csv.DictReader(fh)}
+    assert observed == {c for c, m in missed.items() if c[0] > 0 and not m}
+    return missed
+
+
+def _made(folder: Path) -> Path:
+    folder.mkdir()
+    return folder
+
+
+@pytest.fixture(scope="module")
+def realtime_deployment(tmp_path_factory) -> tuple[Deployment, str]:
+    """A generated deployment and its generated run.toml (each run appends its options)."""
+    deployment = generate(tmp_path_factory.mktemp("realtime") / "deploy", "realtime", FOLLOWERS)
+    return deployment, (deployment.folder / "run.toml").read_text()
+
+
+@pytest.mark.parametrize("links", ["relay", "netem"])
+def test_realtime_misses_match_the_injected_delay(realtime_deployment, tmp_path, links):
+    """Realtime runs over links delayed by HOP_MS each way miss exactly where the delay
+    predicts, and the same tight period without the delay misses nothing.
+
+    The delay is injected from outside, below Zenoh: by ``tests/delay_relay.py`` (every process
+    connects through a relay process on loopback that holds each byte HOP_MS in each
+    direction), or by ``tc netem`` on both ends of every veth link of the network namespaces.
+    Both give every process's link to the router the same one-way delay, so one prediction
+    (:func:`settle_time`) serves both. The relay case needs no privileges and no kernel module,
+    so it runs everywhere; netem, the real thing, runs where the kernel has ``sch_netem`` and
+    namespaces are allowed, and is skipped otherwise. Neither case adds loss: over TCP a lost
+    segment waits for a retransmission timeout (200 ms or more), which no period derived from
+    a 10 ms delay can absorb, and the relay cannot lose bytes at all (loss is covered in
+    lockstep by ``test_a_run_across_namespaces_matches_loopback``).
+
+    The prediction is a lower bound (computing time only adds to it), so a cell whose
+    predicted time is at least twice the period must miss, whatever the machine. A cell
+    predicted at most half the period must not: that margin absorbs the computing time of a
+    shared, noisy machine. Cells in between are not asserted. Periods: ``max/2`` (the last
+    follower must miss each estimating tick, the leader never) and ``2*max`` (nothing may
+    miss). The tight period without delay shows that the misses come from the delay.
+    """
+    deployment, base_toml = realtime_deployment
+    comm_period = load_config(deployment.folder / "run.toml").comm_period
+    cells = [(a, t) for a in range(FOLLOWERS + 1) for t in range(RT_TICKS)]
+    need = {(a, t): settle_time(a, t, HOP_MS / 1000, RT_INIT_TICKS) for a, t in cells}
+    tight, loose = max(need.values()) / 2, 2 * max(need.values())
+    must_miss = {c for c in cells if need[c] >= 2 * tight}
+    must_settle = {c for c in cells if need[c] <= tight / 2}
+    assert must_miss and must_settle, "the prediction leaves nothing to check"
+    print(f"predicted settle times (ms): { {c: round(v * 1000) for c, v in need.items()} }; "
+          f"periods {tight * 1000:.0f} and {loose * 1000:.0f} ms")
+
+    def configure(period_s: float) -> None:
+        (deployment.folder / "run.toml").write_text(base_toml + REALTIME.format(
+            ticks=RT_TICKS, init=RT_INIT_TICKS, scale=period_s / comm_period))
+
+    runs: dict[str, Path] = {}
+    if links == "relay":
+        for name, period, hop in (("tight", tight, HOP_MS), ("loose", loose, HOP_MS)):
+            configure(period)
+            runs[name] = _loopback_run(deployment, _made(tmp_path / name), hop)
+    else:
+        problem = _netns_problem()
+        if problem:
+            pytest.skip(f"no run across network namespaces here: {problem}")
+        hosts = Hosts(SERVICES)
+        try:
+            hosts.up()
+            refused = hosts.impair(delay_ms=int(HOP_MS), loss_pct=0.0)
+            if refused:
+                pytest.skip(f"tc netem unavailable here (kernel without sch_netem?): {refused}")
+            for name, period in (("tight", tight), ("loose", loose)):
+                configure(period)
+                runs[name] = _namespaced_run(deployment, hosts, _made(tmp_path / name))
+        finally:
+            hosts.down()
+    configure(tight)  # the control: the relay adds no delay
+    runs["undelayed"] = _loopback_run(deployment, _made(tmp_path / "undelayed"), 0.0)
+    missed = {name: _check_realtime_record(out) for name, out in runs.items()}
+    print({name: sorted(c for c, m in cells_missed.items() if m)
+           for name, cells_missed in missed.items()})
+    assert all(missed["tight"][c] for c in must_miss), "predicted misses did not happen"
+    assert not any(missed["tight"][c] for c in must_settle), "predicted settles missed"
+    assert not any(missed["loose"].values()), "missed with twice the predicted time"
+    assert not any(missed["undelayed"].values()), "missed without the delay"
