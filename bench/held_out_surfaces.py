@@ -63,3 +63,59 @@ class SlantedFolds:
 
 
 slanted_folds = SlantedFolds()
+
+
+class Dunes:
+    """``F = 0.7 sin(x/5) sin(x/13 + y/7) + 0.03 y``: skewed dunes on a cross slope.
+
+    Defined after the own-motion candidates ``gp-motion`` and ``gp-ratio`` were added to
+    ``auto`` (which were screened on the surfaces above), and not used to choose anything.
+    """
+
+    default_leader_start = (-20.0, 0.0, 0.98, 0.2)
+
+    def height(self, p: ArrayLike) -> float:
+        x, y = np.asarray(p, dtype=float)
+        return 0.7 * math.sin(x / 5) * math.sin(x / 13 + y / 7) + 0.03 * y
+
+    def gradient(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        s1, c1 = math.sin(x / 5), math.cos(x / 5)
+        s2, c2 = math.sin(x / 13 + y / 7), math.cos(x / 13 + y / 7)
+        return np.array([0.7 * (c1 * s2 / 5 + s1 * c2 / 13), 0.1 * s1 * c2 + 0.03])
+
+    def hessian(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        s1, c1 = math.sin(x / 5), math.cos(x / 5)
+        s2, c2 = math.sin(x / 13 + y / 7), math.cos(x / 13 + y / 7)
+        fxx = 0.7 * (-s1 * s2 * (1 / 25 + 1 / 169) + 2 * c1 * c2 / 65)
+        fxy = 0.7 * (c1 * c2 / 35 - s1 * s2 / 91)
+        fyy = -0.7 * s1 * s2 / 49
+        return np.array([[fxx, fxy], [fxy, fyy]])
+
+
+dunes = Dunes()
+
+
+class BowlRidge:
+    """``F = 0.003 (x² + 2 y²) + 0.4 cos((x - y)/3)``: a shallow oval bowl with diagonal
+    ridges. Defined with :class:`Dunes`, under the same rule."""
+
+    default_leader_start = (-25.0, 4.0, 1.0, -0.1)
+
+    def height(self, p: ArrayLike) -> float:
+        x, y = np.asarray(p, dtype=float)
+        return 0.003 * (x * x + 2 * y * y) + 0.4 * math.cos((x - y) / 3)
+
+    def gradient(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        s = math.sin((x - y) / 3)
+        return np.array([0.006 * x - 0.4 * s / 3, 0.012 * y + 0.4 * s / 3])
+
+    def hessian(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        c = 0.4 * math.cos((x - y) / 3) / 9
+        return np.array([[0.006 - c, c], [c, 0.012 - c]])
+
+
+bowl_ridge = BowlRidge()

@@ -21,7 +21,8 @@ from typing import Any
 
 from protocol.keys import check_run_id
 
-ESTIMATORS = ("edmd", "stay", "persist", "auto", "cv", "kalman", "arx", "gp")
+ESTIMATORS = ("edmd", "stay", "persist", "auto", "cv", "kalman", "arx", "gp", "gp-motion",
+              "gp-ratio")
 # Your own estimator (SPEC §6): imported by the follower process only, never checked here
 # beyond its shape.
 PLUGIN_ESTIMATOR = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$")
@@ -196,6 +197,7 @@ class AgentSettings:
     kalman_accel: float
     noise_range: float
     noise_bearing: float
+    noise_move: float
     gps: bool
     mode: str
     time_scale: float

@@ -26,6 +26,8 @@ CONFIGS = {
     "kalman": dict(estimator="kalman"),
     "arx": dict(estimator="arx"),
     "gp": dict(estimator="gp"),
+    "gp-motion": dict(estimator="gp-motion", noise_move=0.02),
+    "gp-ratio": dict(estimator="gp-ratio"),
     "auto": dict(estimator="auto"),
 }
 
@@ -150,6 +152,69 @@ def test_classical_baselines_beat_persist_where_the_formation_turns():
     for estimator in ("cv", "kalman", "arx", "gp"):
         s = run_local(RunConfig(surface="elliptic", estimator=estimator))[0]["followers"]["1"]
         assert s["mean_required_range"] < 0.5 * s["mean_persist_range"], estimator
+
+
+@pytest.mark.parametrize("estimator", ["gp-motion", "gp-ratio"])
+def test_own_motion_exact_on_tilted_plane(estimator):
+    """On a plane the follower's displacement repeats the leader's: both predict it exactly
+    from the second estimated tick on (the first has one displacement to go by, and it is
+    already the right one)."""
+    cfg = RunConfig(surface="plane", leader_start=(0.0, 0.0, 1.0, 0.3), ticks=12,
+                    estimator=estimator)
+    s = run_local(cfg)[0]["followers"]["1"]
+    assert s["mean_required_range"] < 1e-9 < s["mean_stay_range"]
+    assert s["fallback_ticks"] == 0 and s["followed"] == {estimator: 1.0}
+
+
+def test_gp_motion_ignores_range_and_bearing_noise():
+    """gp-motion proposes from the follower's own snapped displacements only: the same run
+    with sensor noise gives the same estimates, while persist's get worse."""
+    base = RunConfig(surface="elliptic", ticks=20, seed=3, estimator="gp-motion")
+    clean = run_local(base)[1]
+    noisy = run_local(base.replace(**NOISY))[1]
+    estimates = lambda rows: [(r["est_x"], r["est_y"]) for r in rows  # noqa: E731
+                              if r["agent"] == 1 and r.get("est_x") is not None]
+    assert len(estimates(clean)) == 16 and estimates(noisy) == estimates(clean)
+    persist = [run_local(base.replace(estimator="persist", **noise))[0]["followers"]["1"]
+               for noise in ({}, NOISY)]
+    assert persist[1]["mean_required_range"] > 1.5 * persist[0]["mean_required_range"]
+
+
+def test_gp_ratio_carries_the_leaders_displacement_by_the_learnt_rotation():
+    """d = q u with q the complex ratio: a leader that turns is followed at once."""
+    from agents.policies import RatioGP
+    from protocol.messages import Sensing
+
+    def at(tick, x, y):
+        return Sensing(tick=tick, r=float(np.hypot(x, y)), theta=float(np.arctan2(y, x)))
+
+    policy = RatioGP()
+    q = complex(np.cos(0.3), np.sin(0.3)) * 0.9  # the follower's step: the leader's, turned
+    seen = np.array([3.0, 0.0])
+    for tick in range(6):
+        u = np.array([1.0, 0.0])
+        d = np.array([(q * complex(*u)).real, (q * complex(*u)).imag])
+        seen = seen + u - d if tick else seen
+        policy.record(at(tick, *seen), d if tick else np.zeros(2))
+    u = np.array([0.0, -2.0])  # now the leader steps south
+    proposal = policy.propose(at(6, *(seen + u)))
+    expected = q * complex(*u)
+    assert proposal.offset == pytest.approx([expected.real, expected.imag], abs=1e-9)
+
+
+def test_own_motion_restarts_after_a_lost_tick():
+    from agents.policies import MotionGP
+    from protocol.messages import Sensing
+
+    policy = MotionGP()
+    for tick in range(3):
+        policy.record(Sensing(tick=tick, r=3.0, theta=0.0), np.array([0.5, 0.0]))
+    assert policy.propose(Sensing(tick=3, r=3.5, theta=0.0)).offset == pytest.approx([0.5, 0])
+    policy.record(Sensing(tick=3, r=3.0, theta=0.0), None)  # lost
+    with pytest.raises(NotReady):
+        policy.propose(Sensing(tick=4, r=3.5, theta=0.0))
+    with pytest.raises(ValueError, match="move_variance"):
+        MotionGP(move_variance=-1.0)
 
 
 def test_auto_records_what_it_followed(tmp_path):

@@ -90,22 +90,68 @@ class ConstantVelocity(RelativeTracker):
         return 2.0 * self.history[-1] - self.history[-2]
 
 
-class GaussianProcess(RelativeTracker):
-    """``gp``: Gaussian-process extrapolation over time of the last ``samples`` positions.
+GP_LENGTHS = (1.0, 2.0, 3.0, 5.0, 8.0)  # length scales (ticks) the likelihood chooses from
+GP_JITTER = 1e-8
 
-    Each coordinate is modelled, over the tick index, as a linear trend plus a squared-
-    exponential residual with length scale ``ell`` ticks and a measurement-noise variance
-    ``noise`` (length²; from the run's declared sensor noise) plus a relative jitter of 1e-8.
-    The noise enters relative to the samples' variance (standing in for the unknown signal
-    variance); given that ratio the trend is fitted by generalised least squares (universal
-    kriging), the signal variance takes its closed-form maximum-likelihood value, and ``ell``
-    the grid value of highest (concentrated) likelihood. Deterministic: no optimiser, no
-    random restarts.
+
+def gp_forecast(samples: np.ndarray, noise: float = 0.0) -> np.ndarray:
+    """The next value of a series sampled once per tick, by Gaussian-process extrapolation.
+
+    ``samples`` is (n, m), oldest first, n >= 2; each of the m coordinates is modelled over the
+    tick index as a linear trend plus a squared-exponential residual with length scale ``ell``
+    ticks and a measurement-noise variance ``noise`` (units of the samples, squared) plus a
+    relative jitter of 1e-8. The noise enters relative to the samples' variance (standing in
+    for the unknown signal variance); given that ratio the trend is fitted by generalised least
+    squares (universal kriging), the signal variance takes its closed-form maximum-likelihood
+    value, and ``ell`` the value in :data:`GP_LENGTHS` of highest (concentrated) likelihood.
+    Deterministic: no optimiser, no random restarts. Two samples give the linear trend alone.
+    Returns (m,).
+
+    Examples
+    --------
+    >>> gp_forecast(np.array([[0.0], [1.0], [2.0], [3.0]])).round(6)  # a straight line
+    array([4.])
     """
+    y = np.asarray(samples, dtype=float)
+    if y.ndim != 2 or y.shape[0] < 2:
+        raise ValueError(f"samples must be (n >= 2, m), got shape {y.shape}")
+    n = y.shape[0]
+    if n == 2:  # too few for a residual: the trend alone
+        return 2.0 * y[-1] - y[-2]
+    t = np.arange(n, dtype=float)
+    basis = np.c_[np.ones(n), t]
+    return np.array([_gp_coordinate(t, basis, y[:, i], noise) for i in range(y.shape[1])])
+
+
+def _gp_coordinate(t: np.ndarray, basis: np.ndarray, y: np.ndarray, noise: float) -> float:
+    scale = float(np.var(y)) + 1e-300
+    best = None
+    for ell in GP_LENGTHS:
+        k = np.exp(-0.5 * ((t[:, None] - t[None, :]) / ell) ** 2)
+        # Signal variance s2 and noise variance enter as C = k + (noise / s2 + jitter) I;
+        # s2 is unknown, so the samples' variance stands in for it here.
+        cov = k + (noise / scale + GP_JITTER) * np.eye(t.size)
+        chol = np.linalg.cholesky(cov)
+        solve = lambda b: np.linalg.solve(chol.T, np.linalg.solve(chol, b))  # noqa: E731
+        ci_h, ci_y = solve(basis), solve(y)
+        beta = np.linalg.lstsq(basis.T @ ci_h, basis.T @ ci_y, rcond=None)[0]
+        resid = y - basis @ beta
+        s2 = max(float(resid @ solve(resid)) / t.size, 1e-300)
+        nll = t.size * math.log(s2) + 2.0 * float(np.sum(np.log(np.diag(chol))))
+        if best is None or nll < best[0]:
+            t_new = float(t.size)
+            k_new = np.exp(-0.5 * ((t - t_new) / ell) ** 2)
+            pred = float(np.array([1.0, t_new]) @ beta + k_new @ solve(resid))
+            best = (nll, pred)
+    return best[1]
+
+
+class GaussianProcess(RelativeTracker):
+    """``gp``: Gaussian-process extrapolation over time of the last ``samples`` relative
+    positions (:func:`gp_forecast`), with the measurement-noise variance ``noise`` (length²;
+    from the run's declared sensor noise)."""
 
     name = "gp"
-    LENGTHS = (1.0, 2.0, 3.0, 5.0, 8.0)
-    JITTER = 1e-8
 
     def __init__(self, samples: int = 8, noise: float = 0.0) -> None:
         if samples < 3:
@@ -116,37 +162,9 @@ class GaussianProcess(RelativeTracker):
         self.noise = noise
 
     def forecast(self) -> np.ndarray:
-        n = len(self.history)
-        if n < 2:
+        if len(self.history) < 2:
             raise NotFitted("gp needs two relative positions")
-        y = np.array(self.history)
-        if n == 2:  # too few for a residual: the trend alone
-            return 2.0 * y[-1] - y[-2]
-        t = np.arange(n, dtype=float)
-        basis = np.c_[np.ones(n), t]
-        return np.array([self._coordinate(t, basis, y[:, i]) for i in range(2)])
-
-    def _coordinate(self, t: np.ndarray, basis: np.ndarray, y: np.ndarray) -> float:
-        scale = float(np.var(y)) + 1e-300
-        best = None
-        for ell in self.LENGTHS:
-            k = np.exp(-0.5 * ((t[:, None] - t[None, :]) / ell) ** 2)
-            # Signal variance s2 and noise variance enter as C = k + (noise / s2 + jitter) I;
-            # s2 is unknown, so the samples' variance stands in for it here.
-            cov = k + (self.noise / scale + self.JITTER) * np.eye(t.size)
-            chol = np.linalg.cholesky(cov)
-            solve = lambda b: np.linalg.solve(chol.T, np.linalg.solve(chol, b))  # noqa: E731
-            ci_h, ci_y = solve(basis), solve(y)
-            beta = np.linalg.lstsq(basis.T @ ci_h, basis.T @ ci_y, rcond=None)[0]
-            resid = y - basis @ beta
-            s2 = max(float(resid @ solve(resid)) / t.size, 1e-300)
-            nll = t.size * math.log(s2) + 2.0 * float(np.sum(np.log(np.diag(chol))))
-            if best is None or nll < best[0]:
-                t_new = float(t.size)
-                k_new = np.exp(-0.5 * ((t - t_new) / ell) ** 2)
-                pred = float(np.array([1.0, t_new]) @ beta + k_new @ solve(resid))
-                best = (nll, pred)
-        return best[1]
+        return gp_forecast(np.array(self.history), self.noise)
 
 
 class Kalman(RelativeTracker):
