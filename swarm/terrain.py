@@ -33,7 +33,8 @@ from swarm.experiment import (GridRun, RunOutcome, draw_jobs, is_nan, read_table
                               write_run_index, write_table)
 from swarm.grid import estimator_options
 
-TERRAIN_ESTIMATORS = ("stay", "persist", "edmd-b", "cv", "kalman", "arx", "gp", "auto")
+TERRAIN_ESTIMATORS = ("stay", "persist", "edmd-b", "cv", "kalman", "arx", "gp", "gp-motion",
+                      "gp-ratio", "auto")
 """Estimators the terrain study compares (add classical baselines here by name)."""
 COMM_PERIOD_COLUMNS = ("start", "comm_period", "estimator", "mean_required_range", "rmse", "run")
 POSITION_COLUMNS = ("start", "comm_period", "follower", "estimator", "mean_required_range",
