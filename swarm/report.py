@@ -91,8 +91,9 @@ def _sensing_range_text(rows: list[dict]) -> str:
     text += f" ({names(beats)})" if beats else ""
     text += (f" and not lower in {names(loses)}: the paper's EDMD does not consistently beat "
              f"that trivial predictor." if loses else ".")
-    return text + (f" auto (persist, EDMD variants, leader-input and classical trackers and "
-                   f"their blend; follows the lowest recent one-step error) is lowest in {len(auto_best)} of {len(cases)} cases, "
+    return text + (f" auto (persist, EDMD variants, leader-input, classical and own-motion "
+                   f"trackers and their blend; follows the lowest recent one-step error) is "
+                   f"lowest in {len(auto_best)} of {len(cases)} cases, "
                    f"{_times(min(auto_gain))} to {_times(max(auto_gain))} below persist.")
 
 
