@@ -9,7 +9,7 @@ from pathlib import Path
 from protocol.cli import (
     EXPECTED_FAILURES, add_log_level_flag, check_out_dir, describe, setup_logging,
 )
-from protocol.config import RunConfig, config_from_dict, load_config
+from protocol.config import ESTIMATORS, RunConfig, config_from_dict, load_config
 from protocol.session import add_credential_flags
 
 EXIT_NOTHING_ESTIMATED = 3
@@ -26,8 +26,8 @@ RUN_FLAGS: dict[str, tuple[str, dict]] = {
     "--spacing": ("spacing", {"type": float, "help": "rod length d (Riemannian)"}),
     "--ticks": ("ticks", {"type": int}),
     "--init-ticks": ("init_ticks", {"type": int}),
-    "--estimator": ("estimator", {"help": "edmd, stay, persist, auto, cv, kalman, arx, gp, or "
-                                          "your own package.module:Name (SPEC §6)"}),
+    "--estimator": ("estimator", {"help": ", ".join(ESTIMATORS) + ", or your own "
+                                          "package.module:Name (SPEC §6)"}),
     "--dictionary": ("dictionary", {"choices": tuple("abcdefg")}),
     "--velocity": ("velocity", {"choices": ("oracle", "lagged", "estimated")}),
     "--online": ("online", {"action": "store_const", "const": True}),
