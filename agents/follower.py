@@ -18,7 +18,7 @@ import zenoh
 from agents.checkpoint import Entry, StateLog, replay
 from agents.cli import parser, run_cli
 from agents.link import QUERY_TIMEOUT_S, AgentAbort, AgentLink, RunFinished, TickMissed
-from agents.policies import NotReady, Policy, make_policy
+from agents.policies import NotReady, Policy, make_policy, reading_variance, relative
 from protocol.config import AgentSettings
 from protocol.messages import Move, Observation, Sensing, Snap
 
@@ -35,6 +35,27 @@ class TickOutcome:
     target: np.ndarray | None
 
 
+def displacement(offset: np.ndarray, pre: Sensing, moved: Sensing,
+                 settings: AgentSettings) -> np.ndarray:
+    """Where the follower's ideal position was relative to where it stood before moving (the
+    ``target`` its policy learns from): the offset it commanded plus the rod end it sensed after
+    the move, corrected for the move's actuation noise.
+
+    The move landed ``eta`` off the command (declared variance ``noise_move**2`` per
+    coordinate), which would enter the target whole. The two readings of the leader around the
+    move see it: ``relative(pre) - relative(moved) - offset = eta +`` their sensor noise
+    (variance twice :func:`agents.policies.reading_variance`), so the estimate is added with
+    the minimum-variance weight ``w = s_m / (s_m + 2 s_r)``: all of it without sensor noise,
+    none without actuation noise (the target is then ``offset + rod``, exactly).
+    """
+    target = offset + np.asarray(moved.rod)
+    move_variance = settings.noise_move**2
+    if move_variance == 0.0:
+        return target
+    weight = move_variance / (move_variance + 2.0 * reading_variance(settings))
+    return target + weight * (relative(pre) - relative(moved) - offset)
+
+
 def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick: int) -> TickOutcome:
     """Run one tick of the follower."""
     pre = link.sense(tick, "pre")
@@ -45,12 +66,12 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
     except NotReady:
         offset, prediction, followed, fallback = np.zeros(2), None, "", False
     if tick < settings.init_ticks:
-        offset, rod = np.zeros(2), pre.rod
+        offset, moved = np.zeros(2), pre
     else:
-        rod = link.act(Move(tick=tick, offset=(float(offset[0]), float(offset[1])))).rod
+        moved = link.act(Move(tick=tick, offset=(float(offset[0]), float(offset[1])))).sensing
     snapped = link.act(Snap(tick=tick))
     lost, settled = not snapped.moved, snapped.sensing
-    target = None if lost or rod is None else offset + np.asarray(rod)
+    target = None if lost or moved.rod is None else displacement(offset, pre, moved, settings)
     measurement = policy.record(settled, target)
     observation = Observation(tick=tick, estimator=policy.name, measurement=measurement,
                               prediction=prediction, lost=lost, followed=followed,

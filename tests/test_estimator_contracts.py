@@ -202,6 +202,57 @@ def test_gp_ratio_carries_the_leaders_displacement_by_the_learnt_rotation():
     assert proposal.offset == pytest.approx([expected.real, expected.imag], abs=1e-9)
 
 
+class TargetRecorder(Policy):
+    """persist that keeps every offset it proposes and every ``target`` it is given."""
+
+    def __init__(self, settings: AgentSettings) -> None:
+        self.policy, self.name = make_policy(settings), "persist"
+        self.offsets, self.targets = [], []
+
+    def propose(self, pre):
+        proposal = self.policy.propose(pre)
+        self.offsets.append(proposal.offset)
+        return proposal
+
+    def record(self, settled, target):
+        self.targets.append(None if target is None else np.array(target))
+        return self.policy.record(settled, target)
+
+
+@pytest.mark.parametrize("noise", [{}, NOISY])
+def test_target_corrects_for_actuation_noise(noise):
+    """The target a policy learns from is where the ideal position was relative to where the
+    follower stood: the commanded offset plus the rod end seen after the move would miss by the
+    move's actuation noise; the readings around the move estimate that noise. Without sensor
+    noise the estimate is exact; with it, the target is still much closer than offset + rod."""
+    recorders = []
+
+    def factory(settings):
+        recorders.append(TargetRecorder(settings))
+        return recorders[-1]
+
+    ticks, init = 24, 4
+    cfg = RunConfig(surface="wavy", estimator="persist", ticks=ticks, seed=5, noise_move=0.1,
+                    **noise)
+    _, rows = run_local(cfg, policy_factory=factory)
+    f1 = {r["tick"]: r for r in rows if r["agent"] == 1}
+    rec = recorders[0]
+    corrected, uncorrected = [], []
+    for j in range(init, ticks):
+        truth = np.array([f1[j]["ideal_x"] - f1[j - 1]["pos_x"], f1[j]["ideal_y"] - f1[j - 1]["pos_y"]])
+        rod = np.array([f1[j]["ideal_x"] - f1[j]["est_x"], f1[j]["ideal_y"] - f1[j]["est_y"]])
+        offset = rec.offsets[j - 1]  # propose is called from tick 1 (tick 0 has no history)
+        uncorrected.append(float(np.hypot(*(offset + rod - truth))))
+        corrected.append(float(np.hypot(*(rec.targets[j] - truth))))
+    assert min(uncorrected) > 1e-3  # the actuation noise itself
+    if not noise:
+        assert max(corrected) < 1e-9
+    else:
+        # expected about 0.5 here: w = 0.86 keeps 14% of the move noise and adds 86% of the
+        # difference of two readings (range 0.02, bearing 0.01 at 3.57: 0.02 and 0.036)
+        assert np.mean(corrected) < 0.75 * np.mean(uncorrected)
+
+
 def test_own_motion_restarts_after_a_lost_tick():
     from agents.policies import MotionGP
     from protocol.messages import Sensing

@@ -25,7 +25,8 @@ from protocol.config import AgentSettings
 __all__ = ["ARX", "Auto", "ConstantVelocity", "EDMDPolicy", "FallbackToPersist",
            "GaussianProcess", "Kalman", "MotionGP", "NotReady", "Persist", "Policy", "Proposal", "RatioGP", "Stay",
            "Unwrapper", "auto_candidates", "classical", "load_estimator", "make_dictionary",
-           "make_policy", "paper_edmd", "polar", "reconstructed_pre", "relative"]
+           "make_policy", "paper_edmd", "polar", "reading_variance", "reconstructed_pre",
+           "relative"]
 
 
 def reading_variance(settings: AgentSettings) -> float:
