@@ -28,7 +28,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from protocol.config import RunConfig  # noqa: E402
+from protocol.config import CLASSICAL, OWN_MOTION, RunConfig  # noqa: E402
 from swarm.local import run_local  # noqa: E402
 
 PAPER = ("elliptic", "hyperbolic", "wavy")
@@ -36,8 +36,6 @@ HELD_OUT = ("gaussian-hill", "ripple", "bench.held_out_surfaces:crossed_waves",
             "bench.held_out_surfaces:slanted_folds", "bench.held_out_surfaces:dunes",
             "bench.held_out_surfaces:bowl_ridge")
 UNSEEN = HELD_OUT[-2:]  # defined after auto's last change
-CLASSICAL = ("cv", "kalman", "arx", "gp")
-OWN_MOTION = ("gp-motion", "gp-ratio")
 ESTIMATORS = {"stay": {"estimator": "stay"}, "persist": {"estimator": "persist"},
               "edmd-b": {"estimator": "edmd", "dictionary": "b"},
               **{name: {"estimator": name} for name in CLASSICAL + OWN_MOTION},

@@ -4,10 +4,15 @@ check and the one line that describes a failure (never a traceback, never a Rust
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import re
+import signal
+import sys
 import tempfile
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import zenoh
@@ -21,6 +26,47 @@ EXPECTED_FAILURES = (ValueError, RuntimeError, OSError, zenoh.ZError)
 # Zenoh's errors end with the Rust source location they were raised at.
 _RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
 _ENDPOINT_WRAPPER = re.compile(r"\bSingle\(([^()]*)\)")
+
+
+INTERRUPT_GRACE_S = 8.0
+"""Seconds a process may spend cleaning up after Ctrl-C before it exits regardless."""
+
+
+@contextlib.contextmanager
+def bounded_interrupt(grace: float = INTERRUPT_GRACE_S) -> Iterator[None]:
+    """Within the block, Ctrl-C raises ``KeyboardInterrupt`` as usual, so every cleanup runs
+    (the partial summary, agents stopped, sessions closed), and the process exits with status
+    130 at the latest ``grace`` seconds later, whatever a cleanup is still waiting on: a Zenoh
+    teardown (undeclaring, closing a session) can wedge, and an operator's Ctrl-C must still
+    end the run. Nothing written is lost by that exit: results are appended and checkpointed
+    tick by tick. A second Ctrl-C acts at once. Outside the main thread this does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    deadline: list[threading.Timer] = []
+
+    def interrupted(signum, frame) -> None:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        timer = threading.Timer(grace, _exit_interrupted, args=(grace,))
+        timer.daemon = True
+        timer.start()
+        deadline.append(timer)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, interrupted)
+    try:
+        yield
+    finally:
+        for timer in deadline:  # the cleanup finished in time
+            timer.cancel()
+        signal.signal(signal.SIGINT, previous)
+
+
+def _exit_interrupted(grace: float) -> None:
+    sys.stderr.write(f"interrupted: cleanup still running after {grace:g} s; exiting\n")
+    sys.stderr.flush()
+    os._exit(130)
 
 
 def add_log_level_flag(parser: argparse.ArgumentParser) -> None:

@@ -21,8 +21,9 @@ from typing import Any
 
 from protocol.keys import check_run_id
 
-ESTIMATORS = ("edmd", "stay", "persist", "auto", "cv", "kalman", "arx", "gp", "gp-motion",
-              "gp-ratio")
+CLASSICAL = ("cv", "kalman", "arx", "gp")  # the classical tracking baselines (SPEC §6)
+OWN_MOTION = ("gp-motion", "gp-ratio")  # extrapolations of the follower's own displacement
+ESTIMATORS = ("edmd", "stay", "persist", "auto", *CLASSICAL, *OWN_MOTION)
 # Your own estimator (SPEC §6): imported by the follower process only, never checked here
 # beyond its shape.
 PLUGIN_ESTIMATOR = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$")

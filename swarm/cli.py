@@ -7,7 +7,8 @@ import sys
 from pathlib import Path
 
 from protocol.cli import (
-    EXPECTED_FAILURES, add_log_level_flag, check_out_dir, describe, setup_logging,
+    EXPECTED_FAILURES, add_log_level_flag, bounded_interrupt, check_out_dir, describe,
+    setup_logging,
 )
 from protocol.config import ESTIMATORS, RunConfig, config_from_dict, load_config
 from protocol.session import add_credential_flags
@@ -582,4 +583,5 @@ def add_live_port(parser: argparse.ArgumentParser) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return args.func(args)
+    with bounded_interrupt():
+        return args.func(args)

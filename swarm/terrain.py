@@ -28,13 +28,12 @@ from typing import Any
 
 import numpy as np
 
-from protocol.config import RunConfig, write_atomic
+from protocol.config import CLASSICAL, OWN_MOTION, RunConfig, write_atomic
 from swarm.experiment import (GridRun, RunOutcome, draw_jobs, is_nan, read_table, run_grid,
                               write_run_index, write_table)
 from swarm.grid import estimator_options
 
-TERRAIN_ESTIMATORS = ("stay", "persist", "edmd-b", "cv", "kalman", "arx", "gp", "gp-motion",
-                      "gp-ratio", "auto")
+TERRAIN_ESTIMATORS = ("stay", "persist", "edmd-b", *CLASSICAL, *OWN_MOTION, "auto")
 """Estimators the terrain study compares (add classical baselines here by name)."""
 COMM_PERIOD_COLUMNS = ("start", "comm_period", "estimator", "mean_required_range", "rmse", "run")
 POSITION_COLUMNS = ("start", "comm_period", "follower", "estimator", "mean_required_range",

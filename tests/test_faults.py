@@ -182,3 +182,50 @@ def _alive(pid: int) -> bool:
         return False
     stat = Path(f"/proc/{pid}/stat")
     return not (stat.exists() and stat.read_text().split()[2] == "Z")
+
+
+WEDGED_CLEANUP = """
+import sys, threading
+from protocol.cli import bounded_interrupt
+with bounded_interrupt(grace=float(sys.argv[1])):
+    try:
+        print("ready", flush=True)
+        threading.Event().wait(60)
+    except KeyboardInterrupt:
+        print("cleaning up", flush=True)
+        if sys.argv[2] == "wedged":  # a teardown that never returns
+            threading.Event().wait(60)
+sys.exit(7)  # cleanup finished in time: the program's own status
+"""
+
+
+@pytest.mark.skipif(os.name != "posix", reason="signals")
+@pytest.mark.parametrize("cleanup", ["wedged", "prompt"])
+def test_ctrl_c_ends_a_process_whose_cleanup_wedges(cleanup):
+    """After Ctrl-C the cleanup runs; if it is still running after the grace period the process
+    exits with 130 anyway (a Zenoh teardown can wedge); if it finishes, the program decides."""
+    proc = subprocess.Popen([sys.executable, "-c", WEDGED_CLEANUP, "1.0", cleanup], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(timeout=20)
+        out, err = proc.communicate(timeout=5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=5)
+    assert "cleaning up" in out
+    if cleanup == "wedged":
+        assert code == 130 and "cleanup still running after 1 s" in err
+    else:
+        assert code == 7 and "still running" not in err
+
+
+def test_bounded_interrupt_restores_the_signal_handler():
+    from protocol.cli import bounded_interrupt
+
+    before = signal.getsignal(signal.SIGINT)
+    with bounded_interrupt(grace=1.0):
+        assert signal.getsignal(signal.SIGINT) is not before
+    assert signal.getsignal(signal.SIGINT) is before

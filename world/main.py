@@ -9,7 +9,8 @@ from pathlib import Path
 import zenoh
 
 from protocol.cli import (
-    EXPECTED_FAILURES, add_log_level_flag, check_out_dir, describe, setup_logging,
+    EXPECTED_FAILURES, add_log_level_flag, bounded_interrupt, check_out_dir, describe,
+    setup_logging,
 )
 from protocol.config import RunConfig, dump_config, load_config
 from protocol.session import add_credential_flags, credentials, tls_options, zenoh_config
@@ -79,6 +80,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="replace the results already in --out (default: refuse)")
     args = p.parse_args(argv)
     setup_logging(args.log_level)
+    with bounded_interrupt():
+        return _serve(args)
+
+
+def _serve(args: argparse.Namespace) -> int:
+    """The world process's run, from parsed arguments; its exit status."""
     out = None
     try:
         config = load_config(Path(args.resume) / "config.toml" if args.resume else args.config)

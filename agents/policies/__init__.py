@@ -20,7 +20,7 @@ from agents.policies.dictionaries import (EDMDPolicy, RelativeCartesian, Relativ
                                          make_dictionary, paper_edmd)
 from agents.policies.motion import MotionGP, RatioGP
 from agents.policies.plugin import load_estimator
-from protocol.config import AgentSettings
+from protocol.config import CLASSICAL, OWN_MOTION, AgentSettings
 
 __all__ = ["ARX", "Auto", "ConstantVelocity", "EDMDPolicy", "FallbackToPersist",
            "GaussianProcess", "Kalman", "MotionGP", "NotReady", "Persist", "Policy", "Proposal", "RatioGP", "Stay",
@@ -83,8 +83,8 @@ def auto_candidates(settings: AgentSettings) -> list[Policy]:
         ARX(order=2, window=None, affine=True, name="arx-o2"),
         ARX(order=1, window=None, affine=True, name="arx-o1"),
         EDMDPolicy(RelativeCartesian(), delays=1, affine=True, window=8),
-        *(classical(name, settings) for name in ("cv", "kalman", "arx", "gp")),
-        *(own_motion(name, settings) for name in ("gp-motion", "gp-ratio")),
+        *(classical(name, settings) for name in CLASSICAL),
+        *(own_motion(name, settings) for name in OWN_MOTION),
     ]
 
 
@@ -98,9 +98,9 @@ def make_policy(settings: AgentSettings) -> Policy:
         policy = Persist()
     elif name == "auto":
         policy = Auto(auto_candidates(settings))
-    elif name in ("cv", "kalman", "arx", "gp"):
+    elif name in CLASSICAL:
         policy = classical(name, settings)
-    elif name in ("gp-motion", "gp-ratio"):
+    elif name in OWN_MOTION:
         policy = own_motion(name, settings)
     elif name == "edmd":
         policy = paper_edmd(
