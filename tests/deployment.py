@@ -22,7 +22,7 @@ from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.cli import main as swarm_main
 
 ROUTER_IN_COMPOSE = "tls/zenoh:7447"
-WAIT_S = 5.0  # upper bound of every wait for something that must happen
+WAIT_S = 15.0  # upper bound of every wait for something that must happen (a loaded machine)
 ABSENT_S = 0.5  # how long a message that must not arrive is given to arrive anyway
 POLL_S = 0.05
 ROUTER_PATH_KEYS = ("transport/auth/usrpwd/dictionary_file",
