@@ -18,7 +18,7 @@ from protocol.messages import (
     ActResult, ActSensing, Done, Drive, ErrorReply, Joined, JoinRequest, Message, Missed, Observation,
     Move, ProtocolError, Rod, Sensing, SenseRequest, Snap, TickStart, decode, encode,
 )
-from protocol.session import token_live
+from protocol.session import token_live, undeclare_all
 
 log = logging.getLogger(__name__)
 
@@ -101,12 +101,7 @@ class AgentLink:
 
     def close(self) -> None:
         """Undeclare everything (the session itself stays open)."""
-        for handle in reversed(self._declared):
-            try:
-                handle.undeclare()
-            except zenoh.ZError:  # already gone with a closing session
-                pass
-        self._declared.clear()
+        undeclare_all(self._declared)
 
     # --- callbacks -----------------------------------------------------------------------------
 

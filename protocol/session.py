@@ -19,6 +19,17 @@ MAX_MESSAGE_SIZE_KEY = "transport/link/rx/max_message_size"
 TLS_KEY = "transport/link/tls"
 
 
+def undeclare_all(handles: list) -> None:
+    """Undeclare ``handles`` (subscribers, queryables, publishers, tokens), newest first, and
+    empty the list; one already gone with a closing session is skipped."""
+    for handle in reversed(handles):
+        try:
+            handle.undeclare()
+        except zenoh.ZError:
+            pass
+    handles.clear()
+
+
 def scouting_settings(multicast: bool = False) -> dict:
     """The ``scouting`` section. Without multicast a process finds the others only through its
     explicit endpoints, so it has nobody to scout for: ``delay`` 0 stops a router or peer from

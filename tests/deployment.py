@@ -194,11 +194,6 @@ def delivered(send: Callable[[], None], inbox: Inbox, item: tuple[str, bytes]) -
     return until(attempt)
 
 
-def undeclare(handles: list) -> None:
-    for handle in reversed(handles):
-        handle.undeclare()
-
-
 def replies(session: zenoh.Session, key: str, timeout: float = 1.0) -> list[tuple[bool, bytes]]:
     """Every reply to a query on ``key`` from every queryable (no consolidation): (ok, payload)."""
     answers = session.get(key, target=zenoh.QueryTarget.ALL,

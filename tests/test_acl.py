@@ -18,12 +18,12 @@ import zenoh
 
 from protocol import keys
 from protocol.config import RunConfig, load_config
-from protocol.session import free_tcp_endpoint, zenoh_config
+from protocol.session import free_tcp_endpoint, undeclare_all, zenoh_config
 from swarm.deploy import agent_user
 from swarm.launch import RunCredentials, embedded_router_config
 from tests.deployment import (
     ABSENT_S, WAIT_S, Deployment, Inbox, check_complete_run, delivered, free_ports, generate,
-    replies, run_processes, undeclare, until,
+    replies, run_processes, until,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -65,7 +65,7 @@ def test_follower_queries_only_its_own_sensing_and_motion(deployment, router):
             assert replies(follower, keys.act(RUN, other), ABSENT_S) == []
         assert replies(follower, keys.sense(RUN), ABSENT_S) == []  # the wildcard
         assert sorted(set(asked)) == [keys.act(RUN, 3), keys.sense(RUN, 3)]
-        undeclare(handles)
+        undeclare_all(handles)
 
 
 def test_follower_cannot_publish_another_agents_samples_or_world_keys(deployment, router):
@@ -100,7 +100,7 @@ def test_follower_cannot_publish_another_agents_samples_or_world_keys(deployment
         assert all(payload != b"forged" for _, payload in seen.items + world_inbox.items)
         assert world_inbox.keys() == {own, rod_4}
         assert {payload for _, payload in behind_inbox.items} == {b"real"}
-        undeclare(handles)
+        undeclare_all(handles)
 
 
 def test_agents_never_receive_world_view(deployment, router):
@@ -125,7 +125,7 @@ def test_agents_never_receive_world_view(deployment, router):
             assert not any(inbox.wait_for((view, b"truth"), ABSENT_S) for inbox in inboxes)
             assert all(view not in inbox.keys() for inbox in inboxes)
         finally:
-            undeclare(handles)
+            undeclare_all(handles)
             for agent in agents:
                 agent.close()
 
@@ -150,7 +150,7 @@ def test_follower_receives_only_its_predecessors_rod(deployment, router):
         leader_of_3.put(keys.obs(RUN, 2), b"obs")
         assert not foreign.wait_for((rod_2, b"rod"), ABSENT_S)
         assert foreign.items == []
-        undeclare(handles)
+        undeclare_all(handles)
 
 
 def test_agent_cannot_serve_world_queries_or_hold_another_token(deployment, router):
@@ -173,7 +173,7 @@ def test_agent_cannot_serve_world_queries_or_hold_another_token(deployment, rout
         assert tokens.keys() == {keys.alive(RUN, 3)}
         assert until(lambda: (True, b"world") in replies(victim, sense_4))
         assert replies(victim, sense_4) == [(True, b"world")]
-        undeclare(handles)
+        undeclare_all(handles)
 
 
 @pytest.mark.parametrize("agent", [0, 1, 5])
@@ -191,7 +191,7 @@ def test_agent_sees_the_world_and_its_own_token(deployment, router, agent):
         with deployment.client(router, user) as twin:
             assert until(lambda: [str(r.ok.key_expr) for r in twin.liveliness().get(
                 own, timeout=1.0) if r.ok is not None] == [own])
-        undeclare(handles)
+        undeclare_all(handles)
 
 
 def test_a_second_world_finds_the_live_one(deployment, router):
@@ -243,7 +243,7 @@ def test_observer_subscribes_but_cannot_query_publish_or_declare(deployment, rou
         assert not world_tokens.wait_for((keys.alive(RUN, 0), b""), ABSENT_S)
         assert until(lambda: replies(leader, keys.sense(RUN, 0)) == [(True, b"world")])
         assert replies(leader, keys.sense(RUN, 0)) == [(True, b"world")]
-        undeclare(handles)
+        undeclare_all(handles)
 
 
 def test_config_of_one_run_grants_nothing_in_another(deployment, router):
@@ -272,7 +272,7 @@ def test_config_of_one_run_grants_nothing_in_another(deployment, router):
         assert rods.items == []
         assert not any(key.startswith(f"swarm/{OTHER_RUN}/") for key in seen.keys())
         assert set(asked) == {keys.sense(RUN, 1)}
-        undeclare(handles)
+        undeclare_all(handles)
 
 
 def test_wrong_password_is_refused(deployment, router):
@@ -295,7 +295,7 @@ def test_password_with_another_users_certificate_grants_nothing(deployment, rout
         for key in (keys.sense(RUN, 0), keys.sense(RUN, 1)):
             assert replies(mixed, key, ABSENT_S) == []
         assert set(asked) == {keys.sense(RUN, 0)}
-        undeclare(handles)
+        undeclare_all(handles)
 
 
 def test_clients_without_tls_or_without_the_deployments_certificate_are_refused(
@@ -389,4 +389,4 @@ def test_swarm_run_router_admits_only_the_runs_users_under_the_same_rules(tmp_pa
             assert until(lambda: replies(follower, keys.sense(config.run_id, 1))
                          == [(True, b"world")])
             assert replies(follower, keys.sense(config.run_id, 2), ABSENT_S) == []
-            undeclare(handles)
+            undeclare_all(handles)

@@ -29,7 +29,7 @@ import zenoh
 from protocol import keys
 from protocol.config import RunConfig, load_config
 from protocol.messages import ProtocolError
-from protocol.session import free_tcp_endpoint, zenoh_config
+from protocol.session import free_tcp_endpoint, undeclare_all, zenoh_config
 from protocol.view import (
     MAP_CELLS, MAX_VIEW_BYTES, ROWS_PER_CHUNK, TICK_COLUMNS, decode_map, decode_tick, encode_map,
     encode_tick, tick_payloads,
@@ -286,8 +286,7 @@ def test_observer_can_subscribe_but_neither_query_the_world_nor_publish(tmp_path
         agent.put(rod, b"after")  # sent later, so it would arrive after the forged ones
         assert heard.wait_for((rod, b"after"), WAIT_S)
         assert not [item for item in heard.items if item[1] == b"forged"]
-        for handle in reversed(handles):
-            handle.undeclare()
+        undeclare_all(handles)
 
 
 # --- runs with the live view ---------------------------------------------------------------------

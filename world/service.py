@@ -20,7 +20,7 @@ from protocol.messages import (
     ACTIONS, Done, Joined, JoinRequest, Missed, Observation, ProtocolError, Rod,
     SenseRequest, TickStart, decode, encode, error_payload, safe_text,
 )
-from protocol.session import token_live
+from protocol.session import token_live, undeclare_all
 from world import checkpoint
 from world.results import RunRecorder
 from world.sim import RequestError, RunEnded, TickMissed, WorldSim
@@ -124,12 +124,7 @@ class WorldService:
         log.warning("world: resuming run %s after tick %d", self.config.run_id, self.sim.tick)
 
     def close(self) -> None:
-        for handle in reversed(self._declared):
-            try:
-                handle.undeclare()
-            except zenoh.ZError:
-                pass
-        self._declared.clear()
+        undeclare_all(self._declared)
         self.recorder.close()
 
     @property

@@ -11,6 +11,7 @@ import zenoh
 
 from protocol import keys
 from protocol.messages import Done, Observation, ProtocolError, decode
+from protocol.session import undeclare_all
 from protocol.view import decode_map, decode_tick
 from swarm.live.store import RunStore
 
@@ -66,9 +67,4 @@ class ZenohFeed:
             self.store.world_gone()
 
     def close(self) -> None:
-        for handle in reversed(self._handles):
-            try:
-                handle.undeclare()
-            except zenoh.ZError:
-                pass
-        self._handles.clear()
+        undeclare_all(self._handles)
