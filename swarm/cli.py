@@ -293,8 +293,10 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     ``experiment terrain --dem PATH``: the terrain study (:mod:`swarm.terrain`)."""
     from swarm.experiment import FULL, QUICK, run_paper_experiment
 
-    if args.workers is not None and args.workers < 1:
-        print(f"error: --workers must be at least 1, got {args.workers}", file=sys.stderr)
+    try:
+        _check_workers(args.workers)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     if args.name == "terrain":
         return cmd_terrain(args)
@@ -302,15 +304,11 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         print("error: --dem applies only to `experiment terrain`", file=sys.stderr)
         return 2
     args.out = args.out or "runs/experiment-paper"
-    try:
-        result = run_paper_experiment(args.out, QUICK if args.quick else FULL,
-                                      workers=args.workers, scheduler=args.scheduler)
-    except RuntimeError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"interrupted: finished runs are in {Path(args.out) / 'runs'}", file=sys.stderr)
-        return 130
+    result, status = _run_grid(lambda: run_paper_experiment(
+        args.out, QUICK if args.quick else FULL, workers=args.workers, scheduler=args.scheduler),
+        args.out)
+    if result is None:
+        return status
     timing = result["timing"]
     return _print_experiment(result, f"wall time {timing['total']:.1f} s (runs "
                                      f"{timing['runs']:.1f} s, figures {timing['figures']:.1f} s)")
@@ -325,31 +323,42 @@ def _print_experiment(result: dict, wall_line: str) -> int:
     print(f"report: {result['report']}")
     for name, reason in result["figure_problems"].items():
         print(f"figure {name} not drawn: {reason}", file=sys.stderr)
-    for outcome in result["failed"]:
-        print(f"FAILED {outcome.run.folder}: {outcome.error}", file=sys.stderr)
+    status = _print_failed(result["failed"])
     print(wall_line)
-    return 1 if result["failed"] else 0
+    return status
+
+
+def _run_grid(run, out) -> tuple[dict | None, int]:
+    """``run()``'s result and 0; or None and the status that ends the command: 2 after a
+    one-line error, 130 on Ctrl-C (naming where the finished runs are kept)."""
+    try:
+        return run(), 0
+    except RuntimeError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None, 2
+    except KeyboardInterrupt:
+        print(f"interrupted: finished runs are in {Path(out) / 'runs'}", file=sys.stderr)
+        return None, 130
+
+
+def _print_failed(failed) -> int:
+    """One ``FAILED`` line per failed run; the command's status (1 if any failed)."""
+    for outcome in failed:
+        print(f"FAILED {outcome.run.folder}: {outcome.error}", file=sys.stderr)
+    return 1 if failed else 0
 
 
 def _run_sweep_and_print(name, base, axes, out, follower, workers, scheduler=None) -> int:
     from swarm.sweep import format_means, run_sweep
 
-    try:
-        result = run_sweep(name, base, axes, out, follower=follower, workers=workers,
-                           scheduler=scheduler)
-    except RuntimeError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"interrupted: finished runs are in {Path(out) / 'runs'}", file=sys.stderr)
-        return 130
+    result, status = _run_grid(lambda: run_sweep(name, base, axes, out, follower=follower,
+                                                 workers=workers, scheduler=scheduler), out)
+    if result is None:
+        return status
     print(format_means(result["means"], result["keys"]))
     for path in result["tables"].values():
         print(f"table: {path}")
-    failed = [o for o in result["outcomes"] if not o.ok]
-    for outcome in failed:
-        print(f"FAILED {outcome.run.folder}: {outcome.error}", file=sys.stderr)
-    return 1 if failed else 0
+    return _print_failed([o for o in result["outcomes"] if not o.ok])
 
 
 def _check_workers(workers: int | None) -> None:
