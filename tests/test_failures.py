@@ -162,12 +162,18 @@ BAD_SURFACE_MODULES = {
 }
 
 
-@pytest.mark.parametrize("kind", BAD_SURFACE_MODULES)
-def test_world_reports_a_broken_surface_module(tmp_path, monkeypatch, capsys, kind):
+def _broken_surface_module(tmp_path, monkeypatch, module: str, kind: str) -> str:
+    """Write the broken module ``kind`` as ``module`` on the import path; its error fragment."""
     source, fragment = BAD_SURFACE_MODULES[kind]
-    module = f"broken_surface_{kind}"
     (tmp_path / f"{module}.py").write_text(source)
     monkeypatch.syspath_prepend(str(tmp_path))
+    return fragment
+
+
+@pytest.mark.parametrize("kind", BAD_SURFACE_MODULES)
+def test_world_reports_a_broken_surface_module(tmp_path, monkeypatch, capsys, kind):
+    module = f"broken_surface_{kind}"
+    fragment = _broken_surface_module(tmp_path, monkeypatch, module, kind)
     path = tmp_path / "run.toml"
     dump_config(RunConfig(run_id="fail", surface=f"{module}:surface"), path)
     assert _world(path, "--out", str(tmp_path / "out")) == 1
@@ -280,10 +286,8 @@ def test_swarm_run_refuses_a_file_as_out_and_a_bad_log_level(tmp_path, capsys):
 
 @pytest.mark.parametrize("kind", BAD_SURFACE_MODULES)
 def test_swarm_run_reports_a_broken_surface_module(tmp_path, monkeypatch, capsys, kind):
-    source, fragment = BAD_SURFACE_MODULES[kind]
     module = f"broken_swarm_surface_{kind}"
-    (tmp_path / f"{module}.py").write_text(source)
-    monkeypatch.syspath_prepend(str(tmp_path))
+    fragment = _broken_surface_module(tmp_path, monkeypatch, module, kind)
     assert _swarm("--surface", f"{module}:surface", "--out", str(tmp_path / "out")) == 1
     assert fragment in one_error_line(capsys)
 
