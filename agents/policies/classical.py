@@ -7,6 +7,7 @@ state is data (floats and small arrays) changed only by ``record`` and ``skip``.
 """
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
 
@@ -112,15 +113,24 @@ def gp_forecast(samples: np.ndarray, noise: float = 0.0) -> np.ndarray:
     >>> gp_forecast(np.array([[0.0], [1.0], [2.0], [3.0]])).round(6)  # a straight line
     array([4.])
     """
-    y = np.asarray(samples, dtype=float)
+    y = np.ascontiguousarray(samples, dtype=float)
     if y.ndim != 2 or y.shape[0] < 2:
         raise ValueError(f"samples must be (n >= 2, m), got shape {y.shape}")
-    n = y.shape[0]
-    if n == 2:  # too few for a residual: the trend alone
+    if y.shape[0] == 2:  # too few for a residual: the trend alone
         return 2.0 * y[-1] - y[-2]
+    return np.array(_gp_forecast(y.tobytes(), y.shape, float(noise)))
+
+
+@functools.lru_cache(maxsize=256)
+def _gp_forecast(data: bytes, shape: tuple[int, int], noise: float) -> tuple[float, ...]:
+    """:func:`gp_forecast` of the samples in ``data``, remembered: a policy's forecast from
+    the same history is asked for twice a tick (its proposal, then ``auto``'s scoring of it
+    in ``record``, before the policy learns), and the fit is most of ``auto``'s time."""
+    y = np.frombuffer(data, dtype=float).reshape(shape)
+    n = shape[0]
     t = np.arange(n, dtype=float)
     basis = np.c_[np.ones(n), t]
-    return np.array([_gp_coordinate(t, basis, y[:, i], noise) for i in range(y.shape[1])])
+    return tuple(_gp_coordinate(t, basis, y[:, i], noise) for i in range(shape[1]))
 
 
 def _gp_coordinate(t: np.ndarray, basis: np.ndarray, y: np.ndarray, noise: float) -> float:
