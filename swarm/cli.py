@@ -10,7 +10,7 @@ from protocol.cli import (
     EXPECTED_FAILURES, add_log_level_flag, bounded_interrupt, check_out_dir, describe,
     setup_logging,
 )
-from protocol.config import ESTIMATORS, RunConfig, config_from_dict, load_config
+from protocol.config import DICTIONARIES, ESTIMATORS, RunConfig, config_from_dict, load_config
 from protocol.session import add_credential_flags
 
 EXIT_NOTHING_ESTIMATED = 3
@@ -29,7 +29,7 @@ RUN_FLAGS: dict[str, tuple[str, dict]] = {
     "--init-ticks": ("init_ticks", {"type": int}),
     "--estimator": ("estimator", {"help": ", ".join(ESTIMATORS) + ", or your own "
                                           "package.module:Name (SPEC §6)"}),
-    "--dictionary": ("dictionary", {"choices": tuple("abcdefg")}),
+    "--dictionary": ("dictionary", {"choices": DICTIONARIES}),
     "--velocity": ("velocity", {"choices": ("oracle", "lagged", "estimated")}),
     "--online": ("online", {"action": "store_const", "const": True}),
     "--delays": ("delays", {"type": int}),

@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from protocol.config import RunConfig
+from protocol.config import GPS_DICTIONARIES, RunConfig
 from swarm.grid import (RUN_ATTEMPTS, Axis, GridRun, RunOutcome, execute, expand, is_nan, number,
                         read_table, run_grid, write_run_index, write_table)
 from swarm.report import effectiveness_run, write_report
@@ -46,7 +46,7 @@ DICTIONARIES = {
     "a": {"dictionary": "a"},
     "b": {"dictionary": "b"},
     "c": {"dictionary": "c", "velocity": "oracle"},
-    **{d: {"dictionary": d, "gps": True} for d in "defg"},
+    **{d: {"dictionary": d, "gps": True} for d in GPS_DICTIONARIES},
 }
 PRACTICAL_VARIANTS = {
     "b": {"estimator": "edmd", "dictionary": "b"},

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from protocol.config import RunConfig, load_config, write_atomic
+from protocol.config import DICTIONARIES, GPS_DICTIONARIES, RunConfig, load_config, write_atomic
 
 RUN_ATTEMPTS = 2
 
@@ -297,10 +297,15 @@ def estimator_options(label: str) -> dict[str, Any]:
     """Run options of an estimator label: ``edmd-<letter>`` is EDMD on that dictionary (with
     GPS for d-g), any other label is an ``estimator`` value (a built-in name or
     ``package.module:Name``)."""
-    if label.startswith("edmd-") and len(label) == 6 and label[5] in "abcdefg":
-        options = {"estimator": "edmd", "dictionary": label[5]}
-        return {**options, "gps": True} if label[5] in "defg" else options
+    if label.startswith("edmd-") and label[5:] in DICTIONARIES:
+        options = {"estimator": "edmd", "dictionary": label[5:]}
+        return {**options, "gps": True} if label[5:] in GPS_DICTIONARIES else options
     return {"estimator": label}
+
+
+def estimator_axis(labels) -> Axis:
+    """The ``estimator`` axis over estimator labels (:func:`estimator_options`)."""
+    return Axis("estimator", tuple((label, estimator_options(label)) for label in labels))
 
 
 SUMMARY_COLUMNS = ("mean_required_range", "mean_persist_range", "ratio_to_persist",

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from protocol.config import RunConfig, config_from_dict
-from swarm.grid import (SUMMARY_COLUMNS, Axis, RunOutcome, estimator_options, expand, is_nan,
+from swarm.grid import (SUMMARY_COLUMNS, Axis, RunOutcome, estimator_axis, expand, is_nan,
                         mean_over, run_grid, summary_row, write_run_index, write_table)
 
 
@@ -48,7 +48,7 @@ def axis_from_toml(name: str, value: Any) -> Axis:
     if not isinstance(value, list) or not value:
         raise ValueError(f"axes.{name} must be a non-empty list or a table")
     if name == "estimator":
-        return Axis(name, tuple((label, estimator_options(label)) for label in value))
+        return estimator_axis(value)
     fragment = {"comm_period": "tc{:g}", "seed": "s{}"}.get(name, "{}")
     return Axis.of_field(name, value, fragment)
 
@@ -86,7 +86,7 @@ def compare_axes(estimators: list[str], seeds: list[int]) -> list[Axis]:
     """The axes of ``swarm compare``: the estimators, then the seeds."""
     if not estimators:
         raise ValueError("--estimators must name at least one estimator")
-    return [Axis("estimator", tuple((e, estimator_options(e)) for e in estimators)),
+    return [estimator_axis(estimators),
             Axis.of_field("seed", seeds, "s{}")]
 
 

@@ -29,9 +29,9 @@ from typing import Any
 import numpy as np
 
 from protocol.config import CLASSICAL, OWN_MOTION, RunConfig, write_atomic
-from swarm.experiment import (GridRun, RunOutcome, draw_jobs, is_nan, read_table, run_grid,
-                              write_run_index, write_table)
-from swarm.grid import estimator_options
+from swarm.experiment import draw_jobs
+from swarm.grid import (Axis, GridRun, RunOutcome, estimator_axis, expand, is_nan, read_table,
+                        run_grid, summary_row, write_run_index, write_table)
 
 TERRAIN_ESTIMATORS = ("stay", "persist", "edmd-b", *CLASSICAL, *OWN_MOTION, "auto")
 """Estimators the terrain study compares (add classical baselines here by name)."""
@@ -103,28 +103,16 @@ def terrain_grid(dem: str | Path, spec: TerrainSpec) -> list[GridRun]:
     base = RunConfig(surface=f"dem:{Path(dem).resolve()}", followers=spec.followers,
                      spacing=spec.spacing, ticks=spec.ticks,
                      surface_params={"smoothing": spec.smoothing} if spec.smoothing else {})
-    runs = []
-    for index, start in enumerate(spec.leader_starts):
-        for period in spec.comm_periods:
-            for name in spec.estimators:
-                run_name = f"start{index}-tc{period:g}-{name}"
-                config = base.replace(run_id=f"terrain-{run_name}", leader_start=start,
-                                      comm_period=period, **estimator_options(name))
-                runs.append(GridRun("terrain", run_name, config,
-                                    {"start": index, "comm_period": period, "estimator": name}))
-    return runs
+    starts = Axis("start", tuple((i, {"leader_start": s}) for i, s in enumerate(spec.leader_starts)),
+                  "start{}")
+    return expand("terrain", base, [starts, Axis.of_field("comm_period", spec.comm_periods,
+                                                          "tc{:g}"),
+                                    estimator_axis(spec.estimators)])
 
 
 def table_rows(outcomes: list[RunOutcome], followers: range) -> list[dict]:
     """Rows per run and follower in ``followers`` (NaN metrics for a failed run)."""
-    rows = []
-    for outcome in outcomes:
-        for k in followers:
-            stats = outcome.summary["followers"][str(k)] if outcome.ok else {}
-            rows.append({**outcome.run.labels, "follower": k,
-                         "mean_required_range": _number(stats.get("mean_required_range")),
-                         "rmse": _number(stats.get("rmse")), "run": outcome.run.folder})
-    return rows
+    return [{**summary_row(outcome, k), "follower": k} for outcome in outcomes for k in followers]
 
 
 def mean_over_starts(rows: list[dict], keys: tuple[str, ...]) -> list[dict]:
@@ -179,35 +167,38 @@ def run_terrain_experiment(dem: str | Path, out_dir: str | Path, spec: TerrainSp
                             if o.run.labels["comm_period"] in spec.position_periods],
                            range(1, spec.followers + 1)))
     write_run_index(out_dir / "tables" / "runs.csv", outcomes)
-    figures, problems = draw_terrain_figures(out_dir, dem, spec, tables)
-    report = write_terrain_report(out_dir, dem, spec, tables, figures, problems, outcomes,
+    rows = {name: read_table(path) for name, path in tables.items()}  # as the report cites them
+    figures, problems = draw_terrain_figures(out_dir, dem, runs, spec, rows)
+    report = write_terrain_report(out_dir, dem, spec, rows, figures, problems, outcomes,
                                   wall_time)
     return {"tables": tables, "figures": figures, "figure_problems": problems, "report": report,
             "failed": [o for o in outcomes if not o.ok], "wall_time": wall_time}
 
 
-def trajectory_run(out_dir: Path, spec: TerrainSpec) -> Path:
+def trajectory_run(runs: list[GridRun], spec: TerrainSpec) -> GridRun:
     """The run whose column the trajectory figure shows: the first start, EDMD-b (else the
     first estimator), the first position comm period."""
-    name = "edmd-b" if "edmd-b" in spec.estimators else spec.estimators[0]
-    period = (spec.position_periods or spec.comm_periods)[0]
-    return out_dir / "runs" / "terrain" / f"start0-tc{period:g}-{name}"
+    shown = {"start": 0, "comm_period": (spec.position_periods or spec.comm_periods)[0],
+             "estimator": "edmd-b" if "edmd-b" in spec.estimators else spec.estimators[0]}
+    return next(run for run in runs if run.labels == shown)
 
 
-def draw_terrain_figures(out_dir: Path, dem: str | Path, spec: TerrainSpec,
-                         tables: dict[str, Path]) -> tuple[dict[str, Path], dict[str, str]]:
-    """The study's three figures; a figure that cannot be drawn is named with the reason."""
+def draw_terrain_figures(out_dir: Path, dem: str | Path, runs: list[GridRun], spec: TerrainSpec,
+                         rows: dict[str, list[dict]]) -> tuple[dict[str, Path], dict[str, str]]:
+    """The study's three figures from the tables' ``rows``; a figure that cannot be drawn is
+    named with the reason."""
     from swarm import plots
 
     folder = out_dir / "figures"
     label = f"{Path(dem).name}: follower 1,\nmean over {len(spec.leader_starts)} start(s)"
     comm_rows = [{**r, "surface": label} for r in mean_over_starts(
-        read_table(tables["terrain_comm_period"]), ("comm_period", "estimator"))]
-    position_rows = mean_over_starts(read_table(tables["terrain_position"]),
+        rows["terrain_comm_period"], ("comm_period", "estimator"))]
+    position_rows = mean_over_starts(rows["terrain_position"],
                                      ("comm_period", "follower", "estimator"))
     jobs = {
         "terrain_trajectories": lambda: plots.plot_effectiveness(
-            trajectory_run(out_dir, spec), folder / "terrain_trajectories.png",
+            out_dir / "runs" / trajectory_run(runs, spec).folder,
+            folder / "terrain_trajectories.png",
             title="Column over real terrain (hillshade and contour lines of the DEM)"),
         "terrain_comm_period": lambda: plots.plot_comm_period(
             comm_rows, folder / "terrain_comm_period.png"),
@@ -239,13 +230,12 @@ def _markdown_table(head: list[str], rows: list[list[str]]) -> list[str]:
 
 
 def write_terrain_report(out_dir: Path, dem: str | Path, spec: TerrainSpec,
-                         tables: dict[str, Path], figures: dict[str, Path],
+                         rows: dict[str, list[dict]], figures: dict[str, Path],
                          problems: dict[str, str], outcomes: list[RunOutcome],
                          wall_time: float) -> Path:
-    """``out_dir/report.md``: the figures, the tables (means over the starts) as markdown and
-    what they show."""
-    comm_all = read_table(tables["terrain_comm_period"])
-    position_all = read_table(tables["terrain_position"])
+    """``out_dir/report.md``: the figures, the tables' ``rows`` (means over the starts) as
+    markdown and what they show."""
+    comm_all, position_all = rows["terrain_comm_period"], rows["terrain_position"]
     comm = mean_over_starts(comm_all, ("comm_period", "estimator"))
     position = mean_over_starts(position_all, ("comm_period", "follower", "estimator"))
     names = list(spec.estimators)
@@ -332,10 +322,6 @@ def _findings(comm_all: list[dict], position_all: list[dict], position: list[dic
                    + ", ".join(f"{n} {c}/{total}" for n, c in winners.items()) + ".")
     out.append("")
     return out
-
-
-def _number(value: Any) -> float:
-    return math.nan if value is None else float(value)
 
 
 # --- DEM files ---------------------------------------------------------------------------------
