@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 
-from protocol.view import MAP_FILE, TICK_COLUMNS, check_map, check_tick
+from protocol.view import MAP_FILE, TICK_COLUMNS, check_map, tick_payloads
 
 WAITING, RUNNING = "waiting for the world", "running"
 COMPLETE, INCOMPLETE = "complete", "incomplete"
@@ -53,16 +53,16 @@ class RunStore:
         self._version = 0
 
     def set_map(self, body: dict) -> None:
-        """The world's map payload (validated); the first one is kept."""
-        body = check_map(body)
+        """The world's map payload, as validated by ``decode_map`` or ``check_map``; the first
+        one is kept."""
         with self._lock:
             if self._map is None:
                 self._map = body
                 self._version += 1
 
     def add_tick(self, body: dict) -> None:
-        """One chunk of a tick's rows (validated); the tick counts once all its rows are in."""
-        body = check_tick(body)
+        """One chunk of a tick's rows, as validated by ``decode_tick`` or made by
+        ``tick_payloads``; the tick counts once all its rows are in."""
         rows = {row[0]: dict(zip(TICK_COLUMNS, row)) for row in body["rows"]}
         with self._lock:
             parts = self._partial.setdefault(body["tick"], {})
@@ -116,19 +116,19 @@ def load_run(run_dir: str | Path) -> RunStore:
         raise ValueError(f"run_dir {run_dir} is not a folder")
     store = RunStore()
     try:
-        store.set_map(json.loads((run_dir / MAP_FILE).read_text()))
+        view_map = check_map(json.loads((run_dir / MAP_FILE).read_text()))
         with open(run_dir / "ticks.csv", newline="", encoding="utf-8") as fh:
             ticks = list(csv.DictReader(fh))
         summary = json.loads((run_dir / "summary.json").read_text())
+        store.set_map(view_map)
+        by_tick: dict[int, list[dict]] = {}
+        for raw in ticks:
+            by_tick.setdefault(int(raw["tick"]), []).append(_row(raw))
+        for rows in by_tick.values():  # in chunks, as the world publishes them
+            for chunk in tick_payloads(rows, view_map["followers"] + 1):
+                store.add_tick(chunk)
     except (OSError, ValueError) as exc:
         raise ValueError(f"cannot replay {run_dir}: {exc}") from None
-    n_agents = store.snapshot().map["followers"] + 1
-    by_tick: dict[int, list[dict]] = {}
-    for raw in ticks:
-        by_tick.setdefault(int(raw["tick"]), []).append(raw)
-    for tick, raws in sorted(by_tick.items()):
-        store.add_tick({"v": 1, "type": "view-tick", "tick": tick, "t": float(raws[0]["t"]),
-                        "agents": n_agents, "rows": [_row(raw) for raw in raws]})
     obs_path = run_dir / "observations.csv"
     if obs_path.exists():
         with open(obs_path, newline="", encoding="utf-8") as fh:
@@ -139,13 +139,14 @@ def load_run(run_dir: str | Path) -> RunStore:
     return store
 
 
-def _row(raw: dict) -> list:
-    """A ``ticks.csv`` row as a view row (``missed`` is 0 where the file has no such column)."""
-    out = []
+def _row(raw: dict) -> dict:
+    """A ``ticks.csv`` row with its view columns typed (``missed`` is 0 where the file has no
+    such column), as ``WorldSim.finish_tick`` gives it."""
+    row: dict = {"tick": int(raw["tick"]), "t": float(raw["t"])}
     for name in TICK_COLUMNS:
         value = raw.get(name) or ""
         if name in ("agent", "lost", "missed"):
-            out.append(int(value or 0))
+            row[name] = int(value or 0)
         else:
-            out.append(float(value) if value else None)
-    return out
+            row[name] = float(value) if value else None
+    return row
