@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.config import json_checksum, write_atomic
+from protocol.config import checked_json, json_checksum, write_atomic
 from protocol.messages import ProtocolError, Sensing, from_body, to_body
 
 SCHEMA = 1
@@ -103,15 +103,9 @@ class StateLog:
             if len(line) > MAX_LINE:
                 raise self._refuse(f"line {number} is longer than {MAX_LINE} bytes")
             try:
-                body = json.loads(line.decode("utf-8"), parse_constant=_no_constant)
-            except (UnicodeDecodeError, ValueError) as exc:
-                raise self._refuse(f"line {number} is not JSON ({exc})") from None
-            if not isinstance(body, dict) or not isinstance(body.get("sum"), str):
-                raise self._refuse(f"line {number} is not a checksummed map")
-            given = body.pop("sum")
-            if json_checksum(body) != given:
-                raise self._refuse(f"line {number} fails its checksum (corrupt or edited)")
-            bodies.append(body)
+                bodies.append(checked_json(line, "sum"))
+            except ValueError as exc:
+                raise self._refuse(f"line {number} {exc}") from None
         header = bodies[0]
         for key in ("schema", "run_id", "agent", "start"):
             if header.get(key) != self.header[key]:
@@ -142,10 +136,6 @@ class StateLog:
 
     def remove(self) -> None:
         self.path.unlink(missing_ok=True)
-
-
-def _no_constant(name: str):
-    raise ValueError(f"{name} is not a number here")
 
 
 def _entry(body: dict) -> Entry:

@@ -303,6 +303,27 @@ def json_checksum(body: dict) -> str:
     return hashlib.sha256(canonical.encode()).hexdigest()
 
 
+def checked_json(text: str | bytes, key: str) -> dict:
+    """The JSON map in ``text`` whose field ``key`` (removed) holds :func:`json_checksum` of
+    the rest: how every state file is read back. ValueError saying what is wrong: ``is not
+    JSON (...)`` (NaN and infinities included: canonical JSON has none), ``is not a
+    checksummed map``, ``fails its checksum (corrupt or edited)``."""
+    try:
+        body = json.loads(text, parse_constant=_no_constant)
+    except ValueError as exc:  # UnicodeDecodeError included
+        raise ValueError(f"is not JSON ({exc})") from None
+    if not isinstance(body, dict) or not isinstance(body.get(key), str):
+        raise ValueError("is not a checksummed map")
+    given = body.pop(key)
+    if json_checksum(body) != given:
+        raise ValueError("fails its checksum (corrupt or edited)")
+    return body
+
+
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not a number here")
+
+
 def write_atomic(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file in the same folder and a rename."""
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -167,7 +167,7 @@ def test_a_fresh_world_refuses_a_folder_with_results_unless_forced(tmp_path):
         (tmp_path / name).write_text("kept\n")
     (tmp_path / "summary.json").write_text(json.dumps({"run_id": "old-run"}))
     with pytest.raises(world_checkpoint.StateError, match="results of run 'old-run'"):
-        world_checkpoint.claim(tmp_path, "new-run")
+        world_checkpoint.claim(tmp_path)
     assert (tmp_path / "ticks.csv").read_text() == "kept\n"
-    world_checkpoint.claim(tmp_path, "new-run", force=True)
+    world_checkpoint.claim(tmp_path, force=True)
     assert not any((tmp_path / name).exists() for name in RESULT_FILES)

@@ -14,7 +14,7 @@ import json
 import secrets
 from pathlib import Path
 
-from protocol.config import json_checksum, write_atomic
+from protocol.config import checked_json, json_checksum, write_atomic
 from world.results import RESULT_FILES, SUMMARY_FILE
 
 STATE_FILE = "world_state.json"
@@ -47,24 +47,17 @@ def load(out_dir: Path, run_id: str) -> dict:
     """The checkpoint of run ``run_id`` in ``out_dir``, validated (StateError otherwise)."""
     path = out_dir / STATE_FILE
     if not path.exists():
-        if (out_dir / SUMMARY_FILE).exists():
-            try:
-                done = json.loads((out_dir / SUMMARY_FILE).read_text()).get("complete")
-            except (OSError, ValueError):
-                done = False
-            if done:
-                raise AlreadyComplete(f"nothing to resume in {out_dir}: the run is complete")
+        if _summary(out_dir).get("complete"):
+            raise AlreadyComplete(f"nothing to resume in {out_dir}: the run is complete")
         raise StateError(f"cannot resume {out_dir}: no {STATE_FILE} (nothing to resume from)")
     try:
         text = path.read_text(encoding="utf-8")
-        body = json.loads(text)
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
+    except (OSError, UnicodeDecodeError) as exc:
         raise StateError(f"checkpoint {path} is unreadable ({exc}); refusing it") from None
-    if not isinstance(body, dict) or not isinstance(body.get("sha256"), str):
-        raise StateError(f"checkpoint {path} is not a checksummed map; refusing it")
-    given = body.pop("sha256")
-    if json_checksum(body) != given:
-        raise StateError(f"checkpoint {path} fails its checksum (corrupt or edited); refusing it")
+    try:
+        body = checked_json(text, "sha256")
+    except ValueError as exc:
+        raise StateError(f"checkpoint {path} {exc}; refusing it") from None
     if body.get("schema") != SCHEMA:
         raise StateError(f"checkpoint {path} has schema {body.get('schema')!r}, this build "
                          f"reads {SCHEMA}; refusing it")
@@ -83,23 +76,28 @@ def has_progress(out_dir: Path) -> bool:
     return (out_dir / STATE_FILE).exists() or (out_dir / SUMMARY_FILE).exists()
 
 
-def claim(out_dir: Path, run_id: str, force: bool = False) -> None:
-    """Make sure a fresh run may write into ``out_dir``: refuse a folder that holds another
-    run's (or an earlier start's) results unless ``force``, which deletes them."""
+def claim(out_dir: Path, force: bool = False) -> None:
+    """Make sure a fresh run may write into ``out_dir``: refuse a folder that holds results
+    (of any run, this one's earlier start included) unless ``force``, which deletes them."""
     present = [name for name in (*RESULT_FILES, STATE_FILE) if (out_dir / name).exists()]
     if not present:
         return
     if not force:
-        owner = ""
-        try:
-            owner = json.loads((out_dir / SUMMARY_FILE).read_text()).get("run_id", "")
-        except (OSError, ValueError, AttributeError):
-            pass
+        owner = _summary(out_dir).get("run_id", "")
         whose = f"run {owner!r}" if owner else "a run"
         raise StateError(f"{out_dir} already holds results of {whose} ({', '.join(present)}): "
                          "use --resume to continue it, another --out, or --force to replace them")
     for name in present:
         (out_dir / name).unlink()
+
+
+def _summary(out_dir: Path) -> dict:
+    """The results folder's summary, or {} where there is none or it is not a JSON map."""
+    try:
+        summary = json.loads((out_dir / SUMMARY_FILE).read_text())
+    except (OSError, ValueError):
+        return {}
+    return summary if isinstance(summary, dict) else {}
 
 
 def discard(out_dir: Path) -> None:

@@ -50,7 +50,7 @@ def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if not resume:
-        checkpoint.claim(out_dir, config.run_id, force)
+        checkpoint.claim(out_dir, force)
         dump_config(config, out_dir / "config.toml")
     with zenoh.open(conf) as session:
         service = WorldService(session, config, surface, out_dir, on_tick=on_tick, resume=resume)

@@ -186,11 +186,6 @@ class RunRecorder:
         ticks.flush()
         obs.flush()
 
-    @property
-    def missed(self) -> dict[int, int]:
-        """Missed ticks per follower (those with any)."""
-        return {k: m.missed for k, m in self._metrics.items() if m.missed}
-
     def summary(self, *, complete: bool, reason: str = "", wall_time: float = 0.0) -> dict:
         """The ``summary.json`` content (SPEC §7)."""
         cfg = self.config
