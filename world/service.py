@@ -300,17 +300,23 @@ class WorldService:
 
     def wait_for_agents(self, timeout: float) -> None:
         """Block until the leader and every follower are live (RuntimeError after ``timeout``)."""
-        want = set(range(self.sim.n_agents))
+        missing = self._wait_live(timeout, stop_when_ended=True)
+        if missing and self._ended is not None:
+            raise RuntimeError(f"run aborted before it started: {self._ended}")
+        if missing:
+            raise RuntimeError(f"agents {', '.join(map(str, sorted(missing)))} did not come up "
+                               f"within {timeout:.0f} s")
+
+    def _wait_live(self, timeout: float, stop_when_ended: bool = False) -> set[int]:
+        """Wait up to ``timeout`` s (or until the run ended, with ``stop_when_ended``) for every
+        agent to be live; return those that are not."""
         deadline = time.monotonic() + timeout
         with self._cond:
-            while not want <= self._alive:
-                if self._ended is not None:
-                    raise RuntimeError(f"run aborted before it started: {self._ended}")
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    missing = ", ".join(map(str, sorted(want - self._alive)))
-                    raise RuntimeError(f"agents {missing} did not come up within {timeout:.0f} s")
+            while ((missing := set(range(self.sim.n_agents)) - self._alive)
+                   and not (stop_when_ended and self._ended is not None)
+                   and (left := deadline - time.monotonic()) > 0):
                 self._cond.wait(left)
+            return missing
 
     def _mark_missed(self, agent: int, why: str) -> None:
         """(Lock held, realtime.) ``agent`` did not settle this tick: it keeps its pose; tell
@@ -326,8 +332,9 @@ class WorldService:
         rows = self.sim.finish_tick(tick)
         self.recorder.add_tick(rows, sorted(self._obs.pop(tick, {}).items()))
         self._rods.pop(tick, None)
-        self._save_state(self._wall())
-        self.recorder.write_summary(complete=False, reason="running", wall_time=self._wall())
+        wall = self._wall()  # the checkpoint and the summary tell the same time
+        self._save_state(wall)
+        self.recorder.write_summary(complete=False, reason="running", wall_time=wall)
         self.view.publish_tick(rows)
         return rows
 
@@ -452,8 +459,10 @@ class WorldService:
         complete = not reason
         if reason:
             log.error("world: run ended early: %s", reason)
-        elif self.config.mode == "lockstep":  # an agent restarted meanwhile learns it is done
-            self._wait_all_live(self.config.agent_timeout)
+        elif self.config.mode == "lockstep":
+            # an agent that vanished after it was through every tick (pipelined, long before
+            # the run completes) gets time to come back and see world/done
+            self._wait_live(self.config.agent_timeout)
         with self._cond:
             self.recorder.write_summary(complete=complete, reason=reason, wall_time=self._wall())
         done = encode(Done(tick=max(self.recorder.ticks_done - 1, 0), results=str(self.out_dir),
@@ -465,15 +474,6 @@ class WorldService:
         if complete:  # a world killed before this resumes into the end phase again
             checkpoint.discard(self.out_dir)
         return self.recorder.summary(complete=complete, reason=reason, wall_time=self._wall())
-
-    def _wait_all_live(self, timeout: float) -> None:
-        """Give an agent that vanished (pipelined, an agent may be through every tick long
-        before the run completes) up to ``timeout`` s to come back and see ``world/done``."""
-        deadline = time.monotonic() + timeout
-        with self._cond:
-            while (set(range(self.sim.n_agents)) - self._alive
-                   and (left := deadline - time.monotonic()) > 0):
-                self._cond.wait(left)
 
     def _wait_agents_gone(self, timeout: float) -> None:
         """Give agents time to see ``world/done`` and leave before the session closes."""
