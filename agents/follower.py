@@ -17,7 +17,7 @@ import zenoh
 
 from agents.checkpoint import Entry, StateLog, replay
 from agents.cli import parser, run_cli
-from agents.link import QUERY_TIMEOUT_S, AgentAbort, AgentLink, RunFinished, TickMissed
+from agents.link import AgentAbort, AgentLink, RunFinished, TickMissed
 from agents.policies import NotReady, Policy, make_policy, reading_variance, relative
 from protocol.config import AgentSettings
 from protocol.messages import Move, Observation, Sensing, Snap
@@ -92,7 +92,7 @@ def _restore(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Po
     uninterrupted run.
     """
     joined = link.join(settings.start_timeout)
-    through = joined.tick if joined.settled else joined.tick - 1
+    through = joined.through
     state = None
     if state_dir:
         state, entries = StateLog.open(state_dir, settings.run_id, agent_id, joined.start)
@@ -128,9 +128,7 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
     if not 1 <= agent_id <= settings.followers:
         raise ValueError(f"--id must be in 1..{settings.followers} for this run, got {agent_id}")
     policy = make_policy(settings)
-    link = AgentLink(session, settings.run_id, agent_id, agent_id - 1,
-                     query_timeout=max(settings.agent_timeout, QUERY_TIMEOUT_S),
-                     lockstep=settings.mode == "lockstep")
+    link = AgentLink.for_agent(session, settings, agent_id)
     state = None
     try:
         state, last, tick = _restore(link, settings, agent_id, policy, state_dir)

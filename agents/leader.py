@@ -6,21 +6,18 @@ import sys
 import zenoh
 
 from agents.cli import parser, run_cli
-from agents.link import QUERY_TIMEOUT_S, AgentLink, TickMissed
+from agents.link import AgentLink, TickMissed
 from protocol.config import AgentSettings
 from protocol.messages import Drive
 
 
 def run_leader(session: zenoh.Session, settings: AgentSettings) -> None:
     """Lockstep leader loop; returns by raising RunFinished when the world is done."""
-    link = AgentLink(session, settings.run_id, 0, None,
-                     query_timeout=max(settings.agent_timeout, QUERY_TIMEOUT_S),
-                     lockstep=settings.mode == "lockstep")
+    link = AgentLink.for_agent(session, settings, 0)
     try:
         # a restarted leader redoes the tick in progress if the world has not recorded its
         # rod (the world rolled its drive back), else waits for the next tick
-        joined = link.join(settings.start_timeout)
-        tick = joined.tick if joined.settled else joined.tick - 1
+        tick = link.join(settings.start_timeout).through
         timeout = settings.start_timeout
         while True:
             tick = link.wait_step(tick, timeout)

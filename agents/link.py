@@ -14,6 +14,7 @@ import time
 import zenoh
 
 from protocol import keys
+from protocol.config import AgentSettings
 from protocol.messages import (
     ActResult, ActSensing, Done, Drive, ErrorReply, Joined, JoinRequest, Message, Missed, Observation,
     Move, ProtocolError, Rod, Sensing, SenseRequest, Snap, TickStart, decode, encode,
@@ -61,6 +62,14 @@ class AgentLink:
         world, may be several ticks ahead in a pipelined run); else (realtime) it jumps to the
         newest tick announced.
     """
+
+    @classmethod
+    def for_agent(cls, session: zenoh.Session, settings: AgentSettings, agent_id: int) -> AgentLink:
+        """The link of agent ``agent_id`` (0: the leader, which follows the world's ticks) with
+        the run's timing."""
+        return cls(session, settings.run_id, agent_id, agent_id - 1 if agent_id else None,
+                   query_timeout=max(settings.agent_timeout, QUERY_TIMEOUT_S),
+                   lockstep=settings.mode == "lockstep")
 
     def __init__(self, session: zenoh.Session, run_id: str, agent_id: int, follow: int | None,
                  query_timeout: float, lockstep: bool = True) -> None:

@@ -264,6 +264,11 @@ class Joined(Message):
     world: int = _kind("count", 0)
     start: str = _kind("text", "")
 
+    @property
+    def through(self) -> int:
+        """The last tick the world has this agent through (-1: none yet)."""
+        return self.tick if self.settled else self.tick - 1
+
 
 @dataclass(frozen=True)
 class ActResult(Message):
