@@ -144,12 +144,16 @@ def token_live(session: zenoh.Session, key: str, timeout: float = 0.5) -> bool:
     return any(reply.ok is not None for reply in session.liveliness().get(key, timeout=timeout))
 
 
-def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
-    """A ``tcp/host:port`` endpoint on a port that is free right now (loopback by default)."""
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port on ``host`` that is free right now (loopback by default)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind((host, 0))
-        port = sock.getsockname()[1]
-    return f"tcp/{host}:{port}"
+        return sock.getsockname()[1]
+
+
+def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
+    """A ``tcp/host:port`` endpoint on a port that is free right now (loopback by default)."""
+    return f"tcp/{host}:{free_port(host)}"
 
 
 def add_credential_flags(parser: argparse.ArgumentParser) -> None:

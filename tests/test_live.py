@@ -29,7 +29,7 @@ import zenoh
 from protocol import keys
 from protocol.config import RunConfig, load_config
 from protocol.messages import ProtocolError
-from protocol.session import free_tcp_endpoint, undeclare_all, zenoh_config
+from protocol.session import free_port, free_tcp_endpoint, undeclare_all, zenoh_config
 from protocol.view import (
     MAP_CELLS, MAX_VIEW_BYTES, ROWS_PER_CHUNK, TICK_COLUMNS, decode_map, decode_tick, encode_map,
     encode_tick, tick_payloads,
@@ -413,7 +413,7 @@ def test_live_page_follows_a_run_and_replay_reaches_the_last_tick(browser, tmp_p
     4 agents and 3 rods and ends reading complete; then ``replay`` of the same folder, whose
     slider dragged to its end shows the last tick, and play runs it from the start. No request
     leaves the machine."""
-    out, port, ticks = tmp_path / "run", int(free_tcp_endpoint().rpartition(":")[2]), 30
+    out, port, ticks = tmp_path / "run", free_port(), 30
     proc = _swarm("run", "--live", "--live-port", str(port), "--followers", "3",
                   "--ticks", str(ticks), "--mode", "realtime", "--time-scale", "0.2",
                   "--run-id", "browser", "--out", str(out), log=tmp_path / "run.log")
@@ -436,7 +436,7 @@ def test_live_page_follows_a_run_and_replay_reaches_the_last_tick(browser, tmp_p
     assert code == 0, (tmp_path / "run.log").read_text()[-2000:]
     assert _external(requests, port) == []
 
-    port = int(free_tcp_endpoint().rpartition(":")[2])
+    port = free_port()
     proc = _swarm("replay", str(out), "--live-port", str(port), log=tmp_path / "replay.log")
     requests = []
     try:
@@ -561,7 +561,7 @@ def test_cli_refuses_bad_live_arguments(tmp_path, capsys):
 def test_watch_page_of_a_run_assembled_elsewhere(browser, tmp_path):
     """``swarm watch`` started before the world exists: the page waits for it, then follows the
     run (world and agents as processes on their own router) to its last tick and end."""
-    endpoint, port = free_tcp_endpoint(), int(free_tcp_endpoint().rpartition(":")[2])
+    endpoint, port = free_tcp_endpoint(), free_port()
     config = RunConfig(run_id="watched", followers=3, ticks=20)
     credentials = RunCredentials.create(tmp_path / "credentials", config.followers)
     proc = _swarm("watch", "--connect", endpoint, "--run-id", "watched", "--live-port", str(port),

@@ -52,7 +52,7 @@ class ZenohFeed:
         except (ProtocolError, ValueError) as exc:
             log.warning("live view: dropped observation on %s: %s", sample.key_expr, exc)
             return
-        self.store.add_choice(msg.tick, agent, getattr(msg, "followed", None) or msg.estimator)
+        self.store.add_choice(msg.tick, agent, msg.followed or msg.estimator)
 
     def _on_done(self, sample: zenoh.Sample) -> None:
         try:

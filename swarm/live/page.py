@@ -157,9 +157,9 @@ class Page:
 
     def refresh(self, force: bool = False) -> None:
         """Redraw what changed since the last call (``force``: the tick to show changed)."""
+        if self.store.version == self.drawn_version and not force:
+            return  # nothing new: no snapshot to copy, five times a second per page
         snap = self.store.snapshot()
-        if snap.version == self.drawn_version and not force:
-            return
         if snap.map is not None and not self.map_drawn:
             self._draw_surface(snap.map)
             self.map_drawn = True

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import functools
-import socket
 import threading
 
 from bokeh.application import Application
@@ -17,6 +16,7 @@ from bokeh.server.server import Server
 from bokeh.settings import settings
 from tornado.ioloop import IOLoop
 
+from protocol.session import free_port
 from swarm.live import DEFAULT_PORT
 from swarm.live.page import build_page
 from swarm.live.store import RunStore
@@ -36,7 +36,7 @@ class PageServer:
         if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
             raise ValueError(f"port must be an integer in [0, 65535], got {port!r}")
         self.store, self.address, self.replay = store, address, replay
-        self.port = port or _free_port(address)
+        self.port = port or free_port(address)
         self._ready = threading.Event()
         self._error: str | None = None
         self._loop: IOLoop | None = None
@@ -87,9 +87,3 @@ class PageServer:
             return
         self._loop.add_callback(self._loop.stop)
         self._thread.join(timeout)
-
-
-def _free_port(address: str) -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind((address, 0))
-        return sock.getsockname()[1]
