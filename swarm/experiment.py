@@ -236,10 +236,10 @@ def write_results(out_dir: str | Path, spec: GridSpec, outcomes: list[RunOutcome
         write_table(tables[table], columns,
                     TABLE_BUILDERS[table]([o for o in outcomes if o.run.table == table]))
     write_run_index(out_dir / "tables" / "runs.csv", outcomes)
-    figures, problems = draw_figures(out_dir, {t: read_table(p) for t, p in tables.items()})
+    rows = {t: read_table(p) for t, p in tables.items()}  # as the report cites them
+    figures, problems = draw_figures(out_dir, rows)
     drawn = time.perf_counter() - start
     timing = {"runs": run_time, "figures": drawn, "total": run_time + drawn}
-    report = write_report(out_dir, spec, outcomes, figures, problems, timing, workers,
-                          tuple(TABLE_COLUMNS))
+    report = write_report(out_dir, spec, outcomes, figures, problems, timing, workers, rows)
     return {"tables": tables, "figures": figures, "figure_problems": problems, "report": report,
             "failed": [o for o in outcomes if not o.ok], "timing": timing}

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from protocol.config import RunConfig, write_atomic
-from swarm.grid import RunOutcome, is_nan, read_table
+from swarm.grid import RunOutcome, is_nan
 
 def _g(x: float) -> str:
     """Three significant digits; 'n/a' for a missing number."""
@@ -195,11 +195,10 @@ def effectiveness_run(out_dir: Path, surface: str) -> Path:
 
 def write_report(out_dir: Path, spec, outcomes: list[RunOutcome],
                  figures: dict[str, Path], problems: dict[str, str], timing: dict[str, float],
-                 workers: int, table_names: tuple[str, ...]) -> Path:
+                 workers: int, tables: dict[str, list[dict]]) -> Path:
     """Write ``out_dir/report.md``: every figure with what it shows and the numbers that
-    matter, read back from ``out_dir/tables/<name>.csv`` for each of ``table_names``; ``spec``
-    is the experiment's ``GridSpec``."""
-    tables = {t: read_table(out_dir / "tables" / f"{t}.csv") for t in table_names}
+    matter, from the ``tables`` as read back from ``out_dir/tables/<name>.csv``; ``spec`` is
+    the experiment's ``GridSpec``."""
     failed = [o for o in outcomes if not o.ok]
     retried = [o for o in outcomes if o.ok and o.attempts > 1]
     surfaces = list(dict.fromkeys(r["surface"] for r in tables["sensing_range"]))
