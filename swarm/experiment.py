@@ -30,8 +30,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from protocol.config import GPS_DICTIONARIES, RunConfig
-from swarm.grid import (RUN_ATTEMPTS, Axis, GridRun, RunOutcome, execute, expand, is_nan, number,
-                        read_table, run_grid, write_run_index, write_table)
+from swarm.grid import (RUN_ATTEMPTS, Axis, GridRun, RunOutcome, execute, expand, is_nan,
+                        read_table, run_grid, summary_row, write_run_index, write_table)
 from swarm.report import effectiveness_run, write_report
 
 __all__ = ["FULL", "QUICK", "RUN_ATTEMPTS", "TABLE_COLUMNS", "GridRun", "GridSpec", "RunOutcome",
@@ -107,22 +107,12 @@ def paper_grid(spec: GridSpec = FULL) -> dict[str, list[GridRun]]:
 # --- tables ------------------------------------------------------------------------------------
 
 def follower_rows(outcomes: Iterable[RunOutcome], per_follower: bool) -> list[dict]:
-    """One row per run (follower 1) or per run and follower, with the run's key columns.
-
-    A failed run still gets its rows, with NaN metrics, so the table shows the gap.
-    """
-    rows = []
-    for outcome in outcomes:
-        followers = range(1, outcome.run.config.followers + 1) if per_follower else (1,)
-        for k in followers:
-            stats = outcome.summary["followers"][str(k)] if outcome.ok else {}
-            row = dict(outcome.run.labels)
-            if per_follower:
-                row["follower"] = k
-            row.update(mean_required_range=number(stats.get("mean_required_range")),
-                       rmse=number(stats.get("rmse")), run=outcome.run.folder)
-            rows.append(row)
-    return rows
+    """One row per run (follower 1) or per run and follower, with the run's key columns
+    (:func:`swarm.grid.summary_row`; a failed run's metrics are NaN, so the table shows the
+    gap)."""
+    return [{**summary_row(outcome, k), **({"follower": k} if per_follower else {})}
+            for outcome in outcomes
+            for k in (range(1, outcome.run.config.followers + 1) if per_follower else (1,))]
 
 
 def practical_rows(outcomes: Iterable[RunOutcome]) -> list[dict]:
