@@ -239,32 +239,40 @@ def load_config(path: str | os.PathLike[str]) -> RunConfig:
     is refused before its values are looked at.
     """
     path = Path(path)
-    try:
-        with path.open("rb") as fh:
-            raw = fh.read(MAX_CONFIG_BYTES + 1)
-    except FileNotFoundError:
-        raise ValueError(f"config file {path} does not exist") from None
-    except OSError as exc:
-        raise ValueError(f"cannot read config file {path}: {exc.strerror or exc}") from None
-    if len(raw) > MAX_CONFIG_BYTES:
-        raise ValueError(f"config file {path} is larger than {MAX_CONFIG_BYTES // 1024} KiB; "
-                         "a run configuration is far smaller")
-    try:
-        data = tomllib.loads(raw.decode("utf-8"))
-    except UnicodeDecodeError:
-        raise ValueError(f"config file {path} is not UTF-8 text") from None
-    except ValueError as exc:  # TOMLDecodeError, or a number too long to convert
-        raise ValueError(f"config file {path} is not valid TOML: {exc}") from None
-    except RecursionError:
-        raise ValueError(f"config file {path} nests tables or arrays too deeply") from None
-    if _depth(data) > MAX_CONFIG_DEPTH:
-        raise ValueError(f"config file {path} nests tables or arrays deeper than "
-                         f"{MAX_CONFIG_DEPTH} levels")
+    data = read_toml(path, "config file")
     data.pop("meta", None)
     try:
         return config_from_dict(data)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"config file {path}: {exc}") from None
+
+
+def read_toml(path: Path, what: str, max_depth: int = MAX_CONFIG_DEPTH) -> dict[str, Any]:
+    """The TOML table in ``path`` (a ``what``, e.g. ``"config file"``), read under the input
+    limits: a file over ``MAX_CONFIG_BYTES`` or nesting tables/arrays deeper than
+    ``max_depth`` is refused before its values are looked at. ValueError: one line naming the
+    file and the problem."""
+    try:
+        with path.open("rb") as fh:
+            raw = fh.read(MAX_CONFIG_BYTES + 1)
+    except FileNotFoundError:
+        raise ValueError(f"{what} {path} does not exist") from None
+    except OSError as exc:
+        raise ValueError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ValueError(f"{what} {path} is larger than {MAX_CONFIG_BYTES // 1024} KiB; "
+                         "a real one is far smaller")
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise ValueError(f"{what} {path} is not UTF-8 text") from None
+    except ValueError as exc:  # TOMLDecodeError, or a number too long to convert
+        raise ValueError(f"{what} {path} is not valid TOML: {exc}") from None
+    except RecursionError:
+        raise ValueError(f"{what} {path} nests tables or arrays too deeply") from None
+    if _depth(data) > max_depth:
+        raise ValueError(f"{what} {path} nests tables or arrays deeper than {max_depth} levels")
+    return data
 
 
 def _depth(value: Any) -> int:

@@ -28,13 +28,15 @@ and print the mean table with each estimator's ratio to the persist baseline of 
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 from typing import Any
 
-from protocol.config import RunConfig, config_from_dict
+from protocol.config import MAX_CONFIG_DEPTH, RunConfig, config_from_dict, read_toml
 from swarm.grid import (SUMMARY_COLUMNS, Axis, RunOutcome, estimator_axis, expand, is_nan,
                         mean_over, run_grid, summary_row, write_run_index, write_table)
+
+
+GRID_DEPTH = MAX_CONFIG_DEPTH + 2  # a run's options, under [axes.<axis>.<label>]
 
 
 def axis_from_toml(name: str, value: Any) -> Axis:
@@ -56,13 +58,7 @@ def axis_from_toml(name: str, value: Any) -> Axis:
 def load_grid(path: str | Path) -> tuple[str, RunConfig, list[Axis], int]:
     """Read a grid file: (table name, base config, axes, follower). ValueError names problems."""
     path = Path(path)
-    try:
-        with path.open("rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ValueError(f"grid file {path} does not exist") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"grid file {path} is not valid TOML: {exc}") from None
+    data = read_toml(path, "grid file", GRID_DEPTH)
     unknown = set(data) - {"name", "follower", "base", "axes"}
     if unknown:
         raise ValueError(f"grid file {path}: unknown key(s) {sorted(unknown)}")
