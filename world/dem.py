@@ -41,7 +41,8 @@ import numpy as np
 from numba.extending import register_jitable
 from numpy.typing import ArrayLike
 
-DEM_PREFIX = "dem:"
+from world.surfaces import DEM_PREFIX
+
 DEM_KIND = 100
 """The ``kind`` code of a DEM context ``(DEM_KIND, params)`` (presets use 0 … 6)."""
 EARTH_RADIUS = 6_371_008.8

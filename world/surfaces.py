@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 LeaderStart = tuple[float, float, float, float]
+DEM_PREFIX = "dem:"  # a surface name "dem:PATH" is a digital elevation model (world.dem)
 
 
 @runtime_checkable
@@ -382,7 +383,7 @@ def make_surface(name: str, params: Mapping[str, Any] | None = None) -> Surface:
     if not isinstance(name, str) or not name:
         raise ValueError(f"name must be a preset name or 'package.module:attr', got {name!r}")
     params = dict(params or {})
-    if name.startswith("dem:"):
+    if name.startswith(DEM_PREFIX):
         from world.dem import make_dem_surface
 
         return make_dem_surface(name, params)

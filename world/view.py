@@ -21,7 +21,7 @@ from protocol.config import RunConfig, write_atomic
 from protocol.view import (
     MAP_CELLS, MAP_FILE, VIEW_VERSION, check_map, encode_map, encode_tick, tick_payloads,
 )
-from world.surfaces import Surface
+from world.surfaces import DEM_PREFIX, Surface
 
 MAP_EVERY_S = 1.0
 
@@ -84,7 +84,7 @@ def map_payload(config: RunConfig, surface: Surface, ideal: np.ndarray) -> dict:
     return check_map({
         "v": VIEW_VERSION, "type": "view-map", "run_id": config.run_id,
         "surface": config.surface,
-        "relief": "dem" if config.surface.startswith("dem:") else "analytic",
+        "relief": "dem" if config.surface.startswith(DEM_PREFIX) else "analytic",
         "estimator": config.estimator, "dictionary": config.dictionary, "mode": config.mode,
         "followers": config.followers, "ticks": config.ticks, "init_ticks": config.init_ticks,
         "comm_period": config.comm_period, "spacing": config.spacing,
