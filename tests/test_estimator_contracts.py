@@ -88,7 +88,7 @@ def test_propose_is_pure_and_state_is_the_call_log(name):
         checkers.append(ReplayChecker(settings))
         return checkers[-1]
 
-    cfg = RunConfig(surface="wavy", ticks=16, sensing_range=0.03, seed=2, noise_range=0.005,
+    cfg = RunConfig(surface="wavy", ticks=16, sensing_range=0.02, seed=2, noise_range=0.005,
                     noise_bearing=0.002, **CONFIGS[name])
     _, rows = run_local(cfg, policy_factory=factory)
     _, plain_rows = run_local(cfg)

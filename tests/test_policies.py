@@ -110,8 +110,9 @@ class _Fixed(Stay):
 
 
 def _three(**options):
+    options = {"horizon": 2, "trust": 3.0, "burn_in": 0, "combine": "best", **options}
     return Auto([_Fixed("a", [0.0, 0.0]), _Fixed("b", [1.0, 0.0]), _Fixed("c", [0.5, 0.0])],
-                horizon=2, trust=3.0, burn_in=0, **options)
+                **options)
 
 
 def test_auto_follows_the_lowest_recent_error_and_the_blend_is_a_candidate():
@@ -165,10 +166,40 @@ def test_auto_leaves_out_wild_proposals_and_falls_back_to_anchor():
 def test_auto_compares_candidates_on_the_same_ticks():
     """A late starter is compared on the ticks it was scored on, not against older errors."""
     auto = Auto([_Fixed("anchor", [0.0, 0.0]), _Fixed("late", [0.3, 0.0])], horizon=4,
-                trust=None, burn_in=0)
+                trust=None, burn_in=0, combine="best")
     auto.errors[0].extend([0.0, 0.0, 0.5])  # the anchor was perfect early, poor lately
     auto.errors[1].extend([0.2])  # the late starter was scored only on the last tick
     assert auto.propose(_sensing()).followed == "late"
+
+
+def test_auto_weights_mix_the_candidates_by_discounted_loss():
+    """The default: weights exp(-sharpness (L - L_min) / L_min), L the discounted e**2."""
+    auto = _three(combine="weights", blend=False, trust=None, memory=0.5, sharpness=1.0)
+    auto.record(_sensing(), np.array([0.4, 0.0]))  # errors 0.4, 0.6, 0.1
+    auto.record(_sensing(), np.array([0.2, 0.0]))  # errors 0.2, 0.8, 0.3
+    assert auto.loss[:3] == pytest.approx([0.10, 0.50, 0.05])  # 0.5 L + 0.5 e**2
+    raw = np.exp([-(0.10 - 0.05) / 0.05, -(0.50 - 0.05) / 0.05, 0.0])  # e^-1, e^-9, 1
+    expected = raw @ np.array([0.0, 1.0, 0.5]) / raw.sum()
+    proposal = auto.propose(_sensing())
+    assert proposal.offset == pytest.approx([expected, 0.0], abs=1e-12)
+    assert proposal.followed == "c"  # the largest weight
+    assert np.allclose(proposal.prediction, relative(_sensing()) - proposal.offset)
+    # a sharper mixture leans further to the lowest loss
+    sharp = _three(combine="weights", blend=False, trust=None, memory=0.5, sharpness=20.0)
+    for target in ([0.4, 0.0], [0.2, 0.0]):
+        sharp.record(_sensing(), np.array(target))
+    assert abs(sharp.propose(_sensing()).offset[0] - 0.5) < abs(expected - 0.5)
+
+
+def test_auto_weights_follow_an_exact_candidate_alone():
+    auto = _three(combine="weights", blend=False, trust=None)
+    auto.record(_sensing(), np.array([1.0, 0.0]))  # b is exact
+    proposal = auto.propose(_sensing())
+    assert np.array_equal(proposal.offset, [1.0, 0.0]) and proposal.followed == "b"
+    for bad, match in (({"combine": "vote"}, "combine"), ({"sharpness": 0.0}, "sharpness"),
+                       ({"memory": 1.0}, "memory"), ({"memory": -0.1}, "memory")):
+        with pytest.raises(ValueError, match=match):
+            Auto([_Fixed("a", [0, 0])], **bad)
 
 
 def test_auto_burn_in_drops_each_candidates_first_score():

@@ -1,5 +1,6 @@
-"""``auto``: run several candidate policies side by side and use, at each tick, the one with
-the lowest recent one-step error; one of them is the blend of the others (beyond the paper)."""
+"""``auto``: run several candidate policies side by side, score each on every tick, and follow
+their exponentially weighted mixture (or, with ``combine="best"``, the one with the lowest recent
+one-step error); one of the candidates is the blend of the others (beyond the paper)."""
 from __future__ import annotations
 
 import dataclasses
@@ -13,13 +14,28 @@ from agents.policies.base import Policy, Proposal, reconstructed_pre, relative
 from protocol.messages import Sensing
 
 BLEND = "blend"
+COMBINE = ("weights", "best")
 
 
 class Auto(Policy):
-    """Follow the candidate with the lowest mean squared one-step error over recent ticks
-    (SPEC §6); with ``blend=True`` the candidates include their own *blend*: the weighted mean
-    of their proposals with weights inversely proportional to their errors (Bates and
-    Granger's forecast combination), scored like any other candidate.
+    """Follow the candidates by their recent one-step errors (SPEC §6); with ``blend=True`` the
+    candidates include their own *blend*: the weighted mean of their proposals with weights
+    inversely proportional to their mean squared errors over the window (Bates and Granger's
+    forecast combination), scored like any other candidate.
+
+    How the scored candidates (the blend among them) are followed, ``combine``:
+
+    - ``"weights"`` (the default): the exponentially weighted mixture of their proposals. Each
+      candidate's loss ``L`` is the discounted mean of its squared errors (each tick
+      ``L <- memory L + (1 - memory) e**2``) and its weight is proportional to
+      ``exp(-sharpness (L - L_min) / L_min)``: a candidate whose loss is twice the lowest gets
+      ``exp(-sharpness)`` of the best one's weight, one ten times worse practically none, so
+      with one clearly better candidate this is that candidate, and among candidates of
+      similar loss it averages instead of switching on the luck of the last few ticks (the
+      exponentially weighted average forecaster of prediction with expert advice, scale-free
+      by ``L_min``). ``followed`` names the candidate with the largest weight.
+    - ``"best"``: the one candidate with the lowest mean squared error over the window
+      (follow the leader).
 
     Every candidate is scored each tick once the true ideal position is seen (``target``):
     ``record`` asks each candidate what it would have proposed from where the follower stood
@@ -27,14 +43,18 @@ class Auto(Policy):
     ticks, before the candidate learns from the tick; the blend is scored with the weights it
     had at that moment. Scoring starts in the initial ticks, where nothing moves; each
     candidate's first ``burn_in`` scores are dropped (a least-squares model fitted on its
-    minimum number of pairs says little about its later errors). ``propose`` compares the
-    candidates with at least ``min_scores`` scores over the ticks all of them were scored on
-    (the same ticks for each: a late starter is not compared on fewer, luckier ticks) and
-    follows the lowest (ties to the earlier candidate, the blend last).
+    minimum number of pairs says little about its later errors). ``propose`` uses the
+    candidates with at least ``min_scores`` scores. The blend's weights and ``"best"`` compare
+    them over the ticks all of them were scored on (the same ticks for each: a late starter is
+    not compared on fewer, luckier ticks; ties to the earlier candidate, the blend last); the
+    ``"weights"`` mixture uses each candidate's own discounted loss.
 
     Why a blend among the candidates: candidates whose errors are of similar size and not fully
     correlated average to a smaller error than any one of them, so the blend is often the best
-    candidate; when one candidate is clearly better, it is followed alone.
+    candidate; when one candidate is clearly better, it is followed alone. The ``"weights"``
+    mixture over the candidates and the blend was chosen over ``"best"`` because following
+    the lowest of 15 noisy scores chases luck where no candidate is clearly better (large comm
+    periods, sensor noise); the README has the comparison.
 
     Safeguard (``trust``): the first candidate is the anchor (``persist``). A proposal that
     differs from the anchor's by more than ``trust`` times the largest error the anchor made
@@ -46,9 +66,16 @@ class Auto(Policy):
     name = "auto"
 
     def __init__(self, candidates: list[Policy], horizon: int = 4, trust: float | None = 3.0,
-                 min_scores: int = 1, burn_in: int = 1, blend: bool = True) -> None:
+                 min_scores: int = 1, burn_in: int = 1, blend: bool = True,
+                 combine: str = "weights", sharpness: float = 1.0, memory: float = 0.6) -> None:
         if not candidates:
             raise ValueError("candidates must not be empty")
+        if combine not in COMBINE:
+            raise ValueError(f"combine must be one of {COMBINE}, got {combine!r}")
+        if not sharpness > 0:
+            raise ValueError(f"sharpness must be positive, got {sharpness}")
+        if not 0 <= memory < 1:
+            raise ValueError(f"memory must be in [0, 1), got {memory}")
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         if not 1 <= min_scores <= horizon:
@@ -65,8 +92,10 @@ class Auto(Policy):
         self.min_scores = min_scores
         self.burn_in = burn_in
         self.blend = blend
+        self.combine, self.sharpness, self.memory = combine, sharpness, memory
         # one score window per candidate, the blend's last
         self.errors = [deque(maxlen=horizon) for _ in range(len(candidates) + 1)]
+        self.loss: list[float | None] = [None] * (len(candidates) + 1)  # discounted e**2
         self.scored = [0] * (len(candidates) + 1)  # ticks each was scored on
 
     def _eligible(self, proposals: list[Proposal | None]) -> list[int]:
@@ -98,6 +127,21 @@ class Auto(Policy):
         inverse = {i: mse[best] / mse[i] for i in ready}  # in (0, 1], 1 for the best
         total = math.fsum(inverse.values())
         return {i: w / total for i, w in inverse.items()}
+
+    def mixture(self, ready: list[int]) -> dict[int, float]:
+        """The ``"weights"`` mixture's weight (summing to 1) of each ready candidate, by index."""
+        losses = {i: self.loss[i] for i in ready}
+        lowest = min(losses.values())
+        if lowest == 0.0:
+            exact = [i for i in ready if losses[i] == 0.0]
+            return {i: 1.0 / len(exact) for i in exact}
+        raw = {i: math.exp(-self.sharpness * (loss - lowest) / lowest)
+               for i, loss in losses.items()}
+        total = math.fsum(raw.values())
+        return {i: w / total for i, w in raw.items() if w > 0.0}
+
+    def _name(self, index: int) -> str:
+        return BLEND if index == len(self.candidates) else self.candidates[index].name
 
     def _blended(self, pre: Sensing, proposals: list[Proposal | None]) -> Proposal | None:
         """The blend's proposal, or None while fewer than two candidates enter it."""
@@ -132,11 +176,18 @@ class Auto(Policy):
         if not ready:  # nothing scored or trusted: the anchor, else whoever is ready
             top = 0 if proposals[0] is not None else next(
                 i for i, p in enumerate(proposals) if p is not None)
-        else:
+        elif self.combine == "best":
             mse = self._mse(self.errors, ready)
             top = min(ready, key=lambda i: (mse[i], i))
-        name = BLEND if top == len(self.candidates) else self.candidates[top].name
-        return dataclasses.replace(proposals[top], followed=name)
+        else:
+            weights = self.mixture(ready)
+            top = min(weights, key=lambda i: (-weights[i], i))
+            if len(weights) > 1:
+                offset = np.sum([w * proposals[i].offset for i, w in sorted(weights.items())],
+                                axis=0)
+                return Proposal(offset, tuple(float(v) for v in relative(pre) - offset),
+                                followed=self._name(top))
+        return dataclasses.replace(proposals[top], followed=self._name(top))
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
         if target is not None:
@@ -145,7 +196,11 @@ class Auto(Policy):
                 if proposal is not None:
                     self.scored[i] += 1
                     if self.scored[i] > self.burn_in:
-                        self.errors[i].append(float(np.hypot(*(proposal.offset - target))))
+                        error = float(np.hypot(*(proposal.offset - target)))
+                        self.errors[i].append(error)
+                        last = self.loss[i]
+                        self.loss[i] = error * error if last is None else (
+                            self.memory * last + (1.0 - self.memory) * error * error)
         measured = [cand.record(settled, target) for cand in self.candidates]
         return measured[0]
 
