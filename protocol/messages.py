@@ -7,8 +7,10 @@ payload larger than 4 KiB before decoding it, decodes with bounded msgpack lengt
 fields, every field's type, length and finiteness, and optionally the tick order, and raises
 :class:`ProtocolError` with a message naming the problem. Text fields hold printable characters
 only, and names (an estimator's) start with a letter and use a small safe alphabet, so nothing
-a peer sends can become a control sequence in a log or a formula in a results file. Transport
-code lives elsewhere (``protocol.session``).
+a peer sends can become a control sequence in a log or a formula in a results file. The field
+checks (:func:`check_finite`, :func:`check_count`, :func:`check_text`) and the bounded codec
+(:func:`pack_bounded`, :func:`unpack_bounded`) serve the observers' payloads
+(:mod:`protocol.view`) too. Transport code lives elsewhere (``protocol.session``).
 
 >>> msg = decode(encode(Rod(tick=3, length=3.57, side=1)), Rod)
 >>> msg.length
