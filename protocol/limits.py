@@ -5,6 +5,10 @@ before decoding it, then decodes with msgpack's own length bounds and checks the
 depth; the Zenoh configs the project writes may use :data:`MAX_PAYLOAD_BYTES` to size their
 ``max_message_size``. The largest real message (a ``Sensing`` with every optional vector) is
 about 200 bytes, so the bounds leave ample room and still make every refusal cheap.
+
+The observers' payloads (:mod:`protocol.view`: the map and the tick chunks on ``world/view/**``)
+are larger, so they have bounds of their own (:data:`MAX_VIEW_BYTES`,
+:data:`VIEW_MSGPACK_BOUNDS`), decoded by the same function as the messages.
 """
 from __future__ import annotations
 
@@ -46,3 +50,37 @@ MSGPACK_BOUNDS = {
     "max_ext_len": 0,  # nor an extension type
 }
 """Keyword arguments of ``msgpack.unpackb`` that bound every length it will allocate."""
+
+
+# --- observer payloads (protocol.view) ---------------------------------------------------------
+
+MAX_VIEW_BYTES = 32 * 1024
+"""Largest view payload (the map, or one tick chunk), checked before decoding and on encoding
+(a map of 4,096 cells is about 16.5 KB, a chunk of 200 rows at most 19.2 KB)."""
+
+MAP_CELLS = 4096
+"""Most cells of the view map's height grid (``ny * nx``)."""
+
+ROWS_PER_CHUNK = 200
+"""Most agent rows in one tick chunk: a tick of more agents is sent as several chunks."""
+
+MAX_VIEW_TEXT = 256
+"""Longest text field of the view map (run id, surface, estimator, dictionary, mode), in
+characters."""
+
+MAX_VIEW_DEPTH = 3
+"""Deepest nesting in a view payload: the payload map (1) holding the rows (2) of values (3)."""
+
+MAX_VIEW_FIELDS = 32
+"""Most entries in a view payload's map (the map payload has 17)."""
+
+VIEW_MSGPACK_BOUNDS = {
+    "max_str_len": 4 * MAX_VIEW_TEXT,
+    "max_bin_len": 4 * MAP_CELLS,  # the map's heights travel as 32-bit floats
+    # the longest list on the wire is a chunk's rows (a row has 13 values, the box 4); msgpack
+    # allocates a list's claimed length before reading it, at each of up to 1024 levels
+    "max_array_len": ROWS_PER_CHUNK,
+    "max_map_len": MAX_VIEW_FIELDS,
+    "max_ext_len": 0,
+}
+"""Keyword arguments of ``msgpack.unpackb`` for view payloads (like :data:`MSGPACK_BOUNDS`)."""

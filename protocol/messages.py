@@ -7,8 +7,10 @@ payload larger than 4 KiB before decoding it, decodes with bounded msgpack lengt
 fields, every field's type, length and finiteness, and optionally the tick order, and raises
 :class:`ProtocolError` with a message naming the problem. Text fields hold printable characters
 only, and names (an estimator's) start with a letter and use a small safe alphabet, so nothing
-a peer sends can become a control sequence in a log or a formula in a results file. Transport
-code lives elsewhere (``protocol.session``).
+a peer sends can become a control sequence in a log or a formula in a results file. The field
+checks (:func:`check_finite`, :func:`check_count`, :func:`check_text`) and the bounded codec
+(:func:`pack_bounded`, :func:`unpack_bounded`) serve the observers' payloads
+(:mod:`protocol.view`) too. Transport code lives elsewhere (``protocol.session``).
 
 >>> msg = decode(encode(Rod(tick=3, length=3.57, side=1)), Rod)
 >>> msg.length
@@ -42,29 +44,33 @@ class ProtocolError(ValueError):
 # --- field kinds -------------------------------------------------------------------------------
 
 
-def _finite(name: str, value: Any) -> float:
+def check_finite(name: str, value: Any, label: str = "field") -> float:
+    """``value`` as a finite float, else a ProtocolError naming ``label`` and ``name``
+    (``label`` tells the payload kind: ``"field"`` in a message, ``"view field"`` in a view)."""
     if type(value) is float and math.isfinite(value):  # the common case, checked first
         return value
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ProtocolError(f"field {name!r} must be a number, got {type(value).__name__}")
+        raise ProtocolError(f"{label} {name!r} must be a number, got {type(value).__name__}")
     value = float(value)
     if not math.isfinite(value):
-        raise ProtocolError(f"field {name!r} must be finite, got {value}")
+        raise ProtocolError(f"{label} {name!r} must be finite, got {value}")
     return value
 
 
 def _positive(name: str, value: Any) -> float:
-    value = _finite(name, value)
+    value = check_finite(name, value)
     if value <= 0:
         raise ProtocolError(f"field {name!r} must be positive, got {value}")
     return value
 
 
-def _count(name: str, value: Any) -> int:
+def check_count(name: str, value: Any, label: str = "field") -> int:
+    """``value`` as an integer in [0, ``MAX_TICK``] (a tick, a count, an index), else a
+    ProtocolError naming ``label`` and ``name``."""
     if isinstance(value, bool) or not isinstance(value, int):
-        raise ProtocolError(f"field {name!r} must be an integer, got {type(value).__name__}")
+        raise ProtocolError(f"{label} {name!r} must be an integer, got {type(value).__name__}")
     if not 0 <= value <= MAX_TICK:
-        raise ProtocolError(f"field {name!r} must be in [0, {MAX_TICK}], got {value}")
+        raise ProtocolError(f"{label} {name!r} must be in [0, {MAX_TICK}], got {value}")
     return value
 
 
@@ -80,13 +86,15 @@ def _flag(name: str, value: Any) -> bool:
     return value
 
 
-def _text(name: str, value: Any) -> str:
+def check_text(name: str, value: Any, label: str = "field", limit: int = MAX_TEXT) -> str:
+    """``value`` as a string of at most ``limit`` printable characters, else a ProtocolError
+    naming ``label`` and ``name``."""
     if not isinstance(value, str):
-        raise ProtocolError(f"field {name!r} must be a string, got {type(value).__name__}")
-    if len(value) > MAX_TEXT:
-        raise ProtocolError(f"field {name!r} is longer than {MAX_TEXT} characters")
+        raise ProtocolError(f"{label} {name!r} must be a string, got {type(value).__name__}")
+    if len(value) > limit:
+        raise ProtocolError(f"{label} {name!r} is longer than {limit} characters")
     if not value.isprintable():
-        raise ProtocolError(f"field {name!r} holds a control or non-printable character")
+        raise ProtocolError(f"{label} {name!r} holds a control or non-printable character")
     return value
 
 
@@ -109,7 +117,7 @@ def _vector(length: int | None):
             raise ProtocolError(f"field {name!r} is longer than {MAX_VECTOR}")
         for x in value:  # fast path: plain finite floats
             if type(x) is not float or not math.isfinite(x):
-                return tuple(_finite(f"{name}[{i}]", x) for i, x in enumerate(value))
+                return tuple(check_finite(f"{name}[{i}]", x) for i, x in enumerate(value))
         return tuple(value)
 
     return check
@@ -132,12 +140,12 @@ def _choice(*allowed: str):
 
 
 _KINDS = {
-    "finite": _finite,
+    "finite": check_finite,
     "positive": _positive,
-    "count": _count,
+    "count": check_count,
     "side": _side,
     "flag": _flag,
-    "text": _text,
+    "text": check_text,
     "name": _name,
     "vec2": _vector(2),
     "vec2?": _optional(_vector(2)),
@@ -376,10 +384,16 @@ def encode(msg: Message, *, check: bool = True) -> bytes:
         body[name] = list(value) if isinstance(value, tuple) else value
     if check:
         _validate(type(msg), body)
+    return pack_bounded(body, MAX_PAYLOAD_BYTES, msg.TYPE)
+
+
+def pack_bounded(body: dict[str, Any], max_bytes: int, kind: str) -> bytes:
+    """``body`` as msgpack, refused (ProtocolError naming ``kind``) when over ``max_bytes``:
+    every receiver would refuse it."""
     data = msgpack.packb(body, use_bin_type=True)
-    if len(data) > MAX_PAYLOAD_BYTES:  # every receiver would refuse it
-        raise ProtocolError(f"{msg.TYPE}: encodes to {len(data)} bytes, over the "
-                            f"{MAX_PAYLOAD_BYTES}-byte limit")
+    if len(data) > max_bytes:
+        raise ProtocolError(f"{kind}: encodes to {len(data)} bytes, over the "
+                            f"{max_bytes}-byte limit")
     return data
 
 
@@ -407,20 +421,7 @@ def decode(
         With a message naming the problem. A payload over ``MAX_PAYLOAD_BYTES`` is refused
         without being decoded, so a huge one costs no more than its length.
     """
-    size = len(data)
-    if size > MAX_PAYLOAD_BYTES:
-        raise ProtocolError(f"payload of {size} bytes refused: the limit is {MAX_PAYLOAD_BYTES}")
-    try:
-        body = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, **MSGPACK_BOUNDS)
-    except msgpack.StackError:
-        raise ProtocolError(f"payload nests deeper than {MAX_DEPTH} levels") from None
-    except ValueError as exc:  # msgpack's bound checks and format errors (many subclasses)
-        raise ProtocolError(_unpack_problem(exc)) from None
-    except Exception as exc:  # msgpack raises several unrelated exception types
-        raise ProtocolError(f"payload is not valid msgpack ({type(exc).__name__})") from None
-    if not isinstance(body, dict):
-        raise ProtocolError(f"payload must be a msgpack map, got {type(body).__name__}")
-    _check_depth(body)
+    body = unpack_bounded(data, MAX_PAYLOAD_BYTES, MSGPACK_BOUNDS, MAX_DEPTH)
     version = body.get("v")
     if version != SCHEMA_VERSION:
         raise ProtocolError(
@@ -438,26 +439,52 @@ def decode(
     return cls(**values)
 
 
-def _unpack_problem(exc: ValueError) -> str:
+def unpack_bounded(data: bytes | bytearray | memoryview | Any, max_bytes: int,
+                   bounds: dict[str, int], max_depth: int, what: str = "payload") -> dict:
+    """Decode a peer's msgpack map within bounds (the messages' and the view payloads').
+
+    A payload over ``max_bytes`` is refused before it is copied or decoded; msgpack decodes it
+    with the length ``bounds`` (keyword arguments of ``msgpack.unpackb``), and a map nested
+    deeper than ``max_depth`` is refused. Every refusal is a ProtocolError starting with
+    ``what``.
+    """
+    size = len(data)
+    if size > max_bytes:
+        raise ProtocolError(f"{what} of {size} bytes refused: the limit is {max_bytes}")
+    try:
+        body = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, **bounds)
+    except msgpack.StackError:
+        raise ProtocolError(f"{what} nests deeper than {max_depth} levels") from None
+    except ValueError as exc:  # msgpack's bound checks and format errors (many subclasses)
+        raise ProtocolError(_unpack_problem(exc, bounds, what)) from None
+    except Exception as exc:  # msgpack raises several unrelated exception types
+        raise ProtocolError(f"{what} is not valid msgpack ({type(exc).__name__})") from None
+    if not isinstance(body, dict):
+        raise ProtocolError(f"{what} must be a msgpack map, got {type(body).__name__}")
+    _check_depth(body, max_depth, what)
+    return body
+
+
+def _unpack_problem(exc: ValueError, bounds: dict[str, int], what: str) -> str:
     """One line for a msgpack refusal: a length over a bound, or malformed bytes."""
     text = str(exc)
-    for bound, limit in MSGPACK_BOUNDS.items():
+    for bound, limit in bounds.items():
         if bound in text:
-            what = bound.removeprefix("max_").removesuffix("_len")
-            return f"payload exceeds the protocol's {what} length bound ({limit})"
+            kind = bound.removeprefix("max_").removesuffix("_len")
+            return f"{what} exceeds the protocol's {kind} length bound ({limit})"
     detail = text.removeprefix("Unpack failed: ")[:60] or type(exc).__name__
-    return f"payload is not valid msgpack ({detail})"
+    return f"{what} is not valid msgpack ({detail})"
 
 
-def _check_depth(body: dict) -> None:
-    """Refuse containers nested deeper than ``MAX_DEPTH`` (the map itself is level 1).
+def _check_depth(body: dict, max_depth: int, what: str) -> None:
+    """Refuse containers nested deeper than ``max_depth`` (the map itself is level 1).
 
     msgpack builds plain lists and dicts only, hence the exact type tests (the fast path).
     """
     level, inner = 1, [v for v in body.values() if type(v) is list or type(v) is dict]
     while inner:
-        if level == MAX_DEPTH:
-            raise ProtocolError(f"payload nests deeper than {MAX_DEPTH} levels")
+        if level == max_depth:
+            raise ProtocolError(f"{what} nests deeper than {max_depth} levels")
         level += 1
         inner = [x for c in inner for x in (c.values() if type(c) is dict else c)
                  if type(x) is list or type(x) is dict]

@@ -2,8 +2,10 @@
 
 Both payloads are plain dicts, validated here on both sides and carried as msgpack on the wire
 (and the map also as JSON in the run folder, ``view_map.json``), each at most
-:data:`MAX_VIEW_BYTES`. They carry absolute coordinates: only observers (the live view) may
-subscribe to them, never agents (the generated access-control rules deny it).
+:data:`MAX_VIEW_BYTES` and decoded within the bounds of :mod:`protocol.limits` (by the codec
+of :mod:`protocol.messages`, whose field checks serve here too). They carry absolute
+coordinates: only observers (the live view) may subscribe to them, never agents (the generated
+access-control rules deny it).
 
 *map*: the run's few settings an observer needs and a coarse height grid (at most
 :data:`MAP_CELLS` cells, row-major, ``None`` outside the surface's domain) over the box
@@ -25,15 +27,15 @@ import math
 import struct
 from typing import Any
 
-import msgpack
-
-from protocol.messages import ProtocolError
+from protocol.limits import (  # the view's bounds; importers may take them from here too
+    MAP_CELLS, MAX_VIEW_BYTES, MAX_VIEW_DEPTH, MAX_VIEW_TEXT, ROWS_PER_CHUNK, VIEW_MSGPACK_BOUNDS,
+)
+from protocol.messages import (
+    ProtocolError, check_count, check_finite, check_text, pack_bounded, unpack_bounded,
+)
 
 VIEW_VERSION = 1
 MAP_FILE = "view_map.json"  # the map, as JSON, in the run folder (for replays)
-MAX_VIEW_BYTES = 32 * 1024
-MAP_CELLS = 4096
-ROWS_PER_CHUNK = 200
 TICK_COLUMNS = ("agent", "pos_x", "pos_y", "ideal_x", "ideal_y", "est_x", "est_y",
                 "required_range", "stay_range", "persist_range", "formation_error", "lost",
                 "missed")
@@ -41,26 +43,21 @@ RELIEFS = ("analytic", "dem")
 _MAP_NUMBERS = ("comm_period", "spacing")
 _MAP_COUNTS = ("followers", "ticks", "init_ticks")
 _MAP_TEXTS = ("run_id", "surface", "estimator", "dictionary", "mode")
+_FIELD = "view field"  # how the shared field checks (protocol.messages) name a view's field
 
 
 def _number(name: str, value: Any, *, optional: bool = False) -> float | None:
-    if value is None and optional:
+    if value is None and optional:  # unlike a message's numbers, a view's may be absent (None)
         return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ProtocolError(f"view field {name!r} must be a finite number, got {value!r}")
-    return float(value)
+    return check_finite(name, value, _FIELD)
 
 
 def _count(name: str, value: Any) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-        raise ProtocolError(f"view field {name!r} must be a non-negative integer, got {value!r}")
-    return value
+    return check_count(name, value, _FIELD)
 
 
 def _text(name: str, value: Any) -> str:
-    if not isinstance(value, str) or len(value) > 256:
-        raise ProtocolError(f"view field {name!r} must be a string of at most 256 characters")
-    return value
+    return check_text(name, value, _FIELD, MAX_VIEW_TEXT)
 
 
 def _header(body: Any, kind: str) -> dict:
@@ -145,19 +142,12 @@ def tick_payloads(rows: list[dict], n_agents: int) -> list[dict]:
 
 
 def _pack(body: dict) -> bytes:
-    data = msgpack.packb(body, use_bin_type=True)
-    if len(data) > MAX_VIEW_BYTES:
-        raise ProtocolError(f"{body['type']} payload is {len(data)} bytes, over {MAX_VIEW_BYTES}")
-    return data
+    return pack_bounded(body, MAX_VIEW_BYTES, body["type"])
 
 
-def _unpack(data: bytes) -> Any:
-    if len(data) > MAX_VIEW_BYTES:
-        raise ProtocolError(f"view payload is {len(data)} bytes, over {MAX_VIEW_BYTES}")
-    try:
-        return msgpack.unpackb(bytes(data), raw=False, strict_map_key=True)
-    except Exception as exc:  # msgpack raises several unrelated exception types
-        raise ProtocolError(f"view payload is not valid msgpack ({type(exc).__name__})") from None
+def _unpack(data: bytes) -> dict:
+    return unpack_bounded(data, MAX_VIEW_BYTES, VIEW_MSGPACK_BOUNDS, MAX_VIEW_DEPTH,
+                          "view payload")
 
 
 def encode_map(body: dict) -> bytes:

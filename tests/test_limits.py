@@ -1,9 +1,12 @@
 """Bounded inputs (SPEC §8 limits): payloads over 4 KiB refused before decoding, bounded msgpack
-lengths and nesting, text that cannot carry control characters or spreadsheet formulas, and a
-live run under a barrage of 8-10 MB and deeply nested payloads whose numbers do not change."""
+lengths and nesting, text that cannot carry control characters or spreadsheet formulas, the
+observers' view payloads under their own bounds, and a live run under a barrage of 8-10 MB and
+deeply nested payloads whose numbers do not change."""
 from __future__ import annotations
 
+import struct
 import threading
+import tracemalloc
 
 import msgpack
 import pytest
@@ -19,6 +22,7 @@ from protocol.messages import (
     error_payload, safe_text,
 )
 from protocol.session import MAX_MESSAGE_SIZE, zenoh_config
+from protocol.view import TICK_COLUMNS, decode_map, decode_tick, encode_map, encode_tick
 from tests.attacking import run_under_attack, same_results, wait_for_world
 from world.results import _cell
 
@@ -172,6 +176,122 @@ def test_error_payload_always_encodes_a_safe_line():
     assert reply.error == safe_text(problem)
     assert len(reply.error) == limits.MAX_TEXT and reply.error.isprintable()
     assert reply.error.startswith("bad ?[2J value?with a newline y")
+
+
+# --- view payloads (protocol.view): their own bounds, the same codec ---------------------------
+
+VIEW_DECODERS = pytest.mark.parametrize("decoder", [decode_map, decode_tick])
+
+
+def claims_payload(claim: int, levels: int = 1000) -> bytes:
+    """``MAX_VIEW_BYTES`` of msgpack: ``levels`` nested lists each claiming ``claim`` elements
+    (msgpack allocates a list's claimed length before reading its elements), then nils."""
+    head = (b"\xdd" + claim.to_bytes(4, "big")) * levels
+    return head + b"\xc0" * (limits.MAX_VIEW_BYTES - len(head))
+
+
+def view_map(**change) -> dict:
+    ny, nx = 64, limits.MAP_CELLS // 64
+    body = {"v": 1, "type": "view-map", "run_id": "view", "surface": "elliptic",
+            "estimator": "auto", "dictionary": "poly2", "mode": "lockstep", "followers": 3,
+            "ticks": 40, "init_ticks": 4, "comm_period": 1.28, "spacing": 3.0,
+            "sensing_range": None, "relief": "analytic", "box": [0.0, 1.0, 0.0, 1.0],
+            "shape": [ny, nx], "heights": [0.25] * (ny * nx)}
+    return {**body, **change}
+
+
+def view_tick(n_rows: int, value: float = 0.5, **change) -> dict:
+    row = [value] * (len(TICK_COLUMNS) - 3) + [1, 0]
+    return {"v": 1, "type": "view-tick", "tick": 3, "t": 3.84, "agents": n_rows,
+            "rows": [[k, *row] for k in range(n_rows)], **change}
+
+
+def view_wire(body: dict) -> bytes:
+    """``body`` packed as its encoder would, unchecked (the map's heights as 32-bit floats)."""
+    if body["type"] == "view-map":
+        body = {**body, "heights": struct.pack(f"<{len(body['heights'])}f", *body["heights"])}
+    return msgpack.packb(body, use_bin_type=True)
+
+
+def test_largest_view_payloads_decode():
+    """The bounds leave room for the largest real payloads: a map of MAP_CELLS heights with
+    every text at its length bound in 4-byte characters, a chunk of ROWS_PER_CHUNK full rows."""
+    wide = "\U0001f600" * limits.MAX_VIEW_TEXT
+    big_map = view_map(run_id=wide, surface=wide, estimator=wide)
+    assert decode_map(encode_map(big_map)) == big_map
+    chunk = view_tick(limits.ROWS_PER_CHUNK, value=-1.2345678901234567e300)
+    assert decode_tick(encode_tick(chunk)) == chunk
+
+
+@VIEW_DECODERS
+def test_oversized_view_payload_refused_before_decoding(decoder, monkeypatch):
+    def unpack_must_not_run(*args, **kwargs):
+        raise AssertionError("msgpack.unpackb was called on an oversized payload")
+
+    monkeypatch.setattr(messages_module.msgpack, "unpackb", unpack_must_not_run)
+    for payload in (nested_payload(BIG), b"\x00" * (limits.MAX_VIEW_BYTES + 1)):
+        with pytest.raises(ProtocolError, match=rf"view payload of {len(payload)} bytes "
+                                                rf"refused: the limit is {limits.MAX_VIEW_BYTES}"):
+            decoder(zenoh.ZBytes(payload))
+
+
+@VIEW_DECODERS
+@pytest.mark.parametrize("payload, problem", [
+    (claims_payload(limits.MAX_VIEW_BYTES - 6000), "exceeds the protocol's array length bound"),
+    (b"\xdf" + (limits.MAX_VIEW_BYTES // 4).to_bytes(4, "big") + b"\xa1k\xc0" * 3000,
+     "exceeds the protocol's map length bound"),
+    (_raw(v=1, type="view-tick", pad="x" * (4 * limits.MAX_VIEW_TEXT + 1)),
+     "exceeds the protocol's str length bound"),
+    (_raw(v=1, type="view-map", heights=b"\x00" * (4 * limits.MAP_CELLS + 4)),
+     "exceeds the protocol's bin length bound"),
+    (msgpack.packb({"v": 1, "x": msgpack.ExtType(1, b"abc")}), "exceeds the protocol's ext"),
+    (nested_payload(limits.MAX_VIEW_BYTES), f"nests deeper than {limits.MAX_VIEW_DEPTH} levels"),
+    (_raw(**view_tick(1, rows=[[[0.0]]])), f"nests deeper than {limits.MAX_VIEW_DEPTH} levels"),
+    (b"\x91" * 9 + b"\xc0", "must be a msgpack map, got list"),
+], ids=["array-claims", "map-claim", "str", "bin", "ext", "deeper-than-msgpack", "depth-4",
+        "not-a-map"])
+def test_hostile_view_payloads_are_refused(decoder, payload, problem):
+    assert len(payload) <= limits.MAX_VIEW_BYTES  # refused for its content, not its size
+    with pytest.raises(ProtocolError, match=f"^view payload {problem}"):
+        decoder(payload)
+
+
+@pytest.mark.parametrize("claim", [limits.MAX_VIEW_BYTES - 6000, limits.ROWS_PER_CHUNK],
+                         ids=["over-the-bound", "at-the-bound"])
+def test_hostile_view_payload_allocates_little(claim):
+    """1,000 nested lists each claiming ``claim`` elements in one 32 KiB payload. Decoded
+    without bounds, the larger claim made msgpack allocate 80 MB here; within the bounds a
+    level claims at most ROWS_PER_CHUNK elements, and msgpack nests at most 1,024 levels."""
+    most = 2 * 1024 * limits.ROWS_PER_CHUNK * 8  # 8-byte pointers, twice over for slack
+    tracemalloc.start()
+    try:
+        with pytest.raises(ProtocolError, match="^view payload (exceeds|is not valid)"):
+            decode_tick(claims_payload(claim))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < most
+
+
+@pytest.mark.parametrize("body, problem", [
+    (view_map(run_id="two\nlines"), "view field 'run_id' holds a control"),
+    (view_map(surface="x" * (limits.MAX_VIEW_TEXT + 1)),
+     f"view field 'surface' is longer than {limits.MAX_VIEW_TEXT} characters"),
+    (view_map(ticks=limits.MAX_TICK + 1),
+     rf"view field 'ticks' must be in \[0, {limits.MAX_TICK}\]"),
+    (view_map(spacing=float("inf")), "view field 'spacing' must be finite"),
+    (view_map(box=[0.0, "1", 0.0, 1.0]), r"view field 'box\[1\]' must be a number, got str"),
+    (view_tick(1, tick=True), "view field 'tick' must be an integer, got bool"),
+    (view_tick(1, value=float("nan")), r"view field 'rows\[0\]\.pos_x' must be finite"),
+], ids=["control", "long-text", "count-bound", "inf", "str-number", "bool-count", "nan-row"])
+def test_view_fields_are_checked_like_message_fields(body, problem):
+    """The view uses the messages' field checks; its errors name the view field."""
+    encode = encode_map if body["type"] == "view-map" else encode_tick
+    with pytest.raises(ProtocolError, match=f"^{problem}"):
+        encode(body)
+    decode = decode_map if body["type"] == "view-map" else decode_tick
+    with pytest.raises(ProtocolError, match=f"^{problem}"):
+        decode(view_wire(body))
 
 
 # --- CSV cells ---------------------------------------------------------------------------------
