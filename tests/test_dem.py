@@ -388,3 +388,25 @@ def test_a_failed_smoothing_fit_is_refused():
         pytest.skip("this scipy fits this grid with sorted knots")
     with pytest.raises(ValueError, match="smoothing = 100 .* unsorted knots"):
         DemSurface(x, y, z, smoothing=100.0)
+
+
+def test_a_dem_deep_in_a_folder_tree_gets_a_view_map(tmp_path):
+    """The config takes a DEM path of up to 4096 characters, the view's texts 256: the map
+    shows the path's end instead of refusing the run's view."""
+    import shutil
+
+    from protocol.view import MAX_VIEW_TEXT, decode_map, encode_map
+    from world.main import resolve_with_surface
+    from world.sim import WorldSim
+    from world.view import map_payload
+
+    deep = tmp_path.joinpath(*["a-rather-long-folder-name-" + str(i) for i in range(12)])
+    deep.mkdir(parents=True)
+    path = deep / HILLS.name
+    shutil.copyfile(HILLS, path)
+    assert len(f"dem:{path}") > MAX_VIEW_TEXT
+    config, surface = resolve_with_surface(RunConfig(surface=f"dem:{path}", followers=2,
+                                                     leader_start=HILLS_LEADER_START, ticks=6))
+    shown = decode_map(encode_map(map_payload(config, surface, WorldSim(config, surface).ideal)))
+    assert len(shown["surface"]) == MAX_VIEW_TEXT and shown["relief"] == "dem"
+    assert shown["surface"].startswith("dem:…") and shown["surface"].endswith(str(path)[-100:])

@@ -19,7 +19,7 @@ import zenoh
 from protocol import keys
 from protocol.config import RunConfig, write_atomic
 from protocol.view import (
-    MAP_CELLS, MAP_FILE, VIEW_VERSION, check_map, encode_map, encode_tick, tick_payloads,
+    MAP_CELLS, MAP_FILE, MAX_VIEW_TEXT, VIEW_VERSION, check_map, encode_map, encode_tick, tick_payloads,
 )
 from world.surfaces import DEM_PREFIX, Surface
 
@@ -68,6 +68,15 @@ def height_grid(surface: Surface, low: np.ndarray, high: np.ndarray,
     return z
 
 
+def shown_surface(name: str) -> str:
+    """The surface's name as the view shows it: at most :data:`MAX_VIEW_TEXT` characters, a
+    longer one (a DEM deep in a folder tree) keeping its prefix and the end of its path."""
+    if len(name) <= MAX_VIEW_TEXT:
+        return name
+    prefix = DEM_PREFIX if name.startswith(DEM_PREFIX) else ""
+    return prefix + "…" + name[len(name) - (MAX_VIEW_TEXT - len(prefix) - 1):]
+
+
 def map_payload(config: RunConfig, surface: Surface, ideal: np.ndarray) -> dict:
     """The ``world/view/map`` payload of a run (validated).
 
@@ -83,7 +92,7 @@ def map_payload(config: RunConfig, surface: Surface, ideal: np.ndarray) -> dict:
     z = height_grid(surface, low, high, shape)
     return check_map({
         "v": VIEW_VERSION, "type": "view-map", "run_id": config.run_id,
-        "surface": config.surface,
+        "surface": shown_surface(config.surface),
         "relief": "dem" if config.surface.startswith(DEM_PREFIX) else "analytic",
         "estimator": config.estimator, "dictionary": config.dictionary, "mode": config.mode,
         "followers": config.followers, "ticks": config.ticks, "init_ticks": config.init_ticks,
