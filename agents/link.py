@@ -183,7 +183,22 @@ class AgentLink:
             self._world_seen = self._world_seen or self._world_alive
             self._cond.notify_all()
 
-    # --- waits ---------------------------------------------------------------------------------
+    # --- waits (the helpers below are called holding ``_cond``) --------------------------------
+
+    def _raise_if_finished(self) -> None:
+        """Raise RunFinished once ``world/done`` has arrived."""
+        if self._done is not None:
+            raise RunFinished(f"run finished: results in {self._done.results}",
+                              complete=self._done.complete)
+
+    def _world_gone(self) -> bool:
+        """The world's liveliness token was seen and has gone since."""
+        return self._world_seen and not self._world_alive
+
+    def _raise_if_world_gone(self) -> None:
+        """Raise AgentAbort if the world process disappeared."""
+        if self._world_gone():
+            raise AgentAbort("the world process disappeared")
 
     def wait_step(self, after: int, timeout: float) -> int:
         """Block until a tick newer than ``after`` is announced; return the next one to do
@@ -197,11 +212,8 @@ class AgentLink:
             while True:
                 if self._latest > after:
                     return after + 1 if self.lockstep else self._latest
-                if self._done is not None:
-                    raise RunFinished(f"run finished: results in {self._done.results}",
-                                      complete=self._done.complete)
-                if self._world_seen and not self._world_alive:
-                    raise AgentAbort("the world process disappeared")
+                self._raise_if_finished()
+                self._raise_if_world_gone()
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise AgentAbort(f"agent {self.agent_id}: nothing to do for {timeout:.1f} s "
@@ -238,9 +250,8 @@ class AgentLink:
                 break  # no reply at all within the time left
             time.sleep(WAIT_RETRY_S)
         with self._cond:  # a world that died mid-query: its token goes a moment later
-            self._cond.wait_for(lambda: self._world_seen and not self._world_alive, timeout=1.0)
-            if self._world_seen and not self._world_alive:
-                raise AgentAbort("the world process disappeared")
+            self._cond.wait_for(self._world_gone, timeout=1.0)
+            self._raise_if_world_gone()
         raise AgentAbort(f"no reply from the world on {key} within {self.query_timeout} s")
 
     def join(self, timeout: float) -> Joined:
@@ -249,9 +260,7 @@ class AgentLink:
         deadline = time.monotonic() + timeout
         with self._cond:
             while not self._world_alive:
-                if self._done is not None:
-                    raise RunFinished(f"run finished: results in {self._done.results}",
-                                      complete=self._done.complete)
+                self._raise_if_finished()
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise AgentAbort(f"agent {self.agent_id}: no world for run {self.run_id} "

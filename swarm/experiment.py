@@ -20,18 +20,16 @@ Tables (key columns first, then the metrics, then the run folders behind each ro
 """
 from __future__ import annotations
 
-import math
 import os
-import statistics
 import time
-from collections import defaultdict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 from protocol.config import GPS_DICTIONARIES, RunConfig
 from swarm.grid import (RUN_ATTEMPTS, Axis, GridRun, RunOutcome, execute, expand, is_nan,
-                        read_table, run_grid, summary_row, write_run_index, write_table)
+                        mean_over, read_table, run_grid, summary_row, write_run_index,
+                        write_table)
 from swarm.report import effectiveness_run, write_report
 
 __all__ = ["FULL", "QUICK", "RUN_ATTEMPTS", "TABLE_COLUMNS", "GridRun", "GridSpec", "RunOutcome",
@@ -116,22 +114,13 @@ def follower_rows(outcomes: Iterable[RunOutcome], per_follower: bool) -> list[di
 
 
 def practical_rows(outcomes: Iterable[RunOutcome]) -> list[dict]:
-    """Mean (and sample standard deviation) of follower 1's RMSE over the seeds of each cell."""
-    cells: dict[tuple, list[RunOutcome]] = defaultdict(list)
-    for outcome in outcomes:
-        labels = outcome.run.labels
-        cells[(labels["surface"], labels["variant"], labels["noise_velocity"])].append(outcome)
-    rows = []
-    for (surface, variant, noise), members in cells.items():
-        values = [o.summary["followers"]["1"]["rmse"] for o in members if o.ok]
-        rows.append({
-            "surface": surface, "variant": variant, "noise_velocity": noise,
-            "rmse": statistics.fmean(values) if values else math.nan,
-            "noise_move": members[0].run.labels["noise_move"],
-            "rmse_std": statistics.stdev(values) if len(values) > 1 else math.nan,
-            "seeds": len(values), "runs": " ".join(o.run.folder for o in members),
-        })
-    return rows
+    """Mean (and sample standard deviation) of follower 1's RMSE over the seeds of each cell
+    (:func:`swarm.grid.mean_over`); ``seeds`` counts the runs that succeeded, ``runs`` names
+    them all."""
+    means = mean_over([summary_row(o) for o in outcomes], "run",
+                      ("surface", "variant", "noise_velocity", "noise_move"),
+                      columns=("rmse",), spread=("rmse",))
+    return [{**row, "seeds": row["n"], "runs": row["run"]} for row in means]
 
 
 TABLE_BUILDERS: dict[str, Callable[[list[RunOutcome]], list[dict]]] = {

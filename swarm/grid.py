@@ -18,6 +18,7 @@ import multiprocessing
 import os
 import re
 import shutil
+import statistics
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -327,23 +328,37 @@ def summary_row(outcome: RunOutcome, follower: int = 1) -> dict[str, Any]:
     return row
 
 
-def mean_over(rows: list[dict], over: str, keys: tuple[str, ...]) -> list[dict]:
-    """Rows averaged over the values of column ``over`` (e.g. the seed), grouped by ``keys``;
-    the ratio to persist is the ratio of the means. ``n`` counts the runs that succeeded."""
+def mean_over(rows: list[dict], over: str, keys: tuple[str, ...],
+              columns: tuple[str, ...] = SUMMARY_COLUMNS, spread: tuple[str, ...] = (),
+              skip_failed: bool = True) -> list[dict]:
+    """Rows averaged over the values of column ``over`` (e.g. the seed), grouped by ``keys``.
+
+    A run failed where its first column (``mean_required_range`` by default) is NaN. Each of
+    ``columns`` is the mean of its non-NaN values over the runs that succeeded; with
+    ``skip_failed`` False a failed run makes its group's means NaN instead (a gap is never
+    hidden by the other runs). The ratio to persist, when among ``columns``, is the ratio of
+    the means. Each column ``c`` of ``spread`` also gets ``c_std``, the sample standard
+    deviation of the same values (NaN under two). ``n`` counts the runs averaged (those that
+    succeeded; every run with ``skip_failed`` False); ``over`` joins every run's value.
+    """
     groups: dict[tuple, list[dict]] = {}
     for row in rows:
         groups.setdefault(tuple(row[k] for k in keys), []).append(row)
     out = []
     for key, members in groups.items():
-        ok = [m for m in members if not is_nan(m["mean_required_range"])]
+        ok = [m for m in members if not is_nan(m[columns[0]])]
+        gap = not skip_failed and len(ok) < len(members)
         row = dict(zip(keys, key))
-        for column in SUMMARY_COLUMNS:
-            values = [m[column] for m in ok if not is_nan(m[column])]
+        for column in columns:
+            values = [] if gap else [m[column] for m in ok if not is_nan(m[column])]
             row[column] = math.fsum(values) / len(values) if values else math.nan
-        persist = row["mean_persist_range"]
-        row["ratio_to_persist"] = (row["mean_required_range"] / persist
-                                   if persist and not is_nan(persist) else math.nan)
-        row["n"] = len(ok)
+            if column in spread:
+                row[f"{column}_std"] = statistics.stdev(values) if len(values) > 1 else math.nan
+        if "ratio_to_persist" in columns:
+            persist = row["mean_persist_range"]
+            row["ratio_to_persist"] = (row["mean_required_range"] / persist
+                                       if persist and not is_nan(persist) else math.nan)
+        row["n"] = len(ok) if skip_failed else len(members)
         row[over] = " ".join(str(m[over]) for m in members)
         out.append(row)
     return out

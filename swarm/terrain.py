@@ -30,8 +30,8 @@ import numpy as np
 
 from protocol.config import CLASSICAL, OWN_MOTION, RunConfig, write_atomic
 from swarm.experiment import draw_jobs
-from swarm.grid import (Axis, GridRun, RunOutcome, estimator_axis, expand, is_nan, read_table,
-                        run_grid, summary_row, write_run_index, write_table)
+from swarm.grid import (Axis, GridRun, RunOutcome, estimator_axis, expand, is_nan, mean_over,
+                        read_table, run_grid, summary_row, write_run_index, write_table)
 
 TERRAIN_ESTIMATORS = ("stay", "persist", "edmd-b", *CLASSICAL, *OWN_MOTION, "auto")
 """Estimators the terrain study compares (add classical baselines here by name)."""
@@ -118,13 +118,10 @@ def table_rows(outcomes: list[RunOutcome], followers: range) -> list[dict]:
 def mean_over_starts(rows: list[dict], keys: tuple[str, ...]) -> list[dict]:
     """One row per value of ``keys`` with ``mean_required_range`` averaged over the starts
     (NaN if any start's run failed, so a gap is never hidden by the other starts)."""
-    cells: dict[tuple, list[float]] = {}
-    for row in rows:
-        cells.setdefault(tuple(row[k] for k in keys), []).append(row["mean_required_range"])
-    return [{**dict(zip(keys, key)), "starts": len(values),
-             "mean_required_range": math.nan if any(is_nan(v) for v in values)
-             else sum(values) / len(values)}
-            for key, values in cells.items()]
+    return [{**{k: row[k] for k in keys}, "starts": row["n"],
+             "mean_required_range": row["mean_required_range"]}
+            for row in mean_over(rows, "start", keys, columns=("mean_required_range",),
+                                 skip_failed=False)]
 
 
 def _validate_starts(dem: str | Path, runs: list[GridRun]) -> None:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from agents.estimators import NotFitted
-from agents.policies import NotReady, Policy, make_policy
+from agents.policies import ARX, Auto, FallbackToPersist, NotReady, Persist, Policy, make_policy
 from protocol.config import AgentSettings, RunConfig
 from protocol.messages import Observation, decode
 from swarm.local import run_local
@@ -152,6 +152,80 @@ def test_classical_baselines_beat_persist_where_the_formation_turns():
     for estimator in ("cv", "kalman", "arx", "gp"):
         s = run_local(RunConfig(surface="elliptic", estimator=estimator))[0]["followers"]["1"]
         assert s["mean_required_range"] < 0.5 * s["mean_persist_range"], estimator
+
+
+class CountedARX(ARX):
+    """ARX logging, per state of its data (a new one after every ``record``/``skip``), each
+    proposal and the least-squares fits (``np.linalg.pinv`` calls) it took. With ``refit``
+    every proposal comes from a fresh ARX given the same data: a fit each time, as before
+    ARX remembered its fit."""
+
+    def __init__(self, fits: list[int], refit: bool, **options) -> None:
+        super().__init__(**options)
+        self.fits, self.refit = fits, refit
+        self.data_state = 0
+        self.log: list[tuple] = []  # (data state, fits taken, proposal or None)
+
+    def propose(self, pre):
+        before = self.fits[0]
+        source = self
+        if self.refit:
+            source = ARX(self.order, self.window, self.affine, self.name)
+            source.xs, source.us, source.last_seen = self.xs, self.us, self.last_seen
+        try:
+            proposal = ARX.propose(source, pre)
+        except NotFitted:
+            proposal = None
+        self.log.append((self.data_state, self.fits[0] - before, None if proposal is None
+                         else (proposal.offset.tobytes(), proposal.prediction)))
+        if proposal is None:
+            raise NotFitted(f"{self.name} is not fitted")
+        return proposal
+
+    def record(self, settled, target):
+        self.data_state += 1
+        return super().record(settled, target)
+
+    def skip(self):
+        self.data_state += 1
+        super().skip()
+
+
+def test_arx_fits_once_per_data_change_under_auto(monkeypatch):
+    """``auto`` asks every candidate twice a tick (its proposal, then its score in ``record``)
+    from the same data: ARX fits once per change of its data, and every proposal is
+    bit-identical to one from a fresh fit. Noisy, with lost ticks (the chain restarts)."""
+    fits = [0]
+    pinv = np.linalg.pinv
+
+    def counting_pinv(*args, **kwargs):
+        fits[0] += 1
+        return pinv(*args, **kwargs)
+
+    monkeypatch.setattr(np.linalg, "pinv", counting_pinv)
+    cfg = RunConfig(surface="elliptic", estimator="auto", ticks=30, sensing_range=0.05, seed=2,
+                    noise_range=0.005, noise_bearing=0.002)  # lost at ticks 4 and 24-29
+    runs = {}
+    for refit in (False, True):
+        arx = [CountedARX(fits, refit, order=2, window=10, affine=False, name="arx-o2-w10-lin"),
+               CountedARX(fits, refit, order=1, window=None, affine=True, name="arx-o1")]
+        _, rows = run_local(cfg, policy_factory=lambda s, arx=arx: FallbackToPersist(
+            Auto([Persist(), *arx])))
+        runs[refit] = rows, arx
+    (rows, cached), (rows_refit, refitted) = runs[False], runs[True]
+    assert rows == rows_refit
+    for mine, fresh in zip(cached, refitted):
+        assert [e[::2] for e in mine.log] == [e[::2] for e in fresh.log]  # same proposals
+        assert all(taken == (proposal is not None) for _, taken, proposal in fresh.log)
+        per_state: dict[int, list[tuple]] = {}
+        for state, taken, proposal in mine.log:
+            per_state.setdefault(state, []).append((taken, proposal))
+        for entries in per_state.values():
+            assert sum(t for t, _ in entries) == int(any(p is not None for _, p in entries))
+        asked_twice = sum(1 for e in per_state.values() if sum(p is not None for _, p in e) == 2)
+        assert asked_twice > 0  # auto's pattern happened, with one fit each time
+        fitted = [p is not None for _, _, p in mine.log]
+        assert True in fitted and False in fitted[fitted.index(True):]  # a restart, too
 
 
 @pytest.mark.parametrize("estimator", ["gp-motion", "gp-ratio"])

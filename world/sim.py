@@ -217,14 +217,10 @@ class WorldSim:
             rows.append(row)
         self.complete = j
         for state in self.agents:  # keep only what velocities and baselines still need
-            for old in [t for t in state.settled if t < j - 1]:
-                del state.settled[old]
-            for old in [t for t in state.headings if t < j - 1]:
-                del state.headings[old]
-            for old in [t for t in state.records if t <= j]:
-                del state.records[old]
-        for old in [t for t in self._leader_at if t < j]:
-            del self._leader_at[old]
+            _drop_ticks_before(state.settled, j - 1)
+            _drop_ticks_before(state.headings, j - 1)
+            _drop_ticks_before(state.records, j + 1)
+        _drop_ticks_before(self._leader_at, j)
         for key in [key for key in self._rod_cache if key[1] <= j]:
             del self._rod_cache[key]
         return rows
@@ -451,6 +447,12 @@ class WorldSim:
 
     def _gps(self, pos: np.ndarray) -> tuple[float, float, float]:
         return float(pos[0]), float(pos[1]), float(self.surface.height(pos))
+
+
+def _drop_ticks_before(by_tick: dict, first: int) -> None:
+    """Delete the entries of ``by_tick`` (keyed by tick) for the ticks before ``first``."""
+    for old in [t for t in by_tick if t < first]:
+        del by_tick[old]
 
 
 def _polar(r: float, theta: float) -> np.ndarray:

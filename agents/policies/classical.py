@@ -3,7 +3,8 @@
 
 Each predicts the leader's next position relative to the follower's next ideal position,
 ``x*_{j+1}`` (xy, local frame), and proposes ``relative(pre) - x*``, as dictionary b does. All
-state is data (floats and small arrays) changed only by ``record`` and ``skip``.
+state is data (floats and small arrays) changed only by ``record`` and ``skip`` (fits derived
+from it are remembered until then).
 """
 from __future__ import annotations
 
@@ -259,6 +260,7 @@ class ARX(Policy):
         self.xs: deque[np.ndarray] = deque(maxlen=None if keep is None else keep + 1)
         self.us: deque[np.ndarray] = deque(maxlen=keep)
         self.last_seen: np.ndarray | None = None  # measured relative(settled_j)
+        self._theta: np.ndarray | None = None  # the fit of the data above, until they change
 
     def _regressor(self, end: int, u_now: np.ndarray | None = None) -> np.ndarray:
         """``[x_end, u_end, x_{end-1}, u_{end-1}, ... (, 1)]`` over ``order`` lags."""
@@ -271,6 +273,11 @@ class ARX(Policy):
         return np.concatenate(parts)
 
     def _coefficients(self) -> np.ndarray:
+        """The least-squares coefficients (p, 2), remembered until ``record`` or ``skip``
+        changes the data: ``auto`` asks for a proposal twice a tick (its proposal, then its
+        score in ``record``, before the policy learns), from the same data."""
+        if self._theta is not None:
+            return self._theta
         n_pairs = len(self.us) - self.order + 1  # pairs (phi_i -> x_{i+1}), i = order-1 .. j-1
         if n_pairs < 1:
             raise NotFitted(f"{self.name} needs {self.order + 1} connected samples")
@@ -280,7 +287,8 @@ class ARX(Policy):
         rows = range(first, len(self.us))
         phi = np.array([self._regressor(i) for i in rows])
         target = np.array([self.xs[i + 1] for i in rows])
-        return np.linalg.pinv(phi, rcond=RCOND) @ target  # (p, 2)
+        self._theta = np.linalg.pinv(phi, rcond=RCOND) @ target  # (p, 2)
+        return self._theta
 
     def propose(self, pre: Sensing) -> Proposal:
         if self.last_seen is None:
@@ -291,6 +299,7 @@ class ARX(Policy):
         return Proposal(relative(pre) - x, (float(x[0]), float(x[1])))
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        self._theta = None
         seen = relative(settled)
         if target is None:
             # Lost: the follower is off its ideal position by an unknown amount, and bridging
@@ -309,6 +318,7 @@ class ARX(Policy):
 
     def skip(self) -> None:
         """The leader's displacement over a missed tick is unknown: restart the chain."""
+        self._theta = None
         self.xs.clear()
         self.us.clear()
         self.last_seen = None
