@@ -1,5 +1,6 @@
-"""Held-out surfaces of this benchmark's own (``bench.held_out_surfaces:crossed_waves`` and
-``bench.held_out_surfaces:slanted_folds``).
+"""Held-out surfaces of this benchmark's own (``bench.held_out_surfaces:crossed_waves``,
+``slanted_folds``, ``dunes``, ``bowl_ridge``, ``egg_crate``, ``tilted_bump``, ``terraces`` and
+``twin_hills``); each class says when it was defined and what it was used for.
 
 ``crossed_waves`` was defined after ``auto``'s candidates and rules were chosen and never used to
 choose them: a gentle slope with crossed waves of two wavelengths, driven across obliquely.
@@ -119,3 +120,120 @@ class BowlRidge:
 
 
 bowl_ridge = BowlRidge()
+
+
+class EggCrate:
+    """``F = 0.5 sin(x/3) sin(y/3)``: an egg crate, more strongly curved than the others.
+
+    Defined after ``auto``'s last change and before ``auto-mix``; looked at while weighing
+    ``auto-mix`` (never used to choose its constants).
+    """
+
+    default_leader_start = (-20.0, 1.0, 1.0, 0.05)
+
+    def height(self, p: ArrayLike) -> float:
+        x, y = np.asarray(p, dtype=float)
+        return 0.5 * math.sin(x / 3) * math.sin(y / 3)
+
+    def gradient(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        return np.array([0.5 / 3 * math.cos(x / 3) * math.sin(y / 3),
+                         0.5 / 3 * math.sin(x / 3) * math.cos(y / 3)])
+
+    def hessian(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        diagonal = -0.5 / 9 * math.sin(x / 3) * math.sin(y / 3)
+        mixed = 0.5 / 9 * math.cos(x / 3) * math.cos(y / 3)
+        return np.array([[diagonal, mixed], [mixed, diagonal]])
+
+
+egg_crate = EggCrate()
+
+
+class TiltedBump:
+    """``F = 0.2 x + 0.1 y + 0.5 exp(-((x - 5)² + y²)/30)``: a steep plane with one bump.
+    Defined and used with :class:`EggCrate`."""
+
+    default_leader_start = (-20.0, -3.0, 1.0, 0.1)
+
+    def height(self, p: ArrayLike) -> float:
+        x, y = np.asarray(p, dtype=float)
+        return 0.2 * x + 0.1 * y + 0.5 * math.exp(-((x - 5) ** 2 + y * y) / 30)
+
+    def gradient(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        g = 0.5 * math.exp(-((x - 5) ** 2 + y * y) / 30)
+        return np.array([0.2 - g * (x - 5) / 15, 0.1 - g * y / 15])
+
+    def hessian(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        g = 0.5 * math.exp(-((x - 5) ** 2 + y * y) / 30)
+        a, b = (x - 5) / 15, y / 15
+        return np.array([[g * (a * a - 1 / 15), g * a * b], [g * a * b, g * (b * b - 1 / 15)]])
+
+
+tilted_bump = TiltedBump()
+
+
+class Terraces:
+    """``F = 0.6 tanh(2 sin(x/4)) + 0.05 y``: rounded terraces, crossed at an angle.
+
+    Defined after ``auto-mix``, together with :class:`TwinHills`, and used for nothing but the
+    benchmark's check.
+    """
+
+    default_leader_start = (-20.0, -1.0, 1.0, 0.15)
+
+    def height(self, p: ArrayLike) -> float:
+        x, y = np.asarray(p, dtype=float)
+        return 0.6 * math.tanh(2 * math.sin(x / 4)) + 0.05 * y
+
+    def gradient(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        sech2 = 1 - math.tanh(2 * math.sin(x / 4)) ** 2
+        return np.array([0.6 * sech2 * 0.5 * math.cos(x / 4), 0.05])
+
+    def hessian(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        t = math.tanh(2 * math.sin(x / 4))
+        sech2 = 1 - t * t
+        u_x = 0.5 * math.cos(x / 4)  # d/dx of 2 sin(x/4)
+        u_xx = -0.125 * math.sin(x / 4)
+        fxx = 0.6 * (-2 * t * sech2 * u_x * u_x + sech2 * u_xx)
+        return np.array([[fxx, 0.0], [0.0, 0.0]])
+
+
+terraces = Terraces()
+
+
+class TwinHills:
+    """``F = exp(-((x+6)² + (y-3)²)/40) + 0.8 exp(-((x-8)² + (y+2)²)/25)``: two hills the
+    column passes between. Defined with :class:`Terraces`, under the same rule."""
+
+    default_leader_start = (-22.0, 0.0, 1.0, 0.02)
+    _hills = ((-6.0, 3.0, 1.0, 40.0), (8.0, -2.0, 0.8, 25.0))  # centre x, y, height, width
+
+    def height(self, p: ArrayLike) -> float:
+        x, y = np.asarray(p, dtype=float)
+        return sum(h * math.exp(-((x - cx) ** 2 + (y - cy) ** 2) / w)
+                   for cx, cy, h, w in self._hills)
+
+    def gradient(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        out = np.zeros(2)
+        for cx, cy, h, w in self._hills:
+            g = h * math.exp(-((x - cx) ** 2 + (y - cy) ** 2) / w)
+            out += -2 * g / w * np.array([x - cx, y - cy])
+        return out
+
+    def hessian(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        out = np.zeros((2, 2))
+        for cx, cy, h, w in self._hills:
+            g = h * math.exp(-((x - cx) ** 2 + (y - cy) ** 2) / w)
+            d = np.array([x - cx, y - cy])
+            out += g * (4 * np.outer(d, d) / (w * w) - 2 * np.eye(2) / w)
+        return out
+
+
+twin_hills = TwinHills()

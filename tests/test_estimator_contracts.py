@@ -29,6 +29,7 @@ CONFIGS = {
     "gp-motion": dict(estimator="gp-motion", noise_move=0.02),
     "gp-ratio": dict(estimator="gp-ratio"),
     "auto": dict(estimator="auto"),
+    "auto-mix": dict(estimator="auto-mix"),
 }
 
 
@@ -342,12 +343,14 @@ def test_own_motion_restarts_after_a_lost_tick():
         MotionGP(move_variance=-1.0)
 
 
-def test_auto_records_what_it_followed(tmp_path):
-    summary, _ = run_local(RunConfig(surface="wavy", estimator="auto", ticks=20),
+@pytest.mark.parametrize("estimator", ["auto", "auto-mix"])
+def test_auto_records_what_it_followed(tmp_path, estimator):
+    """auto: the candidate it used; auto-mix: the one with the largest weight in the mixture."""
+    summary, _ = run_local(RunConfig(surface="wavy", estimator=estimator, ticks=20),
                            out_dir=tmp_path)
     shares = summary["followers"]["1"]["followed"]
     names = {c.name for c in make_policy(AgentSettings.from_config(
-        RunConfig(estimator="auto"))).policy.candidates} | {"blend"}
+        RunConfig(estimator=estimator))).policy.candidates} | {"blend"}
     assert set(shares) <= names and sum(shares.values()) == pytest.approx(1.0)
     with open(tmp_path / "observations.csv", newline="") as fh:
         followed = [r["followed"] for r in csv.DictReader(fh) if int(r["tick"]) >= 4]

@@ -110,7 +110,7 @@ class _Fixed(Stay):
 
 
 def _three(**options):
-    options = {"horizon": 2, "trust": 3.0, "burn_in": 0, "combine": "best", **options}
+    options = {"horizon": 2, "trust": 3.0, "burn_in": 0, **options}
     return Auto([_Fixed("a", [0.0, 0.0]), _Fixed("b", [1.0, 0.0]), _Fixed("c", [0.5, 0.0])],
                 **options)
 
@@ -166,7 +166,7 @@ def test_auto_leaves_out_wild_proposals_and_falls_back_to_anchor():
 def test_auto_compares_candidates_on_the_same_ticks():
     """A late starter is compared on the ticks it was scored on, not against older errors."""
     auto = Auto([_Fixed("anchor", [0.0, 0.0]), _Fixed("late", [0.3, 0.0])], horizon=4,
-                trust=None, burn_in=0, combine="best")
+                trust=None, burn_in=0)
     auto.errors[0].extend([0.0, 0.0, 0.5])  # the anchor was perfect early, poor lately
     auto.errors[1].extend([0.2])  # the late starter was scored only on the last tick
     assert auto.propose(_sensing()).followed == "late"
@@ -216,7 +216,9 @@ def test_not_ready_and_factory():
     with pytest.raises(NotReady):
         Persist().propose(_sensing())
     settings = AgentSettings.from_config(RunConfig(estimator="auto"))
-    assert make_policy(settings).name == "auto"
+    assert make_policy(settings).name == "auto" and make_policy(settings).policy.combine == "best"
+    mix = make_policy(AgentSettings.from_config(RunConfig(estimator="auto-mix"))).policy
+    assert mix.name == "auto-mix" and mix.combine == "weights"
     settings = AgentSettings.from_config(RunConfig(dictionary="c", velocity="estimated"))
     assert make_policy(settings).name == "edmd-c-estimated"
     with pytest.raises(ValueError, match="candidates must not be empty"):

@@ -5,7 +5,7 @@
 - :mod:`agents.policies.dictionaries`: the paper's dictionaries a–g composed with EDMD;
 - :mod:`agents.policies.classical`: ``cv``, ``kalman``, ``arx``, ``gp``;
 - :mod:`agents.policies.motion`: ``gp-motion``, ``gp-ratio`` (the follower's own displacement);
-- :mod:`agents.policies.auto`: ``auto`` and its candidates;
+- :mod:`agents.policies.auto`: ``auto``, ``auto-mix`` and their candidates;
 - :mod:`agents.policies.plugin`: ``--estimator package.module:Name``.
 
 :func:`make_policy` builds the policy a follower runs from its settings.
@@ -98,6 +98,8 @@ def make_policy(settings: AgentSettings) -> Policy:
         policy = Persist()
     elif name == "auto":
         policy = Auto(auto_candidates(settings))
+    elif name == "auto-mix":
+        policy = Auto(auto_candidates(settings), combine="weights")
     elif name in CLASSICAL:
         policy = classical(name, settings)
     elif name in OWN_MOTION:

@@ -1,6 +1,7 @@
-"""``auto``: run several candidate policies side by side, score each on every tick, and follow
-their exponentially weighted mixture (or, with ``combine="best"``, the one with the lowest recent
-one-step error); one of the candidates is the blend of the others (beyond the paper)."""
+"""``auto`` and ``auto-mix``: run several candidate policies side by side and score each on every
+tick; ``auto`` uses the one with the lowest recent one-step error (SPEC §6), ``auto-mix`` their
+exponentially weighted mixture; one of the candidates is the blend of the others (beyond the
+paper)."""
 from __future__ import annotations
 
 import dataclasses
@@ -25,7 +26,9 @@ class Auto(Policy):
 
     How the scored candidates (the blend among them) are followed, ``combine``:
 
-    - ``"weights"`` (the default): the exponentially weighted mixture of their proposals. Each
+    - ``"best"`` (the default, ``auto``, SPEC §6): the one candidate with the lowest mean squared
+      error over the window (follow the leader);
+    - ``"weights"`` (``auto-mix``): the exponentially weighted mixture of their proposals. Each
       candidate's loss ``L`` is the discounted mean of its squared errors (each tick
       ``L <- memory L + (1 - memory) e**2``) and its weight is proportional to
       ``exp(-sharpness (L - L_min) / L_min)``: a candidate whose loss is twice the lowest gets
@@ -34,8 +37,6 @@ class Auto(Policy):
       similar loss it averages instead of switching on the luck of the last few ticks (the
       exponentially weighted average forecaster of prediction with expert advice, scale-free
       by ``L_min``). ``followed`` names the candidate with the largest weight.
-    - ``"best"``: the one candidate with the lowest mean squared error over the window
-      (follow the leader).
 
     Every candidate is scored each tick once the true ideal position is seen (``target``):
     ``record`` asks each candidate what it would have proposed from where the follower stood
@@ -51,10 +52,9 @@ class Auto(Policy):
 
     Why a blend among the candidates: candidates whose errors are of similar size and not fully
     correlated average to a smaller error than any one of them, so the blend is often the best
-    candidate; when one candidate is clearly better, it is followed alone. The ``"weights"``
-    mixture over the candidates and the blend was chosen over ``"best"`` because following
-    the lowest of 15 noisy scores chases luck where no candidate is clearly better (large comm
-    periods, sensor noise); the README has the comparison.
+    candidate; when one candidate is clearly better, it is followed alone. Why ``auto-mix``:
+    following the lowest of 15 noisy 4-tick scores chases luck where no candidate is clearly
+    better (large comm periods, sensor noise); the README has the comparison.
 
     Safeguard (``trust``): the first candidate is the anchor (``persist``). A proposal that
     differs from the anchor's by more than ``trust`` times the largest error the anchor made
@@ -63,11 +63,10 @@ class Auto(Policy):
     followed; if no other candidate remains, the anchor is followed.
     """
 
-    name = "auto"
-
     def __init__(self, candidates: list[Policy], horizon: int = 4, trust: float | None = 3.0,
                  min_scores: int = 1, burn_in: int = 1, blend: bool = True,
-                 combine: str = "weights", sharpness: float = 1.0, memory: float = 0.6) -> None:
+                 combine: str = "best", sharpness: float = 1.0, memory: float = 0.6,
+                 name: str | None = None) -> None:
         if not candidates:
             raise ValueError("candidates must not be empty")
         if combine not in COMBINE:
@@ -93,6 +92,7 @@ class Auto(Policy):
         self.burn_in = burn_in
         self.blend = blend
         self.combine, self.sharpness, self.memory = combine, sharpness, memory
+        self.name = name or ("auto" if combine == "best" else "auto-mix")
         # one score window per candidate, the blend's last
         self.errors = [deque(maxlen=horizon) for _ in range(len(candidates) + 1)]
         self.loss: list[float | None] = [None] * (len(candidates) + 1)  # discounted e**2
