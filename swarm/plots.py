@@ -40,7 +40,22 @@ SURFACE_TITLES = {"elliptic": "elliptic, type I", "hyperbolic": "hyperbolic, typ
                   "wavy": "wavy, type III"}
 # estimator -> (colour, marker); the paper draws "without estimation" red and EDMD blue.
 ESTIMATOR_STYLE = {"stay": ("tab:red", "o"), "persist": ("tab:gray", "s"),
-                   "edmd-b": ("tab:blue", "^"), "auto": ("tab:green", "D")}
+                   "edmd-b": ("tab:blue", "^"), "auto": ("tab:green", "D"),
+                   "auto-mix": ("darkgreen", "d"), "cv": ("tab:olive", "v"),
+                   "kalman": ("tab:purple", "P"), "arx": ("tab:brown", "X"),
+                   "gp": ("tab:orange", "*"), "gp-motion": ("tab:pink", "<"),
+                   "gp-ratio": ("tab:cyan", ">")}
+# any other estimator (an edmd variant, your own): these, in the order they first appear
+OTHER_STYLES = [("black", "."), ("tab:blue", "1"), ("tab:red", "2"), ("tab:green", "3"),
+                ("tab:purple", "4"), ("tab:brown", "+"), ("tab:olive", "x")]
+
+
+def estimator_styles(estimators: list[str]) -> dict[str, tuple[str, str]]:
+    """(colour, marker) per estimator: the fixed ones above, then a distinct one for each
+    other estimator (cycling only past 7 of them)."""
+    others = [e for e in estimators if e not in ESTIMATOR_STYLE]
+    return {e: ESTIMATOR_STYLE.get(e) or OTHER_STYLES[others.index(e) % len(OTHER_STYLES)]
+            for e in estimators}
 DICTIONARY_LABELS = {"a": "a\nv", "b": "b\n(r, θ)", "c": "c\n(r, θ, v)", "d": "d\nxy",
                      "e": "e\nxyz", "f": "f\nxy, leader xy", "g": "g\nxyz, leader xyz"}
 # variant -> (face colour, hatch); the paper: no hatch, white lines, white crosses.
@@ -341,12 +356,13 @@ def plot_sensing_range(rows: list[dict], path: str | Path) -> Path:
         mine = [r for r in rows if r["surface"] == surface]
         followers = sorted({r["follower"] for r in mine})
         width = 0.8 / len(estimators)
+        styles = estimator_styles(estimators)
         for i, est in enumerate(estimators):
             values = [next((r["mean_required_range"] for r in mine
                             if r["follower"] == k and r["estimator"] == est), math.nan)
                       for k in followers]
             x = np.arange(len(followers)) + (i - (len(estimators) - 1) / 2) * width
-            ax.bar(x, values, width, color=ESTIMATOR_STYLE.get(est, ("k",))[0],
+            ax.bar(x, values, width, color=styles[est][0],
                    label=est if surface == surfaces[0] else None)
         ax.set_xticks(np.arange(len(followers)), [f"F{k}" for k in followers])
         ax.set_xlabel("follower")
@@ -440,11 +456,12 @@ def plot_comm_period(rows: list[dict], path: str | Path) -> Path:
     estimators = list(dict.fromkeys(r["estimator"] for r in rows))
     periods = sorted({r["comm_period"] for r in rows})
     fig = _figure(PANEL_WIDTH * len(surfaces) + 0.6, 4.8)
+    styles = estimator_styles(estimators)
     for ax, surface in zip(_panels(fig, len(surfaces), sharey=True), surfaces):
         for est in estimators:
             mine = sorted(((r["comm_period"], r["mean_required_range"]) for r in rows
                            if r["surface"] == surface and r["estimator"] == est))
-            color, marker = ESTIMATOR_STYLE.get(est, ("k", "."))
+            color, marker = styles[est]
             ax.plot(*zip(*mine), marker=marker, color=color, ms=5,
                     label=est if surface == surfaces[0] else None)
         ax.set_xscale("log", base=2)
@@ -466,11 +483,12 @@ def plot_position(rows: list[dict], path: str | Path) -> Path:
     periods = sorted({r["comm_period"] for r in rows})
     estimators = list(dict.fromkeys(r["estimator"] for r in rows))
     fig = _figure(PANEL_WIDTH * len(periods) + 0.6, 4.8)
+    styles = estimator_styles(estimators)
     for ax, period in zip(_panels(fig, len(periods), sharey=True), periods):
         for est in estimators:
             mine = sorted((r["follower"], r["mean_required_range"]) for r in rows
                           if r["comm_period"] == period and r["estimator"] == est)
-            color, marker = ESTIMATOR_STYLE.get(est, ("k", "."))
+            color, marker = styles[est]
             ax.plot(*zip(*mine), marker=marker, color=color, ms=5,
                     label=est if period == periods[0] else None)
         _log_y(ax)

@@ -197,3 +197,13 @@ def test_every_run_failed_still_gives_tables_and_report(tmp_path):
     report = result["report"].read_text()
     assert f"**{len(runs)} run(s) failed**" in report
     assert "effectiveness_elliptic` could not be drawn" in report
+
+
+def test_every_estimator_of_a_figure_gets_its_own_style():
+    """The terrain figures once drew six estimators as identical black curves."""
+    from swarm.plots import estimator_styles
+    from swarm.terrain import TERRAIN_ESTIMATORS
+
+    names = [*TERRAIN_ESTIMATORS, "edmd-c", "edmd-g", "tests.example_estimator:MeanStep"]
+    styles = estimator_styles(names)
+    assert set(styles) == set(names) and len(set(styles.values())) == len(names)
