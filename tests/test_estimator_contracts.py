@@ -157,24 +157,34 @@ def test_classical_baselines_beat_persist_where_the_formation_turns():
 
 class CountedARX(ARX):
     """ARX logging, per state of its data (a new one after every ``record``/``skip``), each
-    proposal and the least-squares fits (``np.linalg.pinv`` calls) it took. With ``refit``
-    every proposal comes from a fresh ARX given the same data: a fit each time, as before
-    ARX remembered its fit."""
+    proposal and the least-squares fits (``np.linalg.pinv`` calls) it took, and the fits each
+    ``leverage`` (which ``auto`` asks first) took. With ``refit`` every proposal comes from a
+    fresh ARX given the same data: a fit each time, as before ARX remembered its fit."""
 
     def __init__(self, fits: list[int], refit: bool, **options) -> None:
         super().__init__(**options)
         self.fits, self.refit = fits, refit
         self.data_state = 0
         self.log: list[tuple] = []  # (data state, fits taken, proposal or None)
+        self.leverage_fits: list[tuple] = []  # (data state, fits taken)
+
+    def _source(self):
+        if not self.refit:
+            return self
+        source = ARX(self.order, self.window, self.affine, self.name)
+        source.xs, source.us, source.last_seen = self.xs, self.us, self.last_seen
+        return source
+
+    def leverage(self, pre):
+        before = self.fits[0]
+        value = ARX.leverage(self._source(), pre)
+        self.leverage_fits.append((self.data_state, self.fits[0] - before))
+        return value
 
     def propose(self, pre):
         before = self.fits[0]
-        source = self
-        if self.refit:
-            source = ARX(self.order, self.window, self.affine, self.name)
-            source.xs, source.us, source.last_seen = self.xs, self.us, self.last_seen
         try:
-            proposal = ARX.propose(source, pre)
+            proposal = ARX.propose(self._source(), pre)
         except NotFitted:
             proposal = None
         self.log.append((self.data_state, self.fits[0] - before, None if proposal is None
@@ -221,8 +231,12 @@ def test_arx_fits_once_per_data_change_under_auto(monkeypatch):
         per_state: dict[int, list[tuple]] = {}
         for state, taken, proposal in mine.log:
             per_state.setdefault(state, []).append((taken, proposal))
-        for entries in per_state.values():
-            assert sum(t for t, _ in entries) == int(any(p is not None for _, p in entries))
+        leverage_fits: dict[int, int] = {}
+        for state, taken in mine.leverage_fits:
+            leverage_fits[state] = leverage_fits.get(state, 0) + taken
+        for state, entries in per_state.items():
+            assert sum(t for t, _ in entries) + leverage_fits.get(state, 0) == int(
+                any(p is not None for _, p in entries))
         asked_twice = sum(1 for e in per_state.values() if sum(p is not None for _, p in e) == 2)
         assert asked_twice > 0  # auto's pattern happened, with one fit each time
         fitted = [p is not None for _, _, p in mine.log]

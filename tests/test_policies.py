@@ -202,6 +202,81 @@ def test_auto_weights_follow_an_exact_candidate_alone():
             Auto([_Fixed("a", [0, 0])], **bad)
 
 
+class _Leveraged(_Fixed):
+    """A fixed candidate that reports a settable leverage, like a least-squares model."""
+
+    lev = None
+
+    def leverage(self, pre):
+        return self.lev
+
+
+@pytest.mark.parametrize("combine", ["best", "weights"])
+def test_auto_scales_a_young_least_squares_score_by_its_leverage(combine):
+    """While its window is not full, a candidate's scores are scaled by min(1, now / then) of
+    its leverage: a fit whose coming regressor sticks out of its data 100x less than when it
+    was scored is judged by 1/100 of that error."""
+    def fresh():
+        ls = _Leveraged("ls", [1.0, 0.0])
+        auto = Auto([_Fixed("anchor", [0.0, 0.0]), ls], horizon=4, trust=None, burn_in=0,
+                    blend=False, combine=combine)
+        return auto, ls
+
+    auto, ls = fresh()
+    ls.lev = 1e-2
+    auto.record(_sensing(), np.array([0.5, 0.0]))  # errors 0.5 (anchor), 0.5 (ls, lev 1e-2)
+    auto.record(_sensing(), np.array([0.7, 0.0]))  # 0.7, 0.3
+    assert list(auto.levels[1]) == [1e-2, 1e-2] and auto.levels[0][0] is None
+    assert auto.propose(_sensing()).followed == "ls"  # 0.3 beats 0.7 anyway
+    auto.record(_sensing(), np.array([0.0, 0.0]))  # 0.0 (anchor), 1.0 (ls): the anchor leads
+    assert auto.propose(_sensing()).followed == "anchor"
+    ls.lev = 1e-4  # the coming regressor lies 100x closer to the data's span
+    scaled = auto._adjusted(1, auto._leverages(_sensing()))
+    assert scaled == pytest.approx([0.005, 0.003, 0.01])
+    assert auto.propose(_sensing()).followed == "ls"
+    ls.lev = 1.0  # never scaled up
+    assert auto._adjusted(1, auto._leverages(_sensing())) == pytest.approx([0.5, 0.3, 1.0])
+    auto.record(_sensing(), np.array([0.0, 0.0]))  # the window is full: plain scores again
+    ls.lev = 1e-4
+    assert auto._adjusted(1, auto._leverages(_sensing())) == list(auto.errors[1])
+    assert auto.propose(_sensing()).followed == "anchor"
+
+
+def test_auto_leaves_the_noise_floor_of_a_young_score_unscaled():
+    """Only the part of a squared score above the readings' noise floor shrinks with the
+    leverage; a score below the floor is judged at the floor."""
+    ls = _Leveraged("ls", [1.0, 0.0])
+    auto = Auto([_Fixed("anchor", [0.0, 0.0]), ls], horizon=4, trust=None, burn_in=0,
+                noise_floor=0.01)
+    ls.lev = 1e-2
+    auto.record(_sensing(), np.array([0.5, 0.0]))  # ls: 0.5
+    auto.record(_sensing(), np.array([0.95, 0.0]))  # ls: 0.05, below the floor's 0.1
+    ls.lev = 1e-3
+    expected = [math.sqrt(0.01 + (0.25 - 0.01) * 0.01), math.sqrt(0.01)]
+    assert auto._adjusted(1, auto._leverages(_sensing())) == pytest.approx(expected)
+    with pytest.raises(ValueError, match="noise_floor"):
+        Auto([_Fixed("a", [0, 0])], noise_floor=-1.0)
+    settings = AgentSettings.from_config(RunConfig(estimator="auto-mix", noise_range=0.02,
+                                                   noise_bearing=0.01))
+    mix = make_policy(settings).policy  # twice the variance per coordinate of a reading
+    assert mix.noise_floor == pytest.approx(0.02**2 + (settings.spacing * 0.01) ** 2)
+
+
+def test_arx_leverage_is_the_part_of_the_regressor_outside_the_data():
+    from agents.policies import ARX
+    rng = np.random.default_rng(5)
+    arx = ARX(order=1, window=None)  # regressor [x (2), u (2), 1]: 5 coefficients per row
+    assert arx.leverage(_sensing()) is None and Persist().leverage(_sensing()) is None
+    seen = []
+    for k in range(9):
+        r, theta = 3.0 + rng.normal(0, 0.3), rng.normal(0, 0.5)
+        arx.record(Sensing(tick=k, r=r, theta=theta), rng.normal(0, 0.2, size=2))
+        seen.append(arx.leverage(Sensing(tick=k + 1, r=3.1, theta=0.2)))
+    assert seen[0] is None  # no pair yet
+    assert all(0.0 < v < 1.0 for v in seen[1:4])  # 1-3 pairs span less than 5 dimensions
+    assert all(v < 1e-9 for v in seen[5:])  # 5 pairs in general position span them all
+
+
 def test_auto_burn_in_drops_each_candidates_first_score():
     auto = Auto([_Fixed("a", [0.0, 0.0]), _Fixed("b", [1.0, 0.0])], burn_in=1)
     auto.record(_sensing(), np.array([0.4, 0.0]))

@@ -96,10 +96,10 @@ def make_policy(settings: AgentSettings) -> Policy:
         policy: Policy = Stay()
     elif name == "persist":
         policy = Persist()
-    elif name == "auto":
-        policy = Auto(auto_candidates(settings))
-    elif name == "auto-mix":
-        policy = Auto(auto_candidates(settings), combine="weights")
+    elif name in ("auto", "auto-mix"):
+        # a score's expected share from the readings' noise: the pre reading's, in 2 coordinates
+        policy = Auto(auto_candidates(settings), combine="best" if name == "auto" else "weights",
+                      noise_floor=2.0 * reading_variance(settings))
     elif name in CLASSICAL:
         policy = classical(name, settings)
     elif name in OWN_MOTION:

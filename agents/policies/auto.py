@@ -66,7 +66,7 @@ class Auto(Policy):
     def __init__(self, candidates: list[Policy], horizon: int = 4, trust: float | None = 3.0,
                  min_scores: int = 1, burn_in: int = 1, blend: bool = True,
                  combine: str = "best", sharpness: float = 1.0, memory: float = 0.6,
-                 name: str | None = None) -> None:
+                 noise_floor: float = 0.0, name: str | None = None) -> None:
         if not candidates:
             raise ValueError("candidates must not be empty")
         if combine not in COMBINE:
@@ -75,6 +75,8 @@ class Auto(Policy):
             raise ValueError(f"sharpness must be positive, got {sharpness}")
         if not 0 <= memory < 1:
             raise ValueError(f"memory must be in [0, 1), got {memory}")
+        if not 0 <= noise_floor < math.inf:
+            raise ValueError(f"noise_floor must be finite and >= 0, got {noise_floor}")
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         if not 1 <= min_scores <= horizon:
@@ -92,10 +94,13 @@ class Auto(Policy):
         self.burn_in = burn_in
         self.blend = blend
         self.combine, self.sharpness, self.memory = combine, sharpness, memory
+        self.noise_floor = noise_floor
         self.name = name or ("auto" if combine == "best" else "auto-mix")
         # one score window per candidate, the blend's last
         self.errors = [deque(maxlen=horizon) for _ in range(len(candidates) + 1)]
         self.loss: list[float | None] = [None] * (len(candidates) + 1)  # discounted e**2
+        # each score's leverage (Policy.leverage) when it was made, aligned with the windows
+        self.levels = [deque(maxlen=horizon) for _ in range(len(candidates) + 1)]
         self.scored = [0] * (len(candidates) + 1)  # ticks each was scored on
 
     def _eligible(self, proposals: list[Proposal | None]) -> list[int]:
@@ -109,17 +114,41 @@ class Auto(Policy):
                 np.hypot(*(proposals[i].offset - anchor.offset))) <= radius]
         return ready
 
-    def _mse(self, errors: list[deque], ready: list[int]) -> dict[int, float]:
-        common = min(len(errors[i]) for i in ready)
-        return {i: math.fsum(e * e for e in list(errors[i])[len(errors[i]) - common:]) / common
+    def _leverages(self, pre: Sensing) -> list[float | None]:
+        """Each candidate's :meth:`Policy.leverage` for ``pre`` (the blend's: None)."""
+        return [cand.leverage(pre) for cand in self.candidates] + [None]
+
+    def _adjusted(self, i: int, now: list[float | None] | None) -> list[float]:
+        """Candidate ``i``'s scores as judged for the coming proposal.
+
+        While the window of a candidate with a leverage (a least-squares model fitted on few
+        pairs) is not yet full, the part of each squared score above the noise floor ``f`` is
+        scaled by ``s**2``, ``s = min(1, now / then)`` of its leverages:
+        ``sqrt(f + max(0, e**2 - f) s**2)``. Its next error shrinks with how much less the
+        coming regressor sticks out of the data than the scored one did; the sensor noise's
+        share of a score does not. Otherwise the scores as they are."""
+        errors = list(self.errors[i])
+        if now is None or now[i] is None or len(errors) >= self.errors[i].maxlen:
+            return errors
+        floor, out = self.noise_floor, []
+        for e, then in zip(errors, self.levels[i]):
+            scale = min(1.0, now[i] / then) if then else 1.0
+            out.append(math.sqrt(floor + max(0.0, e * e - floor) * scale * scale))
+        return out
+
+    def _mse(self, ready: list[int], now: list[float | None] | None = None) -> dict[int, float]:
+        common = min(len(self.errors[i]) for i in ready)
+        return {i: math.fsum(e * e for e in self._adjusted(i, now)[-common:]) / common
                 for i in ready}
 
-    def weights(self, proposals: list[Proposal | None]) -> dict[int, float]:
-        """The blend's weight (summing to 1) of each candidate that enters it, by index."""
+    def weights(self, proposals: list[Proposal | None],
+                now: list[float | None] | None = None) -> dict[int, float]:
+        """The blend's weight (summing to 1) of each candidate that enters it, by index
+        (``now``: the candidates' leverages for this proposal, see :meth:`_adjusted`)."""
         ready = self._eligible(proposals)
         if not ready:
             raise NotFitted("no candidate of auto is scored yet")
-        mse = self._mse(self.errors, ready)
+        mse = self._mse(ready, now)
         best = min(ready, key=lambda i: (mse[i], i))
         if mse[best] == 0.0:
             exact = [i for i in ready if mse[i] == 0.0]
@@ -128,9 +157,20 @@ class Auto(Policy):
         total = math.fsum(inverse.values())
         return {i: w / total for i, w in inverse.items()}
 
-    def mixture(self, ready: list[int]) -> dict[int, float]:
+    def _loss(self, i: int, now: list[float | None] | None) -> float:
+        """Candidate ``i``'s discounted loss, from its adjusted scores while its window is not
+        yet full (it then holds all of them)."""
+        if len(self.errors[i]) >= self.errors[i].maxlen or now is None or now[i] is None:
+            return self.loss[i]
+        loss = None
+        for e in self._adjusted(i, now):
+            loss = e * e if loss is None else self.memory * loss + (1.0 - self.memory) * e * e
+        return loss
+
+    def mixture(self, ready: list[int],
+                now: list[float | None] | None = None) -> dict[int, float]:
         """The ``"weights"`` mixture's weight (summing to 1) of each ready candidate, by index."""
-        losses = {i: self.loss[i] for i in ready}
+        losses = {i: self._loss(i, now) for i in ready}
         lowest = min(losses.values())
         if lowest == 0.0:
             exact = [i for i in ready if losses[i] == 0.0]
@@ -143,12 +183,13 @@ class Auto(Policy):
     def _name(self, index: int) -> str:
         return BLEND if index == len(self.candidates) else self.candidates[index].name
 
-    def _blended(self, pre: Sensing, proposals: list[Proposal | None]) -> Proposal | None:
+    def _blended(self, pre: Sensing, proposals: list[Proposal | None],
+                 now: list[float | None] | None) -> Proposal | None:
         """The blend's proposal, or None while fewer than two candidates enter it."""
         if not self.blend:
             return None
         try:
-            weights = self.weights(proposals)
+            weights = self.weights(proposals, now)
         except NotFitted:
             return None
         if len(weights) < 2:
@@ -158,7 +199,8 @@ class Auto(Policy):
         # predicted relative position (xy) its offset implies
         return Proposal(offset, tuple(float(v) for v in relative(pre) - offset), followed=BLEND)
 
-    def _proposals(self, pre: Sensing) -> list[Proposal | None]:
+    def _proposals(self, pre: Sensing,
+                   now: list[float | None] | None = None) -> list[Proposal | None]:
         """Each candidate's proposal (None: not ready), the blend's last."""
         out = []
         for cand in self.candidates:
@@ -166,10 +208,11 @@ class Auto(Policy):
                 out.append(cand.propose(pre))
             except NotFitted:
                 out.append(None)
-        return out + [self._blended(pre, out)]
+        return out + [self._blended(pre, out, now)]
 
     def propose(self, pre: Sensing) -> Proposal:
-        proposals = self._proposals(pre)
+        now = self._leverages(pre)
+        proposals = self._proposals(pre, now)
         if all(p is None for p in proposals):
             raise NotFitted("no candidate of auto is ready")
         ready = self._eligible(proposals)
@@ -177,10 +220,10 @@ class Auto(Policy):
             top = 0 if proposals[0] is not None else next(
                 i for i, p in enumerate(proposals) if p is not None)
         elif self.combine == "best":
-            mse = self._mse(self.errors, ready)
+            mse = self._mse(ready, now)
             top = min(ready, key=lambda i: (mse[i], i))
         else:
-            weights = self.mixture(ready)
+            weights = self.mixture(ready, now)
             top = min(weights, key=lambda i: (-weights[i], i))
             if len(weights) > 1:
                 offset = np.sum([w * proposals[i].offset for i, w in sorted(weights.items())],
@@ -191,13 +234,16 @@ class Auto(Policy):
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
         if target is not None:
-            proposals = self._proposals(reconstructed_pre(settled, target))
+            pre = reconstructed_pre(settled, target)
+            now = self._leverages(pre)
+            proposals = self._proposals(pre, now)
             for i, proposal in enumerate(proposals):
                 if proposal is not None:
                     self.scored[i] += 1
                     if self.scored[i] > self.burn_in:
                         error = float(np.hypot(*(proposal.offset - target)))
                         self.errors[i].append(error)
+                        self.levels[i].append(now[i])
                         last = self.loss[i]
                         self.loss[i] = error * error if last is None else (
                             self.memory * last + (1.0 - self.memory) * error * error)

@@ -119,6 +119,13 @@ class Policy:
     def skip(self) -> None:
         """A tick went by without this follower (it missed it or was restarting)."""
 
+    def leverage(self, pre: Sensing) -> float | None:
+        """For a least-squares model fitted on few data: how far the regressor of the coming
+        proposal lies outside the span of the fitted ones (0 to 1); None (the default) for
+        every other policy. ``auto`` uses it while a candidate has few scores (a pure read,
+        like ``propose``)."""
+        return None
+
 
 class Stay(Policy):
     """No estimation: wait where the last tick ended (the paper's "without EDMD")."""

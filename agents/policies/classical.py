@@ -260,7 +260,8 @@ class ARX(Policy):
         self.xs: deque[np.ndarray] = deque(maxlen=None if keep is None else keep + 1)
         self.us: deque[np.ndarray] = deque(maxlen=keep)
         self.last_seen: np.ndarray | None = None  # measured relative(settled_j)
-        self._theta: np.ndarray | None = None  # the fit of the data above, until they change
+        # the fit of the data above (coefficients, projector), until they change
+        self._fitted: tuple[np.ndarray, np.ndarray] | None = None
 
     def _regressor(self, end: int, u_now: np.ndarray | None = None) -> np.ndarray:
         """``[x_end, u_end, x_{end-1}, u_{end-1}, ... (, 1)]`` over ``order`` lags."""
@@ -272,12 +273,13 @@ class ARX(Policy):
             parts.append(np.ones(1))
         return np.concatenate(parts)
 
-    def _coefficients(self) -> np.ndarray:
-        """The least-squares coefficients (p, 2), remembered until ``record`` or ``skip``
-        changes the data: ``auto`` asks for a proposal twice a tick (its proposal, then its
-        score in ``record``, before the policy learns), from the same data."""
-        if self._theta is not None:
-            return self._theta
+    def _fit(self) -> tuple[np.ndarray, np.ndarray]:
+        """The least-squares coefficients (p, 2) and the projector (p, p) onto the span of the
+        fitted regressors, remembered until ``record`` or ``skip`` changes the data: ``auto``
+        asks for a proposal twice a tick (its proposal, then its score in ``record``, before
+        the policy learns), from the same data."""
+        if self._fitted is not None:
+            return self._fitted
         n_pairs = len(self.us) - self.order + 1  # pairs (phi_i -> x_{i+1}), i = order-1 .. j-1
         if n_pairs < 1:
             raise NotFitted(f"{self.name} needs {self.order + 1} connected samples")
@@ -287,19 +289,37 @@ class ARX(Policy):
         rows = range(first, len(self.us))
         phi = np.array([self._regressor(i) for i in rows])
         target = np.array([self.xs[i + 1] for i in rows])
-        self._theta = np.linalg.pinv(phi, rcond=RCOND) @ target  # (p, 2)
-        return self._theta
+        pinv = np.linalg.pinv(phi, rcond=RCOND)
+        self._fitted = (pinv @ target, pinv @ phi)  # (p, 2), (p, p)
+        return self._fitted
 
-    def propose(self, pre: Sensing) -> Proposal:
+    def _coefficients(self) -> np.ndarray:
+        return self._fit()[0]
+
+    def _now(self, pre: Sensing) -> np.ndarray:
+        """The regressor of the coming prediction, from the pre-move sensing."""
         if self.last_seen is None:
             raise NotFitted(f"{self.name} needs one settled measurement")
-        u = relative(pre) - self.last_seen
-        theta = self._coefficients()
-        x = self._regressor(len(self.xs) - 1, u_now=u) @ theta
+        return self._regressor(len(self.xs) - 1, u_now=relative(pre) - self.last_seen)
+
+    def leverage(self, pre: Sensing) -> float | None:
+        """How far the coming regressor lies outside the span of the fitted ones, relative to
+        its length: ``|(I - P) phi| / |phi|`` (0: the prediction interpolates the data; near 1:
+        the minimum-norm fit sets most of it to zero). None while the model cannot fit."""
+        try:
+            phi = self._now(pre)
+            projector = self._fit()[1]
+        except NotFitted:
+            return None
+        return float(np.linalg.norm(phi - projector @ phi) / np.linalg.norm(phi))
+
+    def propose(self, pre: Sensing) -> Proposal:
+        phi = self._now(pre)
+        x = phi @ self._coefficients()
         return Proposal(relative(pre) - x, (float(x[0]), float(x[1])))
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
-        self._theta = None
+        self._fitted = None
         seen = relative(settled)
         if target is None:
             # Lost: the follower is off its ideal position by an unknown amount, and bridging
@@ -318,7 +338,7 @@ class ARX(Policy):
 
     def skip(self) -> None:
         """The leader's displacement over a missed tick is unknown: restart the chain."""
-        self._theta = None
+        self._fitted = None
         self.xs.clear()
         self.us.clear()
         self.last_seen = None
