@@ -1,6 +1,7 @@
 """Held-out surfaces of this benchmark's own (``bench.held_out_surfaces:crossed_waves``,
-``slanted_folds``, ``dunes``, ``bowl_ridge``, ``egg_crate``, ``tilted_bump``, ``terraces`` and
-``twin_hills``); each class says when it was defined and what it was used for.
+``slanted_folds``, ``dunes``, ``bowl_ridge``, ``egg_crate``, ``tilted_bump``, ``terraces``,
+``twin_hills``, ``twisted_saddle`` and ``long_waves``); each class says when it was defined and
+what it was used for.
 
 ``crossed_waves`` was defined after ``auto``'s candidates and rules were chosen and never used to
 choose them: a gentle slope with crossed waves of two wavelengths, driven across obliquely.
@@ -237,3 +238,55 @@ class TwinHills:
 
 
 twin_hills = TwinHills()
+
+
+class TwistedSaddle:
+    """``F = 0.015 x y + 0.3 sin(y/3)``: a twisted saddle with ridges along x.
+
+    Defined after the leverage rule of ``auto`` and ``auto-mix``, together with
+    :class:`LongWaves`, and used for nothing but the check of that rule.
+    """
+
+    default_leader_start = (-20.0, 2.0, 1.0, 0.05)
+
+    def height(self, p: ArrayLike) -> float:
+        x, y = np.asarray(p, dtype=float)
+        return 0.015 * x * y + 0.3 * math.sin(y / 3)
+
+    def gradient(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        return np.array([0.015 * y, 0.015 * x + 0.1 * math.cos(y / 3)])
+
+    def hessian(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        return np.array([[0.0, 0.015], [0.015, -0.1 / 3 * math.sin(y / 3)]])
+
+
+twisted_saddle = TwistedSaddle()
+
+
+class LongWaves:
+    """``F = 1.2 sin(x/9) + 0.4 sin(y/6 - x/15)``: long swells with a crossing chop.
+    Defined with :class:`TwistedSaddle`, under the same rule."""
+
+    default_leader_start = (-20.0, -1.0, 1.0, 0.1)
+
+    def height(self, p: ArrayLike) -> float:
+        x, y = np.asarray(p, dtype=float)
+        return 1.2 * math.sin(x / 9) + 0.4 * math.sin(y / 6 - x / 15)
+
+    def gradient(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        c = math.cos(y / 6 - x / 15)
+        return np.array([1.2 / 9 * math.cos(x / 9) - 0.4 / 15 * c, 0.4 / 6 * c])
+
+    def hessian(self, p: ArrayLike) -> np.ndarray:
+        x, y = np.asarray(p, dtype=float)
+        s = math.sin(y / 6 - x / 15)
+        fxx = -1.2 / 81 * math.sin(x / 9) - 0.4 / 225 * s
+        fxy = 0.4 / 90 * s
+        fyy = -0.4 / 36 * s
+        return np.array([[fxx, fxy], [fxy, fyy]])
+
+
+long_waves = LongWaves()
