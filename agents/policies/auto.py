@@ -18,6 +18,15 @@ BLEND = "blend"
 COMBINE = ("weights", "best")
 
 
+def _weighted(pre: Sensing, proposals: list[Proposal | None], weights: dict[int, float],
+              followed: str) -> Proposal:
+    """The weighted mean of the proposals' offsets (weights by index, summing to 1). The
+    candidates' predictions live in different lifted spaces: the mean's is the predicted
+    relative position (xy) its offset implies."""
+    offset = np.sum([w * proposals[i].offset for i, w in sorted(weights.items())], axis=0)
+    return Proposal(offset, tuple(float(v) for v in relative(pre) - offset), followed=followed)
+
+
 class Auto(Policy):
     """Follow the candidates by their recent one-step errors (SPEC §6); with ``blend=True`` the
     candidates include their own *blend*: the weighted mean of their proposals with weights
@@ -118,6 +127,11 @@ class Auto(Policy):
         """Each candidate's :meth:`Policy.leverage` for ``pre`` (the blend's: None)."""
         return [cand.leverage(pre) for cand in self.candidates] + [None]
 
+    def _young(self, i: int, now: list[float | None] | None) -> bool:
+        """Candidate ``i`` reports a leverage and its score window is not yet full."""
+        return now is not None and now[i] is not None and (
+            len(self.errors[i]) < self.errors[i].maxlen)
+
     def _adjusted(self, i: int, now: list[float | None] | None) -> list[float]:
         """Candidate ``i``'s scores as judged for the coming proposal.
 
@@ -128,7 +142,7 @@ class Auto(Policy):
         coming regressor sticks out of the data than the scored one did; the sensor noise's
         share of a score does not. Otherwise the scores as they are."""
         errors = list(self.errors[i])
-        if now is None or now[i] is None or len(errors) >= self.errors[i].maxlen:
+        if not self._young(i, now):
             return errors
         floor, out = self.noise_floor, []
         for e, then in zip(errors, self.levels[i]):
@@ -160,7 +174,7 @@ class Auto(Policy):
     def _loss(self, i: int, now: list[float | None] | None) -> float:
         """Candidate ``i``'s discounted loss, from its adjusted scores while its window is not
         yet full (it then holds all of them)."""
-        if len(self.errors[i]) >= self.errors[i].maxlen or now is None or now[i] is None:
+        if not self._young(i, now):
             return self.loss[i]
         loss = None
         for e in self._adjusted(i, now):
@@ -194,10 +208,7 @@ class Auto(Policy):
             return None
         if len(weights) < 2:
             return None
-        offset = np.sum([w * proposals[i].offset for i, w in sorted(weights.items())], axis=0)
-        # the candidates' predictions live in different lifted spaces: the blend's is the
-        # predicted relative position (xy) its offset implies
-        return Proposal(offset, tuple(float(v) for v in relative(pre) - offset), followed=BLEND)
+        return _weighted(pre, proposals, weights, BLEND)
 
     def _proposals(self, pre: Sensing,
                    now: list[float | None] | None = None) -> list[Proposal | None]:
@@ -226,10 +237,7 @@ class Auto(Policy):
             weights = self.mixture(ready, now)
             top = min(weights, key=lambda i: (-weights[i], i))
             if len(weights) > 1:
-                offset = np.sum([w * proposals[i].offset for i, w in sorted(weights.items())],
-                                axis=0)
-                return Proposal(offset, tuple(float(v) for v in relative(pre) - offset),
-                                followed=self._name(top))
+                return _weighted(pre, proposals, weights, self._name(top))
         return dataclasses.replace(proposals[top], followed=self._name(top))
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
