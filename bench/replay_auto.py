@@ -1,0 +1,244 @@
+"""Weigh ``auto`` variants offline: record every candidate's answers once, replay any rule.
+
+A follower snaps onto the rod end each tick, so what its candidates see, propose and report
+does not depend on which of them ``auto`` follows (up to the world's 1e-8 geodesic accuracy,
+which matters only in cells whose errors are that small). So one run per case records:
+
+- the follower's calls to its policy: ``propose(pre)``, ``record(settled, target)``,
+  ``skip()``;
+- each candidate's answers, in call order: ``leverage(pre)`` and ``propose(pre)`` (or "not
+  ready").
+
+:func:`replay` then drives the real :class:`agents.policies.Auto`, with any options, over
+stand-in candidates that give back the recorded answers in the same order, and returns the
+mean required range the variant would have had: ``|offset - target|`` over the estimated
+ticks, which is what the world measures when there is no actuation noise. A variant that
+asked its candidates in another order would get an error, not a wrong number.
+
+``python bench/replay_auto.py`` records the paper's and the held-out surfaces noise-free at
+every comm period, and at the issue's middle noise level (seeds 0-4). It then prints a few
+variants side by side: ``auto``, ``auto-mix``, the leverage rule switched off, other windows
+and sharpness. Recording takes a few minutes; each variant then takes seconds.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from agents.estimators import NotFitted  # noqa: E402
+from agents.policies import (Auto, FallbackToPersist, Policy, Proposal,  # noqa: E402
+                             auto_candidates, reading_variance)
+from protocol.config import CLASSICAL, AgentSettings, RunConfig  # noqa: E402
+from protocol.messages import Sensing  # noqa: E402
+from swarm.local import run_local  # noqa: E402
+
+NOT_READY = "not ready"
+
+
+class _Recorded(Policy):
+    """A candidate that logs its answers (a proposal's offset, or NOT_READY; a leverage)."""
+
+    def __init__(self, policy: Policy) -> None:
+        self.policy, self.name = policy, policy.name
+        self.answers: list[tuple[str, object]] = []
+
+    def leverage(self, pre: Sensing) -> float | None:
+        value = self.policy.leverage(pre)
+        self.answers.append(("leverage", value))
+        return value
+
+    def propose(self, pre: Sensing) -> Proposal:
+        try:
+            proposal = self.policy.propose(pre)
+        except NotFitted:
+            self.answers.append(("propose", NOT_READY))
+            raise
+        self.answers.append(("propose", proposal.offset.copy()))
+        return proposal
+
+    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        return self.policy.record(settled, target)
+
+    def skip(self) -> None:
+        self.policy.skip()
+
+
+class _Replayed(Policy):
+    """Gives back one candidate's recorded answers in order; learns nothing. With
+    ``leverage=False`` it reports no leverage (the leverage rule switched off)."""
+
+    def __init__(self, name: str, answers: list[tuple[str, object]],
+                 leverage: bool = True) -> None:
+        self.name, self.answers, self.at, self.with_leverage = name, answers, 0, leverage
+
+    def _next(self, kind: str) -> object:
+        if self.at >= len(self.answers) or self.answers[self.at][0] != kind:
+            raise RuntimeError(f"replay of {self.name!r} diverged at call {self.at}: the "
+                               f"variant asked for {kind!r} where the recording has "
+                               f"{self.answers[self.at][0] if self.at < len(self.answers) else 'nothing'!r}")
+        self.at += 1
+        return self.answers[self.at - 1][1]
+
+    def leverage(self, pre: Sensing) -> float | None:
+        value = self._next("leverage")
+        return value if self.with_leverage else None
+
+    def propose(self, pre: Sensing) -> Proposal:
+        offset = self._next("propose")
+        if isinstance(offset, str):
+            raise NotFitted(f"{self.name} was not ready")
+        return Proposal(np.array(offset))
+
+    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        return (settled.r, settled.theta)
+
+
+class _Calls(Policy):
+    """Logs the follower's calls to its policy (the recorded ``auto``) and forwards them."""
+
+    def __init__(self, policy: Policy) -> None:
+        self.policy, self.name = policy, policy.name
+        self.calls: list[tuple] = []
+
+    def propose(self, pre: Sensing) -> Proposal:
+        self.calls.append(("propose", pre))
+        return self.policy.propose(pre)
+
+    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        self.calls.append(("record", settled, None if target is None else np.array(target)))
+        return self.policy.record(settled, target)
+
+    def skip(self) -> None:
+        self.calls.append(("skip",))
+        self.policy.skip()
+
+
+@dataclass
+class Trace:
+    """One recorded run of follower 1: its calls, each candidate's answers, the settings."""
+
+    config: RunConfig
+    settings: AgentSettings
+    calls: list[tuple]
+    answers: dict[str, list[tuple[str, object]]] = field(default_factory=dict)
+    recorded_mean: float = math.nan  # the run's own mean required range (``auto``)
+
+
+def record(config: RunConfig) -> Trace:
+    """Run ``config`` with ``auto`` and record follower 1's calls and its candidates' answers.
+
+    Raises ValueError for a run with actuation noise (its required range is not
+    ``|offset - target|``) or without a follower.
+    """
+    if config.noise_move:
+        raise ValueError("record needs noise_move = 0: with actuation noise the required "
+                         "range is not |offset - target|")
+    if config.followers < 1:
+        raise ValueError("record needs at least one follower")
+    made: list[tuple[_Calls, list[_Recorded]]] = []
+
+    def factory(settings: AgentSettings) -> Policy:
+        candidates = [_Recorded(c) for c in auto_candidates(settings)]
+        calls = _Calls(Auto(candidates, noise_floor=2.0 * reading_variance(settings)))
+        made.append((calls, candidates))
+        return FallbackToPersist(calls)
+
+    summary, _ = run_local(dataclasses.replace(config, estimator="auto"),
+                           policy_factory=factory)
+    calls, candidates = made[0]
+    return Trace(config, AgentSettings.from_config(config), calls.calls,
+                 {c.name: c.answers for c in candidates},
+                 summary["followers"]["1"]["mean_required_range"])
+
+
+def replay(trace: Trace, leverage: bool = True, **options) -> float:
+    """The mean required range :class:`Auto` with ``options`` would have had in ``trace``
+    (``noise_floor`` defaults to the run's, as ``make_policy`` sets it; ``leverage=False``
+    switches the leverage rule off)."""
+    options.setdefault("noise_floor", 2.0 * reading_variance(trace.settings))
+    auto = FallbackToPersist(Auto([_Replayed(name, answers, leverage)
+                                   for name, answers in trace.answers.items()], **options))
+    first = trace.config.init_ticks
+    errors, pending = [], None
+    for call in trace.calls:
+        if call[0] == "propose":
+            try:
+                pending = (call[1].tick, auto.propose(call[1]).offset)
+            except NotFitted:  # nothing to go by yet (the first tick), as in the run
+                pending = None
+        elif call[0] == "record":
+            _, settled, target = call
+            if pending is not None and target is not None and pending[0] >= first:
+                errors.append(float(np.hypot(*(pending[1] - target))))
+            pending = None
+            auto.record(settled, target)
+        else:
+            pending = None
+            auto.skip()
+    return math.fsum(errors) / len(errors) if errors else math.nan
+
+
+VARIANTS = {
+    "auto": {},
+    "auto-mix": {"combine": "weights"},
+    "auto, no leverage rule": {"leverage": False},
+    "auto-mix, no leverage rule": {"combine": "weights", "leverage": False},
+    "auto, 8-tick window": {"horizon": 8},
+    "auto-mix, sharpness 3": {"combine": "weights", "sharpness": 3.0},
+    "auto-mix, memory 0.8": {"combine": "weights", "memory": 0.8},
+    "auto-mix, no blend": {"combine": "weights", "blend": False},
+}
+
+
+def main() -> None:
+    from bench.bench_estimator_table import (COMM_PERIODS, HELD_OUT, NOISE_LEVELS, PAPER,
+                                             required)
+
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--quick", action="store_true", help="the paper's surfaces, T_c 1.28, seed 0")
+    args = p.parse_args()
+    surfaces = PAPER if args.quick else PAPER + HELD_OUT
+    periods = (1.28,) if args.quick else COMM_PERIODS
+    seeds = (0,) if args.quick else (0, 1, 2, 3, 4)
+    start = time.perf_counter()
+    clean = {(s, tc): record(RunConfig(surface=s, comm_period=tc)) for s in surfaces
+             for tc in periods}
+    noisy = {(s, seed): record(RunConfig(surface=s, seed=seed, noise_range=NOISE_LEVELS[1][0],
+                                         noise_bearing=NOISE_LEVELS[1][1]))
+             for s in surfaces for seed in seeds}
+    best = {cell: min(required(cell[0], cell[1], estimator=name) for name in CLASSICAL)
+            for cell in clean}
+    print(f"recorded {len(clean) + len(noisy)} runs and the classical baselines in "
+          f"{time.perf_counter() - start:.0f} s (persist below: the same seeds)")
+    mismatch = max(abs(replay(t) - t.recorded_mean) / t.recorded_mean
+                   for t in (*clean.values(), *noisy.values()))
+    print(f"replaying auto reproduces the recorded runs to {mismatch:.1e} (relative)")
+    print(f"\n{'variant':<30}{'noise-free > best classical':>30}{'geo-mean ratio':>16}"
+          f"{'noisy persist/x min':>21}{'median':>8}   (middle level {NOISE_LEVELS[1]})")
+    persist = {s: required(s, 1.28, seeds, estimator="persist", noise_range=NOISE_LEVELS[1][0],
+                           noise_bearing=NOISE_LEVELS[1][1]) for s in surfaces}
+    for label, options in VARIANTS.items():
+        start = time.perf_counter()
+        ratios = [replay(t, **options) / best[cell] for cell, t in clean.items()]
+        gains = []
+        for s in surfaces:
+            mine = [t for (surface, _), t in noisy.items() if surface == s]
+            gains.append(persist[s] / (sum(replay(t, **options) for t in mine) / len(mine)))
+        print(f"{label:<30}{f'{sum(r > 1 for r in ratios)} of {len(ratios)}':>30}"
+              f"{math.exp(sum(map(math.log, ratios)) / len(ratios)):>16.3f}"
+              f"{min(gains):>21.2f}{float(np.median(gains)):>8.1f}"
+              f"   ({time.perf_counter() - start:.1f} s)")
+
+
+if __name__ == "__main__":
+    main()

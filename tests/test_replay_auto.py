@@ -1,0 +1,43 @@
+"""bench/replay_auto.py: recorded candidates replayed through the real Auto."""
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from bench.replay_auto import record, replay
+from protocol.config import RunConfig
+from swarm.local import run_local
+
+NOISY = dict(surface="wavy", ticks=16, seed=3, noise_range=0.02, noise_bearing=0.01)
+
+
+@pytest.fixture(scope="module")
+def trace():
+    return record(RunConfig(**NOISY))
+
+
+def test_replaying_auto_gives_the_recorded_run_exactly(trace):
+    assert replay(trace) == trace.recorded_mean
+
+
+def test_a_replayed_variant_matches_its_real_run(trace):
+    """The follower snaps onto the rod end each tick, so what the candidates see does not
+    depend on what auto followed: replaying auto-mix over auto's recording gives auto-mix's
+    own run (to rounding)."""
+    mix = run_local(RunConfig(estimator="auto-mix", **NOISY))[0]["followers"]["1"]
+    assert replay(trace, combine="weights") == pytest.approx(mix["mean_required_range"],
+                                                             rel=1e-9)
+    assert replay(trace, combine="weights") != trace.recorded_mean  # a different rule
+
+
+def test_a_variant_that_asks_in_another_order_is_refused(trace):
+    cut = dataclasses.replace(trace, answers={**trace.answers,  # a recording cut short
+                                               "persist": trace.answers["persist"][:-3]})
+    with pytest.raises(RuntimeError, match="replay of 'persist' diverged"):
+        replay(cut)
+
+
+def test_record_refuses_actuation_noise():
+    with pytest.raises(ValueError, match="noise_move"):
+        record(RunConfig(noise_move=0.01, ticks=6))
