@@ -64,7 +64,9 @@ VARIANT_STYLE = {"b": ("tab:blue", ""), "c-lagged": ("tab:blue", "//"),
                  "stay": ("tab:red", "")}
 PAPER_COMM_PERIOD = RunConfig().comm_period  # the paper's T_c, the run default
 RANGE_LABEL = "mean required sensing range"
-LENGTH = "(length units)"
+UNITS = ("length units", "time units")  # an analytic surface's
+DEM_UNITS = ("m", "s")  # a DEM's: metres, and seconds of driving
+LENGTH = f"({UNITS[0]})"
 
 
 def _styled(func: Callable) -> Callable:
@@ -221,7 +223,7 @@ def plot_effectiveness(run_dir: str | Path, path: str | Path,
                           if r.get(f"{c}_x") is not None])
     low, high = _box(positions, margin=config.spacing, aspect=3.3)
     surface = make_surface(config.surface, config.surface_params)
-    length = "(m)" if isinstance(surface, DemSurface) else LENGTH  # a DEM is in metres
+    length = f"({DEM_UNITS[0]})" if isinstance(surface, DemSurface) else LENGTH
     contours = _surface_contours(ax, surface, low, high)
     fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {length}")
     lead = sorted((r for r in rows if r["agent"] == 0), key=lambda r: r["tick"])
@@ -369,7 +371,7 @@ def plot_sensing_range(rows: list[dict], path: str | Path) -> Path:
         _log_y(ax)
         ax.set_title(SURFACE_TITLES.get(surface, surface))
     fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
-    fig.legend(loc="outside lower center", ncol=len(estimators))
+    fig.legend(loc="outside lower center", ncol=min(len(estimators), 6))
     return _save(fig, path)
 
 
@@ -449,7 +451,8 @@ def plot_practical(rows: list[dict], path: str | Path) -> Path:
 
 
 @_styled
-def plot_comm_period(rows: list[dict], path: str | Path) -> Path:
+def plot_comm_period(rows: list[dict], path: str | Path,
+                     units: tuple[str, str] = UNITS) -> Path:
     """Mean required sensing range against the comm period T_c (log–log), one panel per
     surface, one curve per estimator."""
     surfaces = _surfaces(rows)
@@ -470,14 +473,16 @@ def plot_comm_period(rows: list[dict], path: str | Path) -> Path:
                    label="paper's T_c" if surface == surfaces[0] else None)
         ax.set_xticks(periods, [f"{p:g}" for p in periods], rotation=45)
         ax.xaxis.set_minor_locator(NullLocator())
-        ax.set(title=SURFACE_TITLES.get(surface, surface), xlabel="comm period T_c (time units)")
-    fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
-    fig.legend(loc="outside lower center", ncol=len(estimators) + 1 if len(surfaces) > 1 else 3)
+        ax.set(title=SURFACE_TITLES.get(surface, surface),
+               xlabel=f"comm period T_c ({units[1]})")
+    fig.axes[0].set_ylabel(f"{RANGE_LABEL} ({units[0]})")
+    fig.legend(loc="outside lower center", ncol=min(len(estimators) + 1, 6) if len(surfaces) > 1 else 3)
     return _save(fig, path)
 
 
 @_styled
-def plot_position(rows: list[dict], path: str | Path) -> Path:
+def plot_position(rows: list[dict], path: str | Path,
+                  units: tuple[str, str] = UNITS) -> Path:
     """Mean required sensing range against the position in the column (follower 1 … N), one
     panel per comm period, one curve per estimator (log y)."""
     periods = sorted({r["comm_period"] for r in rows})
@@ -495,6 +500,6 @@ def plot_position(rows: list[dict], path: str | Path) -> Path:
         followers = sorted({r["follower"] for r in rows})
         ax.set_xticks(followers, [str(k) for k in followers])
         ax.set(title=f"T_c = {period:g}", xlabel="position in the column (follower k)")
-    fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
-    fig.legend(loc="outside lower center", ncol=len(estimators))
+    fig.axes[0].set_ylabel(f"{RANGE_LABEL} ({units[0]})")
+    fig.legend(loc="outside lower center", ncol=min(len(estimators), 6))  # rows of 6
     return _save(fig, path)
