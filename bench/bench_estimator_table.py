@@ -35,7 +35,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from protocol.config import CLASSICAL, OWN_MOTION, RunConfig  # noqa: E402
+from protocol.config import AUTO, CLASSICAL, OWN_MOTION, RunConfig  # noqa: E402
 from swarm.local import run_local  # noqa: E402
 
 PAPER = ("elliptic", "hyperbolic", "wavy")
@@ -48,9 +48,7 @@ HELD_OUT = ("gaussian-hill", "ripple", "bench.held_out_surfaces:crossed_waves",
 UNSEEN = HELD_OUT[-2:]  # defined after the last change to auto and auto-mix
 ESTIMATORS = {"stay": {"estimator": "stay"}, "persist": {"estimator": "persist"},
               "edmd-b": {"estimator": "edmd", "dictionary": "b"},
-              **{name: {"estimator": name} for name in CLASSICAL + OWN_MOTION},
-              "auto": {"estimator": "auto"}, "auto-mix": {"estimator": "auto-mix"}}
-AUTOS = ("auto", "auto-mix")
+              **{name: {"estimator": name} for name in CLASSICAL + OWN_MOTION + AUTO}}
 COMM_PERIODS = (0.32, 0.64, 1.28, 2.56, 5.12)
 NOISE_LEVELS = ((0.005, 0.002), (0.02, 0.01), (0.05, 0.03))  # (range, bearing rad), paired
 # the last one defined after the last change to auto and auto-mix
@@ -112,16 +110,16 @@ def main() -> None:
     print("noise-free, follower 1, T_c = 1.28: mean required sensing range")
     names = list(ESTIMATORS)
     print(f"{'surface':<15}" + "".join(f"{n:>10}" for n in names)
-          + "".join(f"{a + '/edmd-b':>16}{a + '/best cl.':>18}" for a in AUTOS))
+          + "".join(f"{a + '/edmd-b':>16}{a + '/best cl.':>18}" for a in AUTO))
     for s in surfaces:
         row = table[(s, 1.28)]
         tag = "" if s in PAPER else "  (unseen)" if s in UNSEEN else "  (held out)"
         print(f"{short(s):<15}" + "".join(" " + num(row[n]) for n in names)
               + "".join(f"{row[a] / row['edmd-b']:>16.3f}{row[a] / best_classical(row)[1]:>18.3f}"
-                        for a in AUTOS) + tag)
+                        for a in AUTO) + tag)
 
     if not args.quick:
-        for estimator in AUTOS:
+        for estimator in AUTO:
             print(f"\nnoise-free: {estimator} / best classical baseline (target <= 1) "
                   f"[{estimator} / edmd-b] {estimator}'s mean required range, by T_c")
             print(f"{'surface':<15}" + "".join(f"{tc:>26}" for tc in periods))
@@ -160,14 +158,14 @@ def print_noisy(surfaces, noisy_table: dict, levels, seeds) -> None:
         tag = "" if level in NOISE_LEVELS else "  (held-out level)"
         print(f"\nrange sigma {level[0]}, bearing sigma {level[1]} rad{tag}")
         print(f"{'surface':<15}" + "".join(f"{n:>10}" for n in names)
-              + "".join(f"{'persist/' + a:>18}" for a in AUTOS))
-        gains = {a: [] for a in AUTOS}
+              + "".join(f"{'persist/' + a:>18}" for a in AUTO))
+        gains = {a: [] for a in AUTO}
         for s in surfaces:
             row = noisy_table[(s, level)]
-            for a in AUTOS:
+            for a in AUTO:
                 gains[a].append(row["persist"] / row[a])
             print(f"{short(s):<15}" + "".join(" " + num(row[n]) for n in names)
-                  + "".join(f"{gains[a][-1]:>18.3f}" for a in AUTOS))
+                  + "".join(f"{gains[a][-1]:>18.3f}" for a in AUTO))
         print(f"{'mean':<15}" + " " * 10 * len(names)
               + "".join(f"{sum(g) / len(g):>18.3f}" for g in gains.values()))
 
@@ -178,15 +176,15 @@ def print_long_periods(surfaces, seeds) -> None:
           "persist / auto | persist / auto-mix (not an issue target)")
     cells = [(tc, level) for tc in (2.56, 5.12) for level in NOISE_LEVELS]
     tables = {tc: noisy(surfaces, NOISE_LEVELS, seeds, comm_period=tc,
-                        names=["persist", *AUTOS]) for tc in (2.56, 5.12)}
+                        names=["persist", *AUTO]) for tc in (2.56, 5.12)}
     print(f"{'surface':<15}" + "".join(f"{f'{tc} {lv[0]}/{lv[1]}':>18}" for tc, lv in cells))
-    below = {a: 0 for a in AUTOS}
+    below = {a: 0 for a in AUTO}
     for s in surfaces:
         out = []
         for tc, level in cells:
             row = tables[tc][(s, level)]
-            ratios = [row["persist"] / row[a] for a in AUTOS]
-            for a, r in zip(AUTOS, ratios):
+            ratios = [row["persist"] / row[a] for a in AUTO]
+            for a, r in zip(AUTO, ratios):
                 below[a] += r < 1
             out.append(f"{ratios[0]:.2f} | {ratios[1]:.2f}")
         print(f"{short(s):<15}" + "".join(f"{c:>18}" for c in out))

@@ -35,8 +35,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents.estimators import NotFitted  # noqa: E402
-from agents.policies import (Auto, FallbackToPersist, Policy, Proposal,  # noqa: E402
-                             auto_candidates, reading_variance)
+from agents.policies import (FallbackToPersist, Policy, Proposal,  # noqa: E402
+                             auto_candidates, make_auto)
 from protocol.config import CLASSICAL, AgentSettings, RunConfig  # noqa: E402
 from protocol.messages import Sensing  # noqa: E402
 from swarm.local import run_local  # noqa: E402
@@ -148,7 +148,7 @@ def record(config: RunConfig) -> Trace:
 
     def factory(settings: AgentSettings) -> Policy:
         candidates = [_Recorded(c) for c in auto_candidates(settings)]
-        calls = _Calls(Auto(candidates, noise_floor=2.0 * reading_variance(settings)))
+        calls = _Calls(make_auto(settings, candidates))
         made.append((calls, candidates))
         return FallbackToPersist(calls)
 
@@ -164,9 +164,9 @@ def replay(trace: Trace, leverage: bool = True, **options) -> float:
     """The mean required range :class:`Auto` with ``options`` would have had in ``trace``
     (``noise_floor`` defaults to the run's, as ``make_policy`` sets it; ``leverage=False``
     switches the leverage rule off)."""
-    options.setdefault("noise_floor", 2.0 * reading_variance(trace.settings))
-    auto = FallbackToPersist(Auto([_Replayed(name, answers, leverage)
-                                   for name, answers in trace.answers.items()], **options))
+    auto = FallbackToPersist(make_auto(trace.settings, [
+        _Replayed(name, answers, leverage) for name, answers in trace.answers.items()],
+        **options))
     first = trace.config.init_ticks
     errors, pending = [], None
     for call in trace.calls:

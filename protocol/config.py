@@ -23,7 +23,8 @@ from protocol.keys import check_run_id
 
 CLASSICAL = ("cv", "kalman", "arx", "gp")  # the classical tracking baselines (SPEC §6)
 OWN_MOTION = ("gp-motion", "gp-ratio")  # extrapolations of the follower's own displacement
-ESTIMATORS = ("edmd", "stay", "persist", "auto", "auto-mix", *CLASSICAL, *OWN_MOTION)
+AUTO = ("auto", "auto-mix")  # candidates side by side: the lowest score, or their mixture
+ESTIMATORS = ("edmd", "stay", "persist", *AUTO, *CLASSICAL, *OWN_MOTION)
 # Your own estimator (SPEC §6): imported by the follower process only, never checked here
 # beyond its shape.
 PLUGIN_ESTIMATOR = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$")

@@ -28,12 +28,12 @@ from typing import Any
 
 import numpy as np
 
-from protocol.config import CLASSICAL, OWN_MOTION, RunConfig, write_atomic
+from protocol.config import AUTO, CLASSICAL, OWN_MOTION, RunConfig, write_atomic
 from swarm.experiment import draw_jobs
 from swarm.grid import (Axis, GridRun, RunOutcome, estimator_axis, expand, is_nan, mean_over,
                         read_table, run_grid, summary_row, write_run_index, write_table)
 
-TERRAIN_ESTIMATORS = ("stay", "persist", "edmd-b", *CLASSICAL, *OWN_MOTION, "auto", "auto-mix")
+TERRAIN_ESTIMATORS = ("stay", "persist", "edmd-b", *CLASSICAL, *OWN_MOTION, *AUTO)
 """Estimators the terrain study compares (add classical baselines here by name)."""
 COMM_PERIOD_COLUMNS = ("start", "comm_period", "estimator", "mean_required_range", "rmse", "run")
 POSITION_COLUMNS = ("start", "comm_period", "follower", "estimator", "mean_required_range",

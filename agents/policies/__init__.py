@@ -12,7 +12,7 @@
 """
 from __future__ import annotations
 
-from agents.policies.auto import Auto
+from agents.policies.auto import COMBINE, Auto
 from agents.policies.base import (FallbackToPersist, NotReady, Persist, Policy, Proposal, Stay,
                                   Unwrapper, polar, reconstructed_pre, relative)
 from agents.policies.classical import ARX, ConstantVelocity, GaussianProcess, Kalman
@@ -20,12 +20,12 @@ from agents.policies.dictionaries import (EDMDPolicy, RelativeCartesian, Relativ
                                          make_dictionary, paper_edmd)
 from agents.policies.motion import MotionGP, RatioGP
 from agents.policies.plugin import load_estimator
-from protocol.config import CLASSICAL, OWN_MOTION, AgentSettings
+from protocol.config import AUTO, CLASSICAL, OWN_MOTION, AgentSettings
 
 __all__ = ["ARX", "Auto", "ConstantVelocity", "EDMDPolicy", "FallbackToPersist",
            "GaussianProcess", "Kalman", "MotionGP", "NotReady", "Persist", "Policy", "Proposal", "RatioGP", "Stay",
            "Unwrapper", "auto_candidates", "classical", "load_estimator", "make_dictionary",
-           "make_policy", "paper_edmd", "polar", "reading_variance", "reconstructed_pre",
+           "make_auto", "make_policy", "paper_edmd", "polar", "reading_variance", "reconstructed_pre",
            "relative"]
 
 
@@ -88,6 +88,15 @@ def auto_candidates(settings: AgentSettings) -> list[Policy]:
     ]
 
 
+def make_auto(settings: AgentSettings, candidates: list[Policy] | None = None,
+              **options) -> Auto:
+    """``auto`` (``options``: :class:`Auto`'s, e.g. ``combine="weights"`` for ``auto-mix``)
+    over ``candidates`` (default :func:`auto_candidates`), with the run's noise floor: a
+    score's expected share from the readings' noise, the pre reading's in 2 coordinates."""
+    options.setdefault("noise_floor", 2.0 * reading_variance(settings))
+    return Auto(auto_candidates(settings) if candidates is None else candidates, **options)
+
+
 def make_policy(settings: AgentSettings) -> Policy:
     """The policy a follower runs, from its settings; it falls back to ``persist`` (flagged)
     while it cannot predict, and its proposals name what was followed."""
@@ -96,10 +105,8 @@ def make_policy(settings: AgentSettings) -> Policy:
         policy: Policy = Stay()
     elif name == "persist":
         policy = Persist()
-    elif name in ("auto", "auto-mix"):
-        # a score's expected share from the readings' noise: the pre reading's, in 2 coordinates
-        policy = Auto(auto_candidates(settings), combine="best" if name == "auto" else "weights",
-                      noise_floor=2.0 * reading_variance(settings))
+    elif name in AUTO:
+        policy = make_auto(settings, combine=COMBINE[name])
     elif name in CLASSICAL:
         policy = classical(name, settings)
     elif name in OWN_MOTION:

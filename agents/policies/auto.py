@@ -12,10 +12,11 @@ import numpy as np
 
 from agents.estimators import NotFitted
 from agents.policies.base import Policy, Proposal, reconstructed_pre, relative
+from protocol.config import AUTO
 from protocol.messages import Sensing
 
 BLEND = "blend"
-COMBINE = ("weights", "best")
+COMBINE = dict(zip(AUTO, ("best", "weights")))  # estimator name -> how it follows
 
 
 def _weighted(pre: Sensing, proposals: list[Proposal | None], weights: dict[int, float],
@@ -78,8 +79,9 @@ class Auto(Policy):
                  noise_floor: float = 0.0, name: str | None = None) -> None:
         if not candidates:
             raise ValueError("candidates must not be empty")
-        if combine not in COMBINE:
-            raise ValueError(f"combine must be one of {COMBINE}, got {combine!r}")
+        if combine not in COMBINE.values():
+            raise ValueError(f"combine must be one of {tuple(COMBINE.values())}, "
+                             f"got {combine!r}")
         if not sharpness > 0:
             raise ValueError(f"sharpness must be positive, got {sharpness}")
         if not 0 <= memory < 1:
@@ -104,7 +106,7 @@ class Auto(Policy):
         self.blend = blend
         self.combine, self.sharpness, self.memory = combine, sharpness, memory
         self.noise_floor = noise_floor
-        self.name = name or ("auto" if combine == "best" else "auto-mix")
+        self.name = name or next(n for n, how in COMBINE.items() if how == combine)
         # one score window per candidate, the blend's last
         self.errors = [deque(maxlen=horizon) for _ in range(len(candidates) + 1)]
         self.loss: list[float | None] = [None] * (len(candidates) + 1)  # discounted e**2
