@@ -27,9 +27,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from protocol.config import GPS_DICTIONARIES, RunConfig
-from swarm.grid import (RUN_ATTEMPTS, Axis, GridRun, RunOutcome, execute, expand, is_nan,
-                        mean_over, read_table, run_grid, summary_row, write_run_index,
-                        write_table)
+from swarm.grid import (RUN_ATTEMPTS, Axis, GridRun, RunOutcome, execute, expand,
+                        follower_rows, is_nan, mean_over, read_table, run_grid, summary_row,
+                        write_table, write_tables)
 from swarm.report import effectiveness_run, write_report
 
 __all__ = ["FULL", "QUICK", "RUN_ATTEMPTS", "TABLE_COLUMNS", "GridRun", "GridSpec", "RunOutcome",
@@ -103,15 +103,6 @@ def paper_grid(spec: GridSpec = FULL) -> dict[str, list[GridRun]]:
 
 
 # --- tables ------------------------------------------------------------------------------------
-
-def follower_rows(outcomes: Iterable[RunOutcome], per_follower: bool) -> list[dict]:
-    """One row per run (follower 1) or per run and follower, with the run's key columns
-    (:func:`swarm.grid.summary_row`; a failed run's metrics are NaN, so the table shows the
-    gap)."""
-    return [{**summary_row(outcome, k), **({"follower": k} if per_follower else {})}
-            for outcome in outcomes
-            for k in (range(1, outcome.run.config.followers + 1) if per_follower else (1,))]
-
 
 def practical_rows(outcomes: Iterable[RunOutcome]) -> list[dict]:
     """Mean (and sample standard deviation) of follower 1's RMSE over the seeds of each cell
@@ -209,13 +200,9 @@ def write_results(out_dir: str | Path, spec: GridSpec, outcomes: list[RunOutcome
     """
     start = time.perf_counter()
     out_dir = Path(out_dir)
-    tables = {}
-    for table, columns in TABLE_COLUMNS.items():
-        tables[table] = out_dir / "tables" / f"{table}.csv"
-        write_table(tables[table], columns,
-                    TABLE_BUILDERS[table]([o for o in outcomes if o.run.table == table]))
-    write_run_index(out_dir / "tables" / "runs.csv", outcomes)
-    rows = {t: read_table(p) for t, p in tables.items()}  # as the report cites them
+    tables, rows = write_tables(out_dir, {
+        table: (columns, TABLE_BUILDERS[table]([o for o in outcomes if o.run.table == table]))
+        for table, columns in TABLE_COLUMNS.items()}, outcomes)
     figures, problems = draw_figures(out_dir, rows)
     drawn = time.perf_counter() - start
     timing = {"runs": run_time, "figures": drawn, "total": run_time + drawn}

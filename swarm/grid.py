@@ -23,7 +23,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 from protocol.config import DICTIONARIES, GPS_DICTIONARIES, RunConfig, load_config, write_atomic
 
@@ -312,6 +312,25 @@ def estimator_axis(labels) -> Axis:
 SUMMARY_COLUMNS = ("mean_required_range", "mean_persist_range", "ratio_to_persist",
                    "mean_persist_range_noise_free", "mean_stay_range", "rmse", "fallback_ticks",
                    "estimated_ticks")
+
+
+def write_tables(out_dir: Path, tables: dict[str, tuple[tuple[str, ...], list[dict]]],
+                 outcomes: list[RunOutcome]) -> tuple[dict[str, Path], dict[str, list[dict]]]:
+    """Write each table ``name -> (columns, rows)`` as ``out_dir/tables/<name>.csv`` and the
+    run index ``runs.csv``; return the paths and the rows read back, as a report cites them."""
+    paths = {name: out_dir / "tables" / f"{name}.csv" for name in tables}
+    for name, (columns, rows) in tables.items():
+        write_table(paths[name], columns, rows)
+    write_run_index(out_dir / "tables" / "runs.csv", outcomes)
+    return paths, {name: read_table(path) for name, path in paths.items()}
+
+
+def follower_rows(outcomes: Iterable[RunOutcome], per_follower: bool) -> list[dict]:
+    """One row per run (follower 1) or per run and follower, with the run's key columns
+    (:func:`summary_row`; a failed run's metrics are NaN, so the table shows the gap)."""
+    return [{**summary_row(outcome, k), **({"follower": k} if per_follower else {})}
+            for outcome in outcomes
+            for k in (range(1, outcome.run.config.followers + 1) if per_follower else (1,))]
 
 
 def summary_row(outcome: RunOutcome, follower: int = 1) -> dict[str, Any]:

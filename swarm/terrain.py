@@ -30,8 +30,8 @@ import numpy as np
 
 from protocol.config import AUTO, CLASSICAL, OWN_MOTION, RunConfig, write_atomic
 from swarm.experiment import draw_jobs
-from swarm.grid import (Axis, GridRun, RunOutcome, estimator_axis, expand, is_nan, mean_over,
-                        read_table, run_grid, summary_row, write_run_index, write_table)
+from swarm.grid import (Axis, GridRun, RunOutcome, estimator_axis, expand, follower_rows, is_nan,
+                        mean_over, run_grid, write_tables)
 
 TERRAIN_ESTIMATORS = ("stay", "persist", "edmd-b", *CLASSICAL, *OWN_MOTION, *AUTO)
 """Estimators the terrain study compares (add classical baselines here by name)."""
@@ -110,11 +110,6 @@ def terrain_grid(dem: str | Path, spec: TerrainSpec) -> list[GridRun]:
                                     estimator_axis(spec.estimators)])
 
 
-def table_rows(outcomes: list[RunOutcome], followers: range) -> list[dict]:
-    """Rows per run and follower in ``followers`` (NaN metrics for a failed run)."""
-    return [{**summary_row(outcome, k), "follower": k} for outcome in outcomes for k in followers]
-
-
 def mean_over_starts(rows: list[dict], keys: tuple[str, ...]) -> list[dict]:
     """One row per value of ``keys`` with ``mean_required_range`` averaged over the starts
     (NaN if any start's run failed, so a gap is never hidden by the other starts)."""
@@ -155,18 +150,17 @@ def run_terrain_experiment(dem: str | Path, out_dir: str | Path, spec: TerrainSp
     start = time.perf_counter()
     outcomes = run_grid(runs, out_dir / "runs", workers=workers, progress=progress)
     wall_time = time.perf_counter() - start
-    tables = {"terrain_comm_period": out_dir / "tables" / "terrain_comm_period.csv",
-              "terrain_position": out_dir / "tables" / "terrain_position.csv"}
-    write_table(tables["terrain_comm_period"], COMM_PERIOD_COLUMNS,
-                table_rows(outcomes, range(1, 2)))
-    write_table(tables["terrain_position"], POSITION_COLUMNS,
-                table_rows([o for o in outcomes
-                            if o.run.labels["comm_period"] in spec.position_periods],
-                           range(1, spec.followers + 1)))
-    write_run_index(out_dir / "tables" / "runs.csv", outcomes)
-    rows = {name: read_table(path) for name, path in tables.items()}  # as the report cites them
-    figures, problems = draw_terrain_figures(out_dir, dem, runs, spec, rows)
-    report = write_terrain_report(out_dir, dem, spec, rows, figures, problems, outcomes,
+    tables, rows = write_tables(out_dir, {
+        "terrain_comm_period": (COMM_PERIOD_COLUMNS, follower_rows(outcomes, False)),
+        "terrain_position": (POSITION_COLUMNS, follower_rows(
+            [o for o in outcomes if o.run.labels["comm_period"] in spec.position_periods],
+            True))}, outcomes)
+    means = {"terrain_comm_period": mean_over_starts(rows["terrain_comm_period"],
+                                                     ("comm_period", "estimator")),
+             "terrain_position": mean_over_starts(rows["terrain_position"],
+                                                  ("comm_period", "follower", "estimator"))}
+    figures, problems = draw_terrain_figures(out_dir, dem, runs, spec, means)
+    report = write_terrain_report(out_dir, dem, spec, rows, means, figures, problems, outcomes,
                                   wall_time)
     return {"tables": tables, "figures": figures, "figure_problems": problems, "report": report,
             "failed": [o for o in outcomes if not o.ok], "wall_time": wall_time}
@@ -181,17 +175,15 @@ def trajectory_run(runs: list[GridRun], spec: TerrainSpec) -> GridRun:
 
 
 def draw_terrain_figures(out_dir: Path, dem: str | Path, runs: list[GridRun], spec: TerrainSpec,
-                         rows: dict[str, list[dict]]) -> tuple[dict[str, Path], dict[str, str]]:
-    """The study's three figures from the tables' ``rows``; a figure that cannot be drawn is
-    named with the reason."""
+                         means: dict[str, list[dict]]) -> tuple[dict[str, Path], dict[str, str]]:
+    """The study's three figures from the tables' ``means`` over the starts; a figure that
+    cannot be drawn is named with the reason."""
     from swarm import plots
 
     folder = out_dir / "figures"
     label = f"{Path(dem).name}: follower 1,\nmean over {len(spec.leader_starts)} start(s)"
-    comm_rows = [{**r, "surface": label} for r in mean_over_starts(
-        rows["terrain_comm_period"], ("comm_period", "estimator"))]
-    position_rows = mean_over_starts(rows["terrain_position"],
-                                     ("comm_period", "follower", "estimator"))
+    comm_rows = [{**r, "surface": label} for r in means["terrain_comm_period"]]
+    position_rows = means["terrain_position"]
     jobs = {
         "terrain_trajectories": lambda: plots.plot_effectiveness(
             out_dir / "runs" / trajectory_run(runs, spec).folder,
@@ -227,14 +219,13 @@ def _markdown_table(head: list[str], rows: list[list[str]]) -> list[str]:
 
 
 def write_terrain_report(out_dir: Path, dem: str | Path, spec: TerrainSpec,
-                         rows: dict[str, list[dict]], figures: dict[str, Path],
-                         problems: dict[str, str], outcomes: list[RunOutcome],
-                         wall_time: float) -> Path:
-    """``out_dir/report.md``: the figures, the tables' ``rows`` (means over the starts) as
-    markdown and what they show."""
+                         rows: dict[str, list[dict]], means: dict[str, list[dict]],
+                         figures: dict[str, Path], problems: dict[str, str],
+                         outcomes: list[RunOutcome], wall_time: float) -> Path:
+    """``out_dir/report.md``: the figures, the tables' ``means`` over the starts as markdown
+    and what the ``rows`` (every start) show."""
     comm_all, position_all = rows["terrain_comm_period"], rows["terrain_position"]
-    comm = mean_over_starts(comm_all, ("comm_period", "estimator"))
-    position = mean_over_starts(position_all, ("comm_period", "follower", "estimator"))
+    comm, position = means["terrain_comm_period"], means["terrain_position"]
     names = list(spec.estimators)
     starts = "; ".join(f"{i}: {s}" for i, s in enumerate(spec.leader_starts))
     lines = [
