@@ -134,25 +134,33 @@ def _gp_forecast(data: bytes, shape: tuple[int, int], noise: float) -> tuple[flo
     return tuple(_gp_coordinate(t, basis, y[:, i], noise) for i in range(shape[1]))
 
 
+@functools.lru_cache(maxsize=64)
+def _gp_kernel(n: int, ell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The squared-exponential kernel of ticks ``0..n-1`` with length scale ``ell``, its
+    column to tick ``n``, and the identity (n, n): they depend on ``(n, ell)`` only."""
+    t = np.arange(n, dtype=float)
+    return (np.exp(-0.5 * ((t[:, None] - t[None, :]) / ell) ** 2),
+            np.exp(-0.5 * ((t - float(n)) / ell) ** 2), np.eye(n))
+
+
 def _gp_coordinate(t: np.ndarray, basis: np.ndarray, y: np.ndarray, noise: float) -> float:
     scale = float(np.var(y)) + 1e-300
     best = None
     for ell in GP_LENGTHS:
-        k = np.exp(-0.5 * ((t[:, None] - t[None, :]) / ell) ** 2)
+        k, k_new, eye = _gp_kernel(t.size, ell)
         # Signal variance s2 and noise variance enter as C = k + (noise / s2 + jitter) I;
         # s2 is unknown, so the samples' variance stands in for it here.
-        cov = k + (noise / scale + GP_JITTER) * np.eye(t.size)
+        cov = k + (noise / scale + GP_JITTER) * eye
         chol = np.linalg.cholesky(cov)
         solve = lambda b: np.linalg.solve(chol.T, np.linalg.solve(chol, b))  # noqa: E731
         ci_h, ci_y = solve(basis), solve(y)
         beta = np.linalg.lstsq(basis.T @ ci_h, basis.T @ ci_y, rcond=None)[0]
         resid = y - basis @ beta
-        s2 = max(float(resid @ solve(resid)) / t.size, 1e-300)
+        ci_r = solve(resid)
+        s2 = max(float(resid @ ci_r) / t.size, 1e-300)
         nll = t.size * math.log(s2) + 2.0 * float(np.sum(np.log(np.diag(chol))))
         if best is None or nll < best[0]:
-            t_new = float(t.size)
-            k_new = np.exp(-0.5 * ((t - t_new) / ell) ** 2)
-            pred = float(np.array([1.0, t_new]) @ beta + k_new @ solve(resid))
+            pred = float(np.array([1.0, float(t.size)]) @ beta + k_new @ ci_r)
             best = (nll, pred)
     return best[1]
 
