@@ -6,14 +6,14 @@ which matters only in cells whose errors are that small). So one run per case re
 
 - the follower's calls to its policy: ``propose(pre)``, ``record(settled, target)``,
   ``skip()``;
-- each candidate's answers, in call order: ``leverage(pre)`` and ``propose(pre)`` (or "not
-  ready").
+- each candidate's answers, in call order: ``propose(pre)`` (or "not ready") with its
+  ``leverage(pre)``.
 
 :func:`replay` then drives the real :class:`agents.policies.Auto`, with any options, over
 stand-in candidates that give back the recorded answers in the same order, and returns the
 mean required range the variant would have had: ``|offset - target|`` over the estimated
 ticks, which is what the world measures when there is no actuation noise. A variant that
-asked its candidates in another order would get an error, not a wrong number.
+asked its candidates about other sensings would get an error, not a wrong number.
 
 ``python bench/replay_auto.py`` records the paper's and the held-out surfaces noise-free at
 every comm period, and at the issue's middle noise level (seeds 0-4). It then prints a few
@@ -44,25 +44,30 @@ from swarm.local import run_local  # noqa: E402
 NOT_READY = "not ready"
 
 
+def _key(pre: Sensing) -> tuple[int, float, float]:
+    return (pre.tick, pre.r, pre.theta)
+
+
 class _Recorded(Policy):
-    """A candidate that logs its answers (a proposal's offset, or NOT_READY; a leverage)."""
+    """A candidate that logs, for each sensing it is asked about, its proposal's offset (or
+    NOT_READY) and its leverage there (taken whether or not ``auto`` asked: it is pure, and a
+    variant with another window asks on other ticks)."""
 
     def __init__(self, policy: Policy) -> None:
         self.policy, self.name = policy, policy.name
-        self.answers: list[tuple[str, object]] = []
+        self.answers: list[tuple[tuple, object, float | None]] = []
 
     def leverage(self, pre: Sensing) -> float | None:
-        value = self.policy.leverage(pre)
-        self.answers.append(("leverage", value))
-        return value
+        return self.policy.leverage(pre)
 
     def propose(self, pre: Sensing) -> Proposal:
+        leverage = self.policy.leverage(pre)
         try:
             proposal = self.policy.propose(pre)
         except NotFitted:
-            self.answers.append(("propose", NOT_READY))
+            self.answers.append((_key(pre), NOT_READY, leverage))
             raise
-        self.answers.append(("propose", proposal.offset.copy()))
+        self.answers.append((_key(pre), proposal.offset.copy(), leverage))
         return proposal
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
@@ -76,24 +81,24 @@ class _Replayed(Policy):
     """Gives back one candidate's recorded answers in order; learns nothing. With
     ``leverage=False`` it reports no leverage (the leverage rule switched off)."""
 
-    def __init__(self, name: str, answers: list[tuple[str, object]],
+    def __init__(self, name: str, answers: list[tuple[tuple, object, float | None]],
                  leverage: bool = True) -> None:
         self.name, self.answers, self.at, self.with_leverage = name, answers, 0, leverage
 
-    def _next(self, kind: str) -> object:
-        if self.at >= len(self.answers) or self.answers[self.at][0] != kind:
+    def _answer(self, pre: Sensing) -> tuple[tuple, object, float | None]:
+        """The recorded answer for ``pre``: the next one, which must be about that sensing."""
+        if self.at >= len(self.answers) or self.answers[self.at][0] != _key(pre):
             raise RuntimeError(f"replay of {self.name!r} diverged at call {self.at}: the "
-                               f"variant asked for {kind!r} where the recording has "
-                               f"{self.answers[self.at][0] if self.at < len(self.answers) else 'nothing'!r}")
-        self.at += 1
-        return self.answers[self.at - 1][1]
+                               f"variant asked about sensing {_key(pre)}, the recording has "
+                               f"{self.answers[self.at][0] if self.at < len(self.answers) else 'nothing'}")
+        return self.answers[self.at]
 
     def leverage(self, pre: Sensing) -> float | None:
-        value = self._next("leverage")
-        return value if self.with_leverage else None
+        return self._answer(pre)[2] if self.with_leverage else None
 
     def propose(self, pre: Sensing) -> Proposal:
-        offset = self._next("propose")
+        offset = self._answer(pre)[1]
+        self.at += 1
         if isinstance(offset, str):
             raise NotFitted(f"{self.name} was not ready")
         return Proposal(np.array(offset))
@@ -220,25 +225,26 @@ def main() -> None:
             for cell in clean}
     print(f"recorded {len(clean) + len(noisy)} runs and the classical baselines in "
           f"{time.perf_counter() - start:.0f} s (persist below: the same seeds)")
-    mismatch = max(abs(replay(t) - t.recorded_mean) / t.recorded_mean
-                   for t in (*clean.values(), *noisy.values()))
-    print(f"replaying auto reproduces the recorded runs to {mismatch:.1e} (relative)")
-    print(f"\n{'variant':<30}{'noise-free > best classical':>30}{'geo-mean ratio':>16}"
-          f"{'noisy persist/x min':>21}{'median':>8}   (middle level {NOISE_LEVELS[1]})")
     persist = {s: required(s, 1.28, seeds, estimator="persist", noise_range=NOISE_LEVELS[1][0],
                            noise_bearing=NOISE_LEVELS[1][1]) for s in surfaces}
+    print(f"{'variant':<30}{'noise-free > best classical':>30}{'geo-mean ratio':>16}"
+          f"{'noisy persist/x min':>21}{'median':>8}   (middle level {NOISE_LEVELS[1]})")
     for label, options in VARIANTS.items():
         start = time.perf_counter()
-        ratios = [replay(t, **options) / best[cell] for cell, t in clean.items()]
-        gains = []
-        for s in surfaces:
-            mine = [t for (surface, _), t in noisy.items() if surface == s]
-            gains.append(persist[s] / (sum(replay(t, **options) for t in mine) / len(mine)))
+        clean_means = {cell: replay(t, **options) for cell, t in clean.items()}
+        noisy_means = {key: replay(t, **options) for key, t in noisy.items()}
+        if not options:  # auto itself: the check that replay reproduces the runs
+            mismatch = max(abs(means[key] - t.recorded_mean) / t.recorded_mean
+                           for means, traces in ((clean_means, clean), (noisy_means, noisy))
+                           for key, t in traces.items())
+        ratios = [clean_means[cell] / best[cell] for cell in clean]
+        gains = [persist[s] / np.mean([m for (surface, _), m in noisy_means.items()
+                                       if surface == s]) for s in surfaces]
         print(f"{label:<30}{f'{sum(r > 1 for r in ratios)} of {len(ratios)}':>30}"
               f"{math.exp(sum(map(math.log, ratios)) / len(ratios)):>16.3f}"
               f"{min(gains):>21.2f}{float(np.median(gains)):>8.1f}"
               f"   ({time.perf_counter() - start:.1f} s)")
-
+    print(f"replaying auto reproduces the recorded runs to {mismatch:.1e} (relative)")
 
 if __name__ == "__main__":
     main()

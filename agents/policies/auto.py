@@ -126,8 +126,10 @@ class Auto(Policy):
         return ready
 
     def _leverages(self, pre: Sensing) -> list[float | None]:
-        """Each candidate's :meth:`Policy.leverage` for ``pre`` (the blend's: None)."""
-        return [cand.leverage(pre) for cand in self.candidates] + [None]
+        """Each candidate's :meth:`Policy.leverage` for ``pre`` while its score window is not
+        yet full, the only time it is used; None otherwise (and for the blend)."""
+        return [cand.leverage(pre) if len(self.errors[i]) < self.errors[i].maxlen else None
+                for i, cand in enumerate(self.candidates)] + [None]
 
     def _young(self, i: int, now: list[float | None] | None) -> bool:
         """Candidate ``i`` reports a leverage and its score window is not yet full."""

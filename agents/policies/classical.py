@@ -269,7 +269,7 @@ class ARX(Policy):
         self.us: deque[np.ndarray] = deque(maxlen=keep)
         self.last_seen: np.ndarray | None = None  # measured relative(settled_j)
         # the fit of the data above (coefficients, projector), until they change
-        self._fitted: tuple[np.ndarray, np.ndarray] | None = None
+        self._fitted: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def _regressor(self, end: int, u_now: np.ndarray | None = None) -> np.ndarray:
         """``[x_end, u_end, x_{end-1}, u_{end-1}, ... (, 1)]`` over ``order`` lags."""
@@ -281,9 +281,9 @@ class ARX(Policy):
             parts.append(np.ones(1))
         return np.concatenate(parts)
 
-    def _fit(self) -> tuple[np.ndarray, np.ndarray]:
-        """The least-squares coefficients (p, 2) and the projector (p, p) onto the span of the
-        fitted regressors, remembered until ``record`` or ``skip`` changes the data: ``auto``
+    def _fit(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The least-squares coefficients (p, 2), the pseudoinverse (p, rows) and the fitted
+        regressors (rows, p) (their product projects onto the regressors' span), remembered until ``record`` or ``skip`` changes the data: ``auto``
         asks for a proposal twice a tick (its proposal, then its score in ``record``, before
         the policy learns), from the same data."""
         if self._fitted is not None:
@@ -298,7 +298,7 @@ class ARX(Policy):
         phi = np.array([self._regressor(i) for i in rows])
         target = np.array([self.xs[i + 1] for i in rows])
         pinv = np.linalg.pinv(phi, rcond=RCOND)
-        self._fitted = (pinv @ target, pinv @ phi)  # (p, 2), (p, p)
+        self._fitted = (pinv @ target, pinv, phi)  # (p, 2), and for leverage's projector
         return self._fitted
 
     def _coefficients(self) -> np.ndarray:
@@ -316,10 +316,10 @@ class ARX(Policy):
         the minimum-norm fit sets most of it to zero). None while the model cannot fit."""
         try:
             phi = self._now(pre)
-            projector = self._fit()[1]
+            _, pinv, fitted = self._fit()
         except NotFitted:
             return None
-        return float(np.linalg.norm(phi - projector @ phi) / np.linalg.norm(phi))
+        return float(np.linalg.norm(phi - (pinv @ fitted) @ phi) / np.linalg.norm(phi))
 
     def propose(self, pre: Sensing) -> Proposal:
         phi = self._now(pre)
