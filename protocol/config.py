@@ -240,8 +240,13 @@ def load_config(path: str | os.PathLike[str]) -> RunConfig:
     is refused before its values are looked at.
     """
     path = Path(path)
-    data = read_toml(path, "config file")
-    data.pop("meta", None)
+    return config_from_file(read_toml(path, "config file"), path)
+
+
+def config_from_file(data: dict[str, Any], path: str | os.PathLike[str]) -> RunConfig:
+    """The run configuration in ``data``, a TOML table read from ``path`` (its ``meta`` table
+    ignored); errors name the file."""
+    data = {k: v for k, v in data.items() if k != "meta"}
     try:
         return config_from_dict(data)
     except (TypeError, ValueError) as exc:

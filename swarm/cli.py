@@ -10,7 +10,8 @@ from protocol.cli import (
     EXPECTED_FAILURES, add_log_level_flag, bounded_interrupt, check_out_dir, describe,
     setup_logging,
 )
-from protocol.config import DICTIONARIES, ESTIMATORS, RunConfig, config_from_dict, load_config
+from protocol.config import (DICTIONARIES, ESTIMATORS, MODES, SIDES, VELOCITY_VARIANTS, RunConfig,
+                             config_from_dict, config_from_file, read_toml)
 from protocol.session import add_credential_flags
 
 EXIT_NOTHING_ESTIMATED = 3
@@ -30,7 +31,7 @@ RUN_FLAGS: dict[str, tuple[str, dict]] = {
     "--estimator": ("estimator", {"help": ", ".join(ESTIMATORS) + ", or your own "
                                           "package.module:Name (SPEC §6)"}),
     "--dictionary": ("dictionary", {"choices": DICTIONARIES}),
-    "--velocity": ("velocity", {"choices": ("oracle", "lagged", "estimated")}),
+    "--velocity": ("velocity", {"choices": VELOCITY_VARIANTS}),
     "--online": ("online", {"action": "store_const", "const": True}),
     "--delays": ("delays", {"type": int}),
     "--affine": ("affine", {"action": "store_const", "const": True}),
@@ -47,11 +48,11 @@ RUN_FLAGS: dict[str, tuple[str, dict]] = {
     "--noise-bearing": ("noise_bearing", {"type": float}),
     "--noise-velocity": ("noise_velocity", {"type": float}),
     "--noise-move": ("noise_move", {"type": float}),
-    "--side": ("side", {"choices": ("left", "right")}),
+    "--side": ("side", {"choices": tuple(SIDES)}),
     "--leader-start": ("leader_start", {"metavar": "X,Y,VX,VY"}),
     "--seed": ("seed", {"type": int}),
     "--sensing-range": ("sensing_range", {"type": float, "help": "R_s (inf = unlimited)"}),
-    "--mode": ("mode", {"choices": ("lockstep", "realtime")}),
+    "--mode": ("mode", {"choices": MODES}),
     "--unpipelined": ("pipelined", {"action": "store_const", "const": False,
                                     "help": "lockstep one agent at a time (for comparison; "
                                             "default: pipelined, SPEC §4)"}),
@@ -74,7 +75,10 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
     """Defaults, then the ``--config`` file, then the flags given (ValueError on bad input)."""
     from swarm.launch import new_run_id
 
-    base = load_config(args.config) if args.config else RunConfig(run_id=new_run_id())
+    # the file is read once, under the input limits; a run id is made unless it names one
+    file_data = read_toml(Path(args.config), "config file") if args.config else {}
+    base = (config_from_file(file_data, args.config) if args.config
+            else RunConfig(run_id=new_run_id()))
     data = base.to_dict()
     for dest, _ in RUN_FLAGS.values():
         value = getattr(args, dest)
@@ -84,7 +88,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
         data["leader_start"] = parse_leader_start(data["leader_start"])
     if args.smoothing is not None:
         data["surface_params"] = {**data.get("surface_params", {}), "smoothing": args.smoothing}
-    if args.config and args.run_id is None and "run_id" not in _file_keys(args.config):
+    if args.config and args.run_id is None and "run_id" not in file_data:
         data["run_id"] = new_run_id()
     return config_from_dict(data)
 
@@ -98,13 +102,6 @@ def parse_leader_start(text: str) -> tuple[float, ...]:
     if len(values) != 4:
         raise ValueError(f"--leader-start must be X,Y,VX,VY numbers, got {text!r}")
     return values
-
-
-def _file_keys(path: str) -> set[str]:
-    import tomllib
-
-    with open(path, "rb") as fh:
-        return set(tomllib.load(fh))
 
 
 def format_summary(summary: dict) -> str:
