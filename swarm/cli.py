@@ -425,14 +425,14 @@ def cmd_terrain(args: argparse.Namespace) -> int:
             ) or options["comm_periods"][:1]
         spec = TerrainSpec(**options)
         spec = quick(spec) if args.quick else spec
-        result = run_terrain_experiment(args.dem, args.out or "runs/experiment-terrain", spec,
-                                        workers=args.workers)
-    except ValueError as exc:
+        out = args.out or "runs/experiment-terrain"
+        result, status = _run_grid(lambda: run_terrain_experiment(args.dem, out, spec,
+                                                                  workers=args.workers), out)
+    except ValueError as exc:  # the options, the DEM or a leader start
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+    if result is None:
+        return status
     return _print_experiment(result, f"wall time {result['wall_time']:.1f} s (runs)")
 
 
