@@ -307,16 +307,25 @@ class WorldService:
             raise RuntimeError(f"agents {', '.join(map(str, sorted(missing)))} did not come up "
                                f"within {timeout:.0f} s")
 
+    def _wait_until(self, done, timeout: float) -> None:
+        """Wait up to ``timeout`` s, woken by every change of the agents' state, until
+        ``done()`` (called with the lock held) is true."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while not done() and (left := deadline - time.monotonic()) > 0:
+                self._cond.wait(left)
+
+    def _missing(self) -> set[int]:
+        """(Lock held.) The agents not live."""
+        return set(range(self.sim.n_agents)) - self._alive
+
     def _wait_live(self, timeout: float, stop_when_ended: bool = False) -> set[int]:
         """Wait up to ``timeout`` s (or until the run ended, with ``stop_when_ended``) for every
         agent to be live; return those that are not."""
-        deadline = time.monotonic() + timeout
+        self._wait_until(lambda: not self._missing()
+                         or (stop_when_ended and self._ended is not None), timeout)
         with self._cond:
-            while ((missing := set(range(self.sim.n_agents)) - self._alive)
-                   and not (stop_when_ended and self._ended is not None)
-                   and (left := deadline - time.monotonic()) > 0):
-                self._cond.wait(left)
-            return missing
+            return self._missing()
 
     def _mark_missed(self, agent: int, why: str) -> None:
         """(Lock held, realtime.) ``agent`` did not settle this tick: it keeps its pose; tell
@@ -477,7 +486,4 @@ class WorldService:
 
     def _wait_agents_gone(self, timeout: float) -> None:
         """Give agents time to see ``world/done`` and leave before the session closes."""
-        deadline = time.monotonic() + timeout
-        with self._cond:
-            while self._alive and time.monotonic() < deadline:
-                self._cond.wait(deadline - time.monotonic())
+        self._wait_until(lambda: not self._alive, timeout)
