@@ -18,7 +18,7 @@ from pathlib import Path
 import yaml
 import zenoh
 
-from protocol.session import free_tcp_endpoint, zenoh_config
+from protocol.session import free_port, zenoh_config
 from swarm.cli import main as swarm_main
 
 ROUTER_IN_COMPOSE = "tls/zenoh:7447"
@@ -42,7 +42,7 @@ def generate(out: Path, run_id: str, followers: int) -> Deployment:
 
 def free_ports() -> tuple[str, str]:
     """(listen, connect) endpoints of a free loopback port for a TLS router."""
-    port = free_tcp_endpoint().rpartition(":")[2]
+    port = free_port()
     return f"tls/127.0.0.1:{port}", f"tls/localhost:{port}"
 
 
