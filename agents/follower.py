@@ -18,7 +18,8 @@ import zenoh
 from agents.checkpoint import Entry, StateLog, replay
 from agents.cli import parser, run_cli
 from agents.link import AgentAbort, AgentLink, RunFinished, TickMissed
-from agents.policies import NotReady, Policy, make_policy, reading_variance, relative
+from agents.policies import (NotReady, Policy, make_policy, move_variance, reading_variance,
+                             relative)
 from protocol.config import AgentSettings
 from protocol.messages import Move, Observation, Sensing, Snap
 
@@ -49,10 +50,10 @@ def displacement(offset: np.ndarray, pre: Sensing, moved: Sensing,
     none without actuation noise (the target is then ``offset + rod``, exactly).
     """
     target = offset + np.asarray(moved.rod)
-    move_variance = settings.noise_move**2
-    if move_variance == 0.0:
+    actuation = move_variance(settings)
+    if actuation == 0.0:
         return target
-    weight = move_variance / (move_variance + 2.0 * reading_variance(settings))
+    weight = actuation / (actuation + 2.0 * reading_variance(settings))
     return target + weight * (relative(pre) - relative(moved) - offset)
 
 

@@ -25,7 +25,7 @@ from protocol.config import AUTO, CLASSICAL, OWN_MOTION, AgentSettings
 __all__ = ["ARX", "Auto", "ConstantVelocity", "EDMDPolicy", "FallbackToPersist",
            "GaussianProcess", "Kalman", "MotionGP", "NotReady", "Persist", "Policy", "Proposal", "RatioGP", "Stay",
            "Unwrapper", "auto_candidates", "classical", "load_estimator", "make_dictionary",
-           "make_auto", "make_policy", "paper_edmd", "polar", "reading_variance", "reconstructed_pre",
+           "make_auto", "make_policy", "move_variance", "paper_edmd", "polar", "reading_variance", "reconstructed_pre",
            "relative"]
 
 
@@ -33,6 +33,11 @@ def reading_variance(settings: AgentSettings) -> float:
     """The declared variance per xy coordinate of a range/bearing reading at the rod's
     distance ``d``: ``(sigma_r**2 + (d sigma_theta)**2) / 2``."""
     return (settings.noise_range**2 + (settings.spacing * settings.noise_bearing) ** 2) / 2.0
+
+
+def move_variance(settings: AgentSettings) -> float:
+    """The declared variance per xy coordinate of a move's actuation noise."""
+    return settings.noise_move**2
 
 
 def classical(name: str, settings: AgentSettings) -> Policy:
@@ -55,11 +60,10 @@ def classical(name: str, settings: AgentSettings) -> Policy:
 def own_motion(name: str, settings: AgentSettings) -> Policy:
     """``gp-motion`` or ``gp-ratio`` with the run's declared noise: the actuation noise enters
     as the variance of a snapped displacement, the sensor noise as :func:`reading_variance`."""
-    move_variance = settings.noise_move**2
     if name == "gp-motion":
-        return MotionGP(settings.gp_samples, move_variance=move_variance)
+        return MotionGP(settings.gp_samples, move_variance=move_variance(settings))
     if name == "gp-ratio":
-        return RatioGP(settings.gp_samples, move_variance=move_variance,
+        return RatioGP(settings.gp_samples, move_variance=move_variance(settings),
                        reading_variance=reading_variance(settings))
     raise ValueError(f"unknown own-motion estimator {name!r}")
 
