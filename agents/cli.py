@@ -8,7 +8,7 @@ from collections.abc import Callable
 import zenoh
 
 from agents.link import AgentAbort, RunFinished
-from protocol.cli import add_log_level_flag, describe, setup_logging
+from protocol.cli import add_log_level_flag, bounded_interrupt, describe, setup_logging
 from protocol.config import AgentSettings, load_agent_settings
 from protocol.session import add_credential_flags, credentials, tls_options, zenoh_config
 
@@ -46,7 +46,7 @@ def run_cli(args: argparse.Namespace, body: Callable[[zenoh.Session, AgentSettin
               file=sys.stderr)
         return 1
     try:
-        with session:
+        with bounded_interrupt(), session:  # Ctrl-C: the session closes, or 130 within 8 s
             body(session, settings)
     except zenoh.ZError as exc:
         print(f"error: {describe(exc)}", file=sys.stderr)
