@@ -568,15 +568,25 @@ def test_watch_page_of_a_run_assembled_elsewhere(browser, tmp_path):
                   "--user", OBSERVER, "--password-file", str(credentials.password_file(OBSERVER)),
                   log=tmp_path / "watch.log")
     result: dict = {}
-    world = threading.Thread(target=lambda: result.update(
-        summary=launch(config, tmp_path / "run", endpoint=endpoint, credentials=credentials)),
-        daemon=True)
+
+    def run() -> None:  # a run that fails says why, instead of the page timing out
+        try:
+            result["summary"] = launch(config, tmp_path / "run", endpoint=endpoint,
+                                       credentials=credentials)
+        except BaseException as exc:
+            result["error"] = repr(exc)
+            raise
+
+    world = threading.Thread(target=run, daemon=True)
     try:
         assert _until(lambda: "live view: " in (tmp_path / "watch.log").read_text(), 30.0)
         page = _open(browser, f"http://127.0.0.1:{port}/", [])
         page.get_by_text("waiting for the world").wait_for(timeout=WAIT_S * 1000)
         world.start()
-        page.get_by_text("tick 19 of 19").wait_for(timeout=RUN_TIMEOUT_S * 1000)
+        last = page.get_by_text("tick 19 of 19")
+        assert _until(lambda: last.is_visible() or "error" in result, RUN_TIMEOUT_S), (
+            _status(page), result, (tmp_path / "watch.log").read_text()[-2000:])
+        assert "error" not in result, result["error"]
         assert _until(lambda: _status(page).endswith("· complete")), _status(page)
         assert _count(page, "agents", "x") == 4 and _count(page, "rods", "x0") == 3
         page.close()
