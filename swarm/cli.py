@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
@@ -13,6 +12,7 @@ from protocol.cli import (
 from protocol.config import (DICTIONARIES, ESTIMATORS, MODES, SIDES, VELOCITY_VARIANTS, RunConfig,
                              config_from_dict, config_from_file, read_toml)
 from protocol.session import add_credential_flags
+from swarm.grid import table_number
 
 EXIT_NOTHING_ESTIMATED = 3
 """``swarm run``'s status for a run that completed but in which a follower missed every tick
@@ -117,9 +117,9 @@ def format_summary(summary: dict) -> str:
     for k, s in summary["followers"].items():
         required, persist = s["mean_required_range"], s["mean_persist_range"]
         ratio = required / persist if required is not None and persist else None
-        lines.append(f"{k:>8}  {_num(required):>{width}}  {_num(s['rmse']):>8}  "
-                     f"{_num(s['mean_stay_range']):>8}  {_num(persist):>8}  {_num(ratio):>8}  "
-                     f"{_num(s.get('mean_persist_range_noise_free')):>8}  "
+        lines.append(f"{k:>8}  {table_number(required):>{width}}  {table_number(s['rmse']):>8}  "
+                     f"{table_number(s['mean_stay_range']):>8}  {table_number(persist):>8}  {table_number(ratio):>8}  "
+                     f"{table_number(s.get('mean_persist_range_noise_free')):>8}  "
                      f"{s['lost_ticks']:>4}  {s['missed_ticks']:>6}  {s.get('fallback_ticks', 0):>8}")
         followed = s.get("followed") or {}
         if len(followed) > 1:
@@ -132,10 +132,6 @@ def format_summary(summary: dict) -> str:
     lines.append(f"surface {summary['surface']}, comm period {summary['comm_period']}, "
                  f"{summary['ticks_completed']} ticks, {summary['wall_time']:.1f} s wall, {state}")
     return "\n".join(lines)
-
-
-def _num(x: float | None) -> str:
-    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.4f}"
 
 
 def empty_followers(summary: dict, init_ticks: int) -> list[str]:

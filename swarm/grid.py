@@ -249,6 +249,21 @@ def is_nan(value: Any) -> bool:
     return isinstance(value, float) and math.isnan(value)
 
 
+def table_number(x: float | None, digits: int = 4) -> str:
+    """``x`` for a printed table: ``digits`` decimals, or three significant digits in
+    e-notation when it is too small for them (a noise-free range of 2.4e-08 is not 0.0000);
+    ``-`` when missing or not finite.
+
+    >>> table_number(0.01941), table_number(2.4e-8), table_number(0.0), table_number(None)
+    ('0.0194', '2.40e-08', '0.0000', '-')
+    """
+    if x is None or not math.isfinite(x):
+        return "-"
+    if 0 < abs(x) < 10.0 ** -digits:
+        return f"{x:.2e}"
+    return f"{x:.{digits}f}"
+
+
 # --- grids as axes -----------------------------------------------------------------------------
 
 @dataclass(frozen=True)

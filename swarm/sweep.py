@@ -27,13 +27,12 @@ and print the mean table with each estimator's ratio to the persist baseline of 
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
 from protocol.config import MAX_CONFIG_DEPTH, RunConfig, config_from_dict, read_toml
-from swarm.grid import (SUMMARY_COLUMNS, Axis, RunOutcome, estimator_axis, expand, is_nan,
-                        mean_over, run_grid, summary_row, write_run_index, write_table)
+from swarm.grid import (SUMMARY_COLUMNS, Axis, RunOutcome, estimator_axis, expand, mean_over,
+                        run_grid, summary_row, table_number, write_run_index, write_table)
 
 
 GRID_DEPTH = MAX_CONFIG_DEPTH + 2  # a run's options, under [axes.<axis>.<label>]
@@ -116,9 +115,10 @@ def format_means(means: list[dict], keys: tuple[str, ...]) -> str:
     ratio, the noise-free persist counterfactual, fallback ticks."""
     head = [*keys, "required", "persist", "ratio", "persist (noise-free)", "fallback"]
     body = [[str(row[k]) for k in keys] + [
-        _num(row["mean_required_range"]), _num(row["mean_persist_range"]),
-        _num(row["ratio_to_persist"], 3), _num(row["mean_persist_range_noise_free"]),
-        _num(row["fallback_ticks"], 1)] for row in means]
+        table_number(row["mean_required_range"], 5), table_number(row["mean_persist_range"], 5),
+        table_number(row["ratio_to_persist"], 3),
+        table_number(row["mean_persist_range_noise_free"], 5),
+        table_number(row["fallback_ticks"], 1)] for row in means]
     widths = [max(len(h), *(len(r[i]) for r in body)) for i, h in enumerate(head)]
     lines = ["  ".join(h.rjust(w) for h, w in zip(head, widths))]
     lines.append("-" * len(lines[0]))
@@ -127,6 +127,3 @@ def format_means(means: list[dict], keys: tuple[str, ...]) -> str:
                  "(SPEC §6); below 1 beats persist")
     return "\n".join(lines)
 
-
-def _num(x: float, digits: int = 5) -> str:
-    return "-" if x is None or is_nan(x) or (isinstance(x, float) and math.isinf(x)) else f"{x:.{digits}f}"
