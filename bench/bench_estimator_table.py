@@ -106,23 +106,33 @@ def best_classical(row: dict) -> tuple[str, float]:
     return name, row[name]
 
 
+def add_random_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--random N`` and ``--random-seed S``: surfaces drawn at random instead of the fixed ones."""
+    parser.add_argument("--random", type=int, default=0, metavar="N",
+                        help="instead of the fixed surfaces, N surfaces drawn at random "
+                             "(bench/random_surfaces.py)")
+    parser.add_argument("--random-seed", type=int, default=0, metavar="S",
+                        help="the first random surface's seed (with --random; default 0)")
+
+
+def chosen_surfaces(parser: argparse.ArgumentParser, args: argparse.Namespace,
+                    fixed: tuple[str, ...]) -> tuple[str, ...]:
+    """``fixed``, or the random surfaces ``args`` ask for (printed)."""
+    if args.random < 0 or args.random_seed < 0:
+        parser.error("--random and --random-seed must be >= 0")
+    if not args.random:
+        return fixed
+    print(f"random surfaces: seeds {args.random_seed}-{args.random_seed + args.random - 1}")
+    return tuple(random_surfaces.name(args.random_seed + i) for i in range(args.random))
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="T_c = 1.28 only, seeds 0-1")
     p.add_argument("--noise-free", action="store_true", help="the noise-free tables only")
-    p.add_argument("--random", type=int, default=0, metavar="N",
-                   help="instead of the fixed surfaces, N surfaces drawn at random "
-                        "(bench/random_surfaces.py)")
-    p.add_argument("--random-seed", type=int, default=0, metavar="S",
-                   help="the first random surface's seed (with --random; default 0)")
+    add_random_arguments(p)
     args = p.parse_args()
-    if args.random < 0 or args.random_seed < 0:
-        p.error("--random and --random-seed must be >= 0")
-    if args.random:
-        surfaces = tuple(random_surfaces.name(args.random_seed + i) for i in range(args.random))
-        print(f"random surfaces: seeds {args.random_seed}-{args.random_seed + args.random - 1}")
-    else:
-        surfaces = PAPER + HELD_OUT
+    surfaces = chosen_surfaces(p, args, PAPER + HELD_OUT)
     periods = (1.28,) if args.quick else COMM_PERIODS
     seeds = SEEDS[:2] if args.quick else SEEDS
     table = noise_free(surfaces, periods)

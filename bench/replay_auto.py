@@ -16,9 +16,10 @@ ticks, which is what the world measures when there is no actuation noise. A vari
 asked its candidates about other sensings would get an error, not a wrong number.
 
 ``python bench/replay_auto.py`` records the paper's and the held-out surfaces noise-free at
-every comm period, and at the issue's middle noise level (seeds 0-4). It then prints a few
-variants side by side: ``auto``, ``auto-mix``, the leverage rule switched off, other windows
-and sharpness. Recording takes a few minutes; each variant then takes seconds.
+every comm period, and at the issue's middle noise level (seeds 0-4); ``--random N
+--random-seed S`` records N surfaces drawn at random instead (``bench/random_surfaces.py``).
+It then prints a few variants side by side: ``auto``, ``auto-mix``, the leverage rule
+switched off, other windows and sharpness. Recording takes a few minutes; each variant then takes seconds.
 """
 from __future__ import annotations
 
@@ -206,13 +207,14 @@ VARIANTS = {
 
 def main() -> None:
     from bench.bench_estimator_table import (COMM_PERIODS, HELD_OUT, NOISE_LEVELS, PAPER,
-                                             required)
+                                             add_random_arguments, chosen_surfaces, required)
 
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="the paper's surfaces, T_c 1.28, seed 0")
+    add_random_arguments(p)
     args = p.parse_args()
-    surfaces = PAPER if args.quick else PAPER + HELD_OUT
+    surfaces = chosen_surfaces(p, args, PAPER if args.quick else PAPER + HELD_OUT)
     periods = (1.28,) if args.quick else COMM_PERIODS
     seeds = (0,) if args.quick else (0, 1, 2, 3, 4)
     start = time.perf_counter()

@@ -68,3 +68,22 @@ def test_a_run_on_a_random_surface_completes():
     follower = summary["followers"]["1"]
     assert summary["complete"] and len(rows) == 10 * 2  # a row per agent and tick
     assert 0.0 <= follower["mean_required_range"] < follower["mean_stay_range"]
+
+
+def test_the_benchmarks_choose_random_surfaces_by_flag(capsys):
+    """``--random N --random-seed S`` (bench_estimator_table, replay_auto): N surfaces from
+    seed S on, named so the world can load them; without it the fixed ones."""
+    import argparse
+
+    from bench.bench_estimator_table import add_random_arguments, chosen_surfaces
+
+    parser = argparse.ArgumentParser()
+    add_random_arguments(parser)
+    fixed = ("elliptic", "wavy")
+    assert chosen_surfaces(parser, parser.parse_args([]), fixed) == fixed
+    args = parser.parse_args(["--random", "3", "--random-seed", "40"])
+    assert chosen_surfaces(parser, args, fixed) == tuple(
+        f"bench.random_surfaces:w{s}" for s in (40, 41, 42))
+    assert "seeds 40-42" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        chosen_surfaces(parser, parser.parse_args(["--random", "-1"]), fixed)
