@@ -25,7 +25,9 @@ and the leverage rule were weighed on, and ``twisted-saddle`` and ``long-waves``
 the last change to auto and auto-mix and used for nothing else. Noise levels: the issue's
 three and six held-out ones (the last defined with the last two surfaces).
 ``--random N --random-seed S`` runs every table on N surfaces drawn at random instead
-(``bench/random_surfaces.py``: seeds S ... S+N-1), a check on surfaces nobody chose.
+(``bench/random_surfaces.py``: seeds S ... S+N-1), a check on surfaces nobody chose;
+``--surfaces A,B,...`` on yours (``--leader-start X,Y,VX,VY`` for every run, which a DEM
+needs), and ``--noise-levels R/B,...`` at your noise levels.
 Noise-free runs do not depend on the seed, so they run once. Runs use the in-memory layout,
 whose numbers a test shows to be identical to the Zenoh layouts.
 """
@@ -38,7 +40,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from protocol.config import AUTO, CLASSICAL, OWN_MOTION, RunConfig  # noqa: E402
+from swarm.cli import parse_leader_start  # noqa: E402
 from swarm.local import run_local  # noqa: E402
+from world.sim import RunEnded  # noqa: E402
+from world.surfaces import make_surface  # noqa: E402
 
 from bench import random_surfaces  # noqa: E402
 
@@ -63,15 +68,27 @@ SEEDS = (0, 1, 2, 3, 4)
 
 
 def short(surface: str) -> str:
+    """A surface's name for a table: a DEM's file name, a Python surface's attribute."""
+    if surface.startswith("dem:"):
+        return Path(surface[4:]).name
     return surface.rsplit(":", 1)[-1].replace("_", "-")
 
 
+class IncompleteRun(RuntimeError):
+    """A run of the table ended early (e.g. the leader left a DEM): its mean would not be
+    comparable with the others."""
+
+
 def required(surface: str, comm_period: float = 1.28, seeds=(0,), **options) -> float:
-    """Mean over ``seeds`` of follower 1's mean required sensing range."""
+    """Mean over ``seeds`` of follower 1's mean required sensing range (IncompleteRun if a
+    run ends early)."""
     values = []
     for seed in seeds:
-        summary, _ = run_local(RunConfig(surface=surface, comm_period=comm_period, seed=seed,
-                                         **options))
+        try:
+            summary, _ = run_local(RunConfig(surface=surface, comm_period=comm_period,
+                                             seed=seed, **options))
+        except RunEnded as exc:
+            raise IncompleteRun(f"{surface} at T_c {comm_period}, seed {seed}: {exc}") from None
         values.append(summary["followers"]["1"]["mean_required_range"])
     return sum(values) / len(values)
 
@@ -79,19 +96,20 @@ def required(surface: str, comm_period: float = 1.28, seeds=(0,), **options) -> 
 BY_PERIOD = ("edmd-b", *CLASSICAL, *AUTO)  # what the by-T_c tables read
 
 
-def noise_free(surfaces, comm_periods) -> dict:
-    """Every estimator at T_c = 1.28 (the first table), those of ``BY_PERIOD`` elsewhere."""
-    return {(s, tc): {name: required(s, tc, **opts) for name, opts in ESTIMATORS.items()
-                      if tc == 1.28 or name in BY_PERIOD}
+def noise_free(surfaces, comm_periods, base: dict | None = None) -> dict:
+    """Every estimator at T_c = 1.28 (the first table), those of ``BY_PERIOD`` elsewhere
+    (``base``: options of every run, e.g. the leader start)."""
+    return {(s, tc): {name: required(s, tc, **opts, **(base or {}))
+                      for name, opts in ESTIMATORS.items() if tc == 1.28 or name in BY_PERIOD}
             for s in surfaces for tc in comm_periods}
 
 
 def noisy(surfaces, levels, seeds, noise_move: float = 0.0, comm_period: float = 1.28,
-          names=None) -> dict:
+          names=None, base: dict | None = None) -> dict:
     names = names or [n for n in ESTIMATORS if n != "stay"]
     return {(s, level): {name: required(s, comm_period, seeds, noise_range=level[0],
                                         noise_bearing=level[1], noise_move=noise_move,
-                                        **ESTIMATORS[name])
+                                        **ESTIMATORS[name], **(base or {}))
                          for name in names}
             for s in surfaces for level in levels}
 
@@ -106,36 +124,86 @@ def best_classical(row: dict) -> tuple[str, float]:
     return name, row[name]
 
 
-def add_random_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--random N`` and ``--random-seed S``: surfaces drawn at random instead of the fixed ones."""
+def add_surface_arguments(parser: argparse.ArgumentParser) -> None:
+    """Instead of the fixed surfaces: ``--random N`` and ``--random-seed S`` (surfaces drawn at
+    random), or ``--surfaces A,B,...`` (yours), with ``--leader-start`` for every run."""
     parser.add_argument("--random", type=int, default=0, metavar="N",
                         help="instead of the fixed surfaces, N surfaces drawn at random "
                              "(bench/random_surfaces.py)")
     parser.add_argument("--random-seed", type=int, default=0, metavar="S",
                         help="the first random surface's seed (with --random; default 0)")
+    parser.add_argument("--surfaces", metavar="A,B,...",
+                        help="instead of the fixed surfaces, these (presets, package.module:name "
+                             "or dem:PATH, as --surface of swarm run)")
+    parser.add_argument("--leader-start", metavar="X,Y,VX,VY",
+                        help="the leader's start in every run (a DEM has no default)")
 
 
 def chosen_surfaces(parser: argparse.ArgumentParser, args: argparse.Namespace,
-                    fixed: tuple[str, ...]) -> tuple[str, ...]:
-    """``fixed``, or the random surfaces ``args`` ask for (printed)."""
+                    fixed: tuple[str, ...]) -> tuple[tuple[str, ...], dict]:
+    """The surfaces ``args`` ask for (``fixed`` by default) and the options of every run
+    (the leader start); a bad value ends with the parser's error."""
     if args.random < 0 or args.random_seed < 0:
         parser.error("--random and --random-seed must be >= 0")
+    if args.random and args.surfaces:
+        parser.error("--random and --surfaces exclude each other")
+    base = {}
+    if args.leader_start:
+        try:
+            base["leader_start"] = parse_leader_start(args.leader_start)
+        except ValueError as exc:
+            parser.error(str(exc))
+    if args.surfaces:
+        surfaces = tuple(s.strip() for s in args.surfaces.split(",") if s.strip())
+        if not surfaces:
+            parser.error("--surfaces names no surface")
+        try:  # every surface loads and every run is valid before hours of runs start
+            for surface in surfaces:
+                RunConfig(surface=surface, **base)
+                make_surface(surface)
+        except (ValueError, OSError, ImportError, AttributeError) as exc:
+            parser.error(f"--surfaces: {exc}")
+        return surfaces, base
     if not args.random:
-        return fixed
+        return fixed, base
     print(f"random surfaces: seeds {args.random_seed}-{args.random_seed + args.random - 1}")
-    return tuple(random_surfaces.name(args.random_seed + i) for i in range(args.random))
+    return tuple(random_surfaces.name(args.random_seed + i) for i in range(args.random)), base
+
+
+def parse_levels(parser: argparse.ArgumentParser, text: str) -> tuple[tuple[float, float], ...]:
+    """``--noise-levels R/B,R/B,...`` -> ((range sigma, bearing sigma rad), ...)."""
+    try:
+        levels = tuple(tuple(float(x) for x in pair.split("/")) for pair in text.split(","))
+    except ValueError:
+        levels = ()
+    if not levels or any(len(lv) != 2 or not all(0 <= x < 10 for x in lv) for lv in levels):
+        parser.error(f"--noise-levels must be RANGE/BEARING pairs (sigmas >= 0), "
+                     f"comma-separated, e.g. 0.02/0.01,0.05/0.03; got {text!r}")
+    return levels
 
 
 def main() -> None:
+    try:
+        tables()
+    except IncompleteRun as exc:
+        sys.exit(f"error: a run ended early, {exc}; every table needs complete runs (for a "
+                 "DEM, a --leader-start whose 40 ticks stay on it at T_c 5.12)")
+
+
+def tables() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="T_c = 1.28 only, seeds 0-1")
     p.add_argument("--noise-free", action="store_true", help="the noise-free tables only")
-    add_random_arguments(p)
+    p.add_argument("--noise-levels", metavar="R/B,...",
+                   help="instead of the nine fixed levels, these range/bearing sigma pairs "
+                        "(the middle one of them for the actuation and long-period tables)")
+    add_surface_arguments(p)
     args = p.parse_args()
-    surfaces = chosen_surfaces(p, args, PAPER + HELD_OUT)
+    surfaces, base = chosen_surfaces(p, args, PAPER + HELD_OUT)
+    given = parse_levels(p, args.noise_levels) if args.noise_levels else None
     periods = (1.28,) if args.quick else COMM_PERIODS
     seeds = SEEDS[:2] if args.quick else SEEDS
-    table = noise_free(surfaces, periods)
+    table = noise_free(surfaces, periods, base)
 
     print("noise-free, follower 1, T_c = 1.28: mean required sensing range")
     names = list(ESTIMATORS)
@@ -144,7 +212,8 @@ def main() -> None:
     for s in surfaces:
         row = table[(s, 1.28)]
         tag = ("" if s in PAPER else "  (unseen)" if s in UNSEEN
-               else "  (random)" if args.random else "  (held out)")
+               else "  (random)" if args.random else "  (given)" if args.surfaces
+               else "  (held out)")
         print(f"{short(s):<15}" + "".join(" " + num(row[n]) for n in names)
               + "".join(f"{row[a] / row['edmd-b']:>16.3f}{row[a] / best_classical(row)[1]:>18.3f}"
                         for a in AUTO) + tag)
@@ -172,14 +241,15 @@ def main() -> None:
     if args.noise_free:
         return
 
-    levels = NOISE_LEVELS + HELD_OUT_NOISE
-    print_noisy(surfaces, noisy(surfaces, levels, seeds), levels, seeds)
+    levels = given or NOISE_LEVELS + HELD_OUT_NOISE
+    print_noisy(surfaces, noisy(surfaces, levels, seeds, base=base), levels, seeds)
     if not args.quick:
-        print_long_periods(surfaces, seeds)
-    middle = NOISE_LEVELS[1]
+        print_long_periods(surfaces, seeds, given or NOISE_LEVELS, base)
+    middle = given[len(given) // 2] if given else NOISE_LEVELS[1]
     for sigma in ACTUATION:
         print(f"\nwith actuation noise: move sigma {sigma} on top of the middle sensor level")
-        print_noisy(surfaces, noisy(surfaces, [middle], seeds, noise_move=sigma), [middle], seeds)
+        print_noisy(surfaces, noisy(surfaces, [middle], seeds, noise_move=sigma, base=base),
+                    [middle], seeds)
 
 
 def print_noisy(surfaces, noisy_table: dict, levels, seeds) -> None:
@@ -188,7 +258,8 @@ def print_noisy(surfaces, noisy_table: dict, levels, seeds) -> None:
           ">= 1.25 on average at the middle level)")
     names = [n for n in ESTIMATORS if n != "stay"]
     for level in levels:
-        tag = "" if level in NOISE_LEVELS else "  (held-out level)"
+        tag = ("" if level in NOISE_LEVELS else "  (held-out level)" if level in HELD_OUT_NOISE
+               else "  (given level)")
         print(f"\nrange sigma {level[0]}, bearing sigma {level[1]} rad{tag}")
         print(f"{'surface':<15}" + "".join(f"{n:>10}" for n in names)
               + "".join(f"{'persist/' + a:>18}" for a in AUTO))
@@ -204,13 +275,14 @@ def print_noisy(surfaces, noisy_table: dict, levels, seeds) -> None:
                   + "".join(f"{reduce(g):>18.3f}" for g in gains.values()))
 
 
-def print_long_periods(surfaces, seeds) -> None:
-    """persist / auto and persist / auto-mix at T_c 2.56 and 5.12, the issue's noise levels."""
+def print_long_periods(surfaces, seeds, levels=NOISE_LEVELS, base: dict | None = None) -> None:
+    """persist / auto and persist / auto-mix at T_c 2.56 and 5.12 (the issue's noise levels
+    unless others are given)."""
     print(f"\nnoisy at long comm periods, mean over seeds {seeds[0]}-{seeds[-1]}: "
           "persist / auto | persist / auto-mix (not an issue target)")
-    cells = [(tc, level) for tc in (2.56, 5.12) for level in NOISE_LEVELS]
-    tables = {tc: noisy(surfaces, NOISE_LEVELS, seeds, comm_period=tc,
-                        names=["persist", *AUTO]) for tc in (2.56, 5.12)}
+    cells = [(tc, level) for tc in (2.56, 5.12) for level in levels]
+    tables = {tc: noisy(surfaces, levels, seeds, comm_period=tc, names=["persist", *AUTO],
+                        base=base) for tc in (2.56, 5.12)}
     print(f"{'surface':<15}" + "".join(f"{f'{tc} {lv[0]}/{lv[1]}':>18}" for tc, lv in cells))
     below = {a: 0 for a in AUTO}
     for s in surfaces:

@@ -17,7 +17,8 @@ asked its candidates about other sensings would get an error, not a wrong number
 
 ``python bench/replay_auto.py`` records the paper's and the held-out surfaces noise-free at
 every comm period, and at the issue's middle noise level (seeds 0-4); ``--random N
---random-seed S`` records N surfaces drawn at random instead (``bench/random_surfaces.py``).
+--random-seed S`` records N surfaces drawn at random instead (``bench/random_surfaces.py``),
+``--surfaces A,B,...`` yours (with ``--leader-start`` for every run).
 It then prints a few variants side by side: ``auto``, ``auto-mix``, the leverage rule
 switched off, other windows and sharpness. Recording takes a few minutes; each variant then takes seconds.
 """
@@ -207,28 +208,28 @@ VARIANTS = {
 
 def main() -> None:
     from bench.bench_estimator_table import (COMM_PERIODS, HELD_OUT, NOISE_LEVELS, PAPER,
-                                             add_random_arguments, chosen_surfaces, required)
+                                             add_surface_arguments, chosen_surfaces, required)
 
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="the paper's surfaces, T_c 1.28, seed 0")
-    add_random_arguments(p)
+    add_surface_arguments(p)
     args = p.parse_args()
-    surfaces = chosen_surfaces(p, args, PAPER if args.quick else PAPER + HELD_OUT)
+    surfaces, base = chosen_surfaces(p, args, PAPER if args.quick else PAPER + HELD_OUT)
     periods = (1.28,) if args.quick else COMM_PERIODS
     seeds = (0,) if args.quick else (0, 1, 2, 3, 4)
     start = time.perf_counter()
-    clean = {(s, tc): record(RunConfig(surface=s, comm_period=tc)) for s in surfaces
+    clean = {(s, tc): record(RunConfig(surface=s, comm_period=tc, **base)) for s in surfaces
              for tc in periods}
     noisy = {(s, seed): record(RunConfig(surface=s, seed=seed, noise_range=NOISE_LEVELS[1][0],
-                                         noise_bearing=NOISE_LEVELS[1][1]))
+                                         noise_bearing=NOISE_LEVELS[1][1], **base))
              for s in surfaces for seed in seeds}
-    best = {cell: min(required(cell[0], cell[1], estimator=name) for name in CLASSICAL)
+    best = {cell: min(required(cell[0], cell[1], estimator=name, **base) for name in CLASSICAL)
             for cell in clean}
     print(f"recorded {len(clean) + len(noisy)} runs and the classical baselines in "
           f"{time.perf_counter() - start:.0f} s (persist below: the same seeds)")
     persist = {s: required(s, 1.28, seeds, estimator="persist", noise_range=NOISE_LEVELS[1][0],
-                           noise_bearing=NOISE_LEVELS[1][1]) for s in surfaces}
+                           noise_bearing=NOISE_LEVELS[1][1], **base) for s in surfaces}
     print(f"{'variant':<30}{'noise-free > best classical':>30}{'geo-mean ratio':>16}"
           f"{'noisy persist/x min':>21}{'median':>8}   (middle level {NOISE_LEVELS[1]})")
     for label, options in VARIANTS.items():

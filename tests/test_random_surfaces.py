@@ -70,20 +70,43 @@ def test_a_run_on_a_random_surface_completes():
     assert 0.0 <= follower["mean_required_range"] < follower["mean_stay_range"]
 
 
-def test_the_benchmarks_choose_random_surfaces_by_flag(capsys):
+def test_the_benchmarks_choose_their_surfaces_by_flag(capsys):
     """``--random N --random-seed S`` (bench_estimator_table, replay_auto): N surfaces from
-    seed S on, named so the world can load them; without it the fixed ones."""
+    seed S on, named so the world can load them; ``--surfaces`` yours, checked before any run,
+    with ``--leader-start`` for every run; without either the fixed ones."""
     import argparse
 
-    from bench.bench_estimator_table import add_random_arguments, chosen_surfaces
+    from bench.bench_estimator_table import add_surface_arguments, chosen_surfaces
 
     parser = argparse.ArgumentParser()
-    add_random_arguments(parser)
+    add_surface_arguments(parser)
+
+    def chosen(*argv):
+        return chosen_surfaces(parser, parser.parse_args(list(argv)), fixed)
+
     fixed = ("elliptic", "wavy")
-    assert chosen_surfaces(parser, parser.parse_args([]), fixed) == fixed
-    args = parser.parse_args(["--random", "3", "--random-seed", "40"])
-    assert chosen_surfaces(parser, args, fixed) == tuple(
-        f"bench.random_surfaces:w{s}" for s in (40, 41, 42))
+    assert chosen() == (fixed, {})
+    assert chosen("--random", "3", "--random-seed", "40") == (tuple(
+        f"bench.random_surfaces:w{s}" for s in (40, 41, 42)), {})
     assert "seeds 40-42" in capsys.readouterr().out
-    with pytest.raises(SystemExit):
-        chosen_surfaces(parser, parser.parse_args(["--random", "-1"]), fixed)
+    assert chosen("--surfaces", "hyperbolic, tests.custom_surface:bowl",
+                  "--leader-start", "1,2,1,0") == (
+        ("hyperbolic", "tests.custom_surface:bowl"), {"leader_start": (1.0, 2.0, 1.0, 0.0)})
+    for bad in (["--random", "-1"], ["--random", "2", "--surfaces", "wavy"],
+                ["--surfaces", "no-such-preset"], ["--surfaces", "wavy", "--leader-start", "1,2"],
+                ["--surfaces", " , "]):
+        with pytest.raises(SystemExit):
+            chosen(*bad)
+    assert "no-such-preset" in capsys.readouterr().err
+
+
+def test_the_benchmark_takes_noise_levels_as_range_bearing_pairs():
+    import argparse
+
+    from bench.bench_estimator_table import parse_levels
+
+    parser = argparse.ArgumentParser()
+    assert parse_levels(parser, "0.02/0.01,0.05/0.03") == ((0.02, 0.01), (0.05, 0.03))
+    for bad in ("0.02", "0.02/0.01/0", "a/b", "-0.1/0.01", "nan/0.1", ""):
+        with pytest.raises(SystemExit):
+            parse_levels(parser, bad)
