@@ -171,14 +171,17 @@ def chosen_surfaces(parser: argparse.ArgumentParser, args: argparse.Namespace,
 
 
 def parse_levels(parser: argparse.ArgumentParser, text: str) -> tuple[tuple[float, float], ...]:
-    """``--noise-levels R/B,R/B,...`` -> ((range sigma, bearing sigma rad), ...)."""
+    """``--noise-levels R/B,R/B,...`` -> ((range sigma, bearing sigma rad), ...), each pair
+    within the run configuration's bounds."""
     try:
         levels = tuple(tuple(float(x) for x in pair.split("/")) for pair in text.split(","))
-    except ValueError:
-        levels = ()
-    if not levels or any(len(lv) != 2 or not all(0 <= x < 10 for x in lv) for lv in levels):
-        parser.error(f"--noise-levels must be RANGE/BEARING pairs (sigmas >= 0), "
-                     f"comma-separated, e.g. 0.02/0.01,0.05/0.03; got {text!r}")
+        if not levels or any(len(level) != 2 for level in levels):
+            raise ValueError("not RANGE/BEARING pairs")
+        for r, b in levels:
+            RunConfig(noise_range=r, noise_bearing=b)
+    except ValueError as exc:
+        parser.error(f"--noise-levels must be RANGE/BEARING sigma pairs, comma-separated, "
+                     f"e.g. 0.02/0.01,0.05/0.03; got {text!r} ({exc})")
     return levels
 
 
