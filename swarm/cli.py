@@ -12,7 +12,6 @@ from protocol.cli import (
 from protocol.config import (DICTIONARIES, ESTIMATORS, MODES, SIDES, VELOCITY_VARIANTS, RunConfig,
                              config_from_dict, config_from_file, read_toml)
 from protocol.session import add_credential_flags
-from swarm.grid import table_number
 
 EXIT_NOTHING_ESTIMATED = 3
 """``swarm run``'s status for a run that completed but in which a follower missed every tick
@@ -108,6 +107,8 @@ def format_summary(summary: dict) -> str:
     """The per-follower table printed at the end of a run: the estimator's required range,
     the baselines (persist from the same noisy readings, its ratio, the noise-free persist
     counterfactual) and what ``auto`` followed."""
+    from swarm.grid import table_number  # not at start-up: grid brings the process pool
+
     label = "required (" + summary["estimator"] + ")"
     width = max(20, len(label))
     head = (f"{'follower':>8}  {label:>{width}}  {'rmse':>8}  {'stay':>8}  {'persist':>8}  "
@@ -117,10 +118,12 @@ def format_summary(summary: dict) -> str:
     for k, s in summary["followers"].items():
         required, persist = s["mean_required_range"], s["mean_persist_range"]
         ratio = required / persist if required is not None and persist else None
-        lines.append(f"{k:>8}  {table_number(required):>{width}}  {table_number(s['rmse']):>8}  "
-                     f"{table_number(s['mean_stay_range']):>8}  {table_number(persist):>8}  {table_number(ratio):>8}  "
-                     f"{table_number(s.get('mean_persist_range_noise_free')):>8}  "
-                     f"{s['lost_ticks']:>4}  {s['missed_ticks']:>6}  {s.get('fallback_ticks', 0):>8}")
+        ranges = [table_number(x).rjust(8) for x in (
+            s["rmse"], s["mean_stay_range"], persist, ratio,
+            s.get("mean_persist_range_noise_free"))]
+        lines.append(f"{k:>8}  {table_number(required):>{width}}  " + "  ".join(ranges)
+                     + f"  {s['lost_ticks']:>4}  {s['missed_ticks']:>6}  "
+                     f"{s.get('fallback_ticks', 0):>8}")
         followed = s.get("followed") or {}
         if len(followed) > 1:
             shares.append(f"follower {k} followed " + ", ".join(
