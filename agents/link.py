@@ -228,30 +228,28 @@ class AgentLink:
         deadline = time.monotonic() + self.query_timeout
         payload = encode(request)
         failure = f"no reply from the world on {key} within {self.query_timeout} s"
-        asking = True
-        while asking and (left := deadline - time.monotonic()) > 0:
-            asking = False  # unless the world says ``wait``
-            for reply in self.session.get(key, payload=payload, timeout=left):
-                if reply.ok is not None:
-                    return decode(reply.ok.payload.to_bytes(), expected)
-                try:
-                    error = decode(reply.err.payload.to_bytes(), ErrorReply)
-                except ProtocolError:
-                    # Not the world's refusal but Zenoh's own error, e.g. the query timed out
-                    # because the world died with it in flight. Not asked again: the world may
-                    # have acted on it (a second move in the same tick is refused).
-                    problem = reply.err.payload.to_bytes()[:200].decode(errors="replace")
-                    failure = (f"the world did not answer {request.TYPE} at tick "
-                               f"{request.tick}: {problem}")
-                    break
-                if error.code == "missed":
-                    raise TickMissed(error.error)
-                if error.code != "wait":
-                    raise AgentAbort(f"the world refused {request.TYPE} at tick {request.tick}: "
-                                     f"{error.error}")
-                asking = True
-                time.sleep(WAIT_RETRY_S)
+        while (left := deadline - time.monotonic()) > 0:
+            reply = next(iter(self.session.get(key, payload=payload, timeout=left)), None)
+            if reply is None:  # no reply at all within the time left
                 break
+            if reply.ok is not None:
+                return decode(reply.ok.payload.to_bytes(), expected)
+            try:
+                error = decode(reply.err.payload.to_bytes(), ErrorReply)
+            except ProtocolError:
+                # Not the world's refusal but Zenoh's own error, e.g. the query timed out
+                # because the world died with it in flight. Not asked again: the world may
+                # have acted on it (a second move in the same tick is refused).
+                problem = reply.err.payload.to_bytes()[:200].decode(errors="replace")
+                failure = (f"the world did not answer {request.TYPE} at tick "
+                           f"{request.tick}: {problem}")
+                break
+            if error.code == "missed":
+                raise TickMissed(error.error)
+            if error.code != "wait":
+                raise AgentAbort(f"the world refused {request.TYPE} at tick {request.tick}: "
+                                 f"{error.error}")
+            time.sleep(WAIT_RETRY_S)
         with self._cond:  # a world that died mid-query: its token goes a moment later
             self._cond.wait_for(self._world_gone, timeout=1.0)
             self._raise_if_world_gone()
