@@ -18,9 +18,9 @@ asked its candidates about other sensings would get an error, not a wrong number
 ``python bench/replay_auto.py`` records the paper's and the held-out surfaces noise-free at
 every comm period, and at the issue's middle noise level (seeds 0-4); ``--random N
 --random-seed S`` records N surfaces drawn at random instead (``bench/random_surfaces.py``),
-``--surfaces A,B,...`` yours (with ``--leader-start`` for every run).
-It then prints a few variants side by side: ``auto``, ``auto-mix``, the leverage rule
-switched off, other windows and sharpness. Recording takes a few minutes; each variant then takes seconds.
+``--surfaces A,B,...`` yours (with ``--leader-start`` for every run). It then prints a few
+variants side by side: ``auto``, ``auto-mix``, the leverage rule switched off, other windows
+and sharpness. Recording takes a few minutes; each variant then takes seconds.
 """
 from __future__ import annotations
 
