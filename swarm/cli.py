@@ -326,7 +326,13 @@ def _print_experiment(result: dict, wall_line: str) -> int:
 
 def _run_grid(run, out) -> tuple[dict | None, int]:
     """``run()``'s result and 0; or None and the status that ends the command: 2 after a
-    one-line error, 130 on Ctrl-C (naming where the finished runs are kept)."""
+    one-line error (an output folder that cannot hold results is one, found before any run),
+    130 on Ctrl-C (naming where the finished runs are kept)."""
+    try:
+        check_out_dir(out)
+    except ValueError as exc:
+        print(f"error: {describe(exc)}", file=sys.stderr)
+        return None, 2
     try:
         return run(), 0
     except RuntimeError as exc:

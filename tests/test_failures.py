@@ -284,6 +284,25 @@ def test_swarm_run_refuses_a_file_as_out_and_a_bad_log_level(tmp_path, capsys):
     assert "invalid choice: 'LOUD'" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("command", [
+    ["compare", "--estimators", "persist", "--ticks", "6"],
+    ["experiment", "paper", "--quick"],
+    ["experiment", "terrain", "--dem", "unused.tif", "--leader-start", "0,0,1,0"],
+], ids=["compare", "paper", "terrain"])
+@pytest.mark.parametrize("out", ["/proc/x", "FILE"])
+def test_grid_commands_refuse_an_unusable_out_before_running(tmp_path, monkeypatch, capsys,
+                                                             command, out):
+    """One line and status 2 before any run: nothing is left half-written."""
+    monkeypatch.chdir(tmp_path)
+    if out == "FILE":
+        out = str(tmp_path / "a-file")
+        (tmp_path / "a-file").write_text("not a folder")
+    assert swarm.cli.main([*command, "--out", out]) == 2
+    assert ("cannot hold results" if out == "/proc/x" else "is a file, not a folder") in (
+        one_error_line(capsys))
+    assert not (tmp_path / "runs").exists()
+
+
 @pytest.mark.parametrize("kind", BAD_SURFACE_MODULES)
 def test_swarm_run_reports_a_broken_surface_module(tmp_path, monkeypatch, capsys, kind):
     module = f"broken_swarm_surface_{kind}"
