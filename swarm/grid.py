@@ -290,12 +290,19 @@ def expand(table: str, base: RunConfig, axes: list[Axis],
 
     Each run is ``base`` with the options of its values applied, ``run_id`` ``<table>-<name>``,
     where ``name`` joins the axes' fragments with ``-``; its labels are ``labels`` plus one per
-    axis. Raises ValueError (naming the option) for an invalid combination.
+    axis. Raises ValueError (naming the option) for an invalid combination, and for a value
+    listed twice or two combinations sharing a folder name (each run is run once and counted
+    once in a mean).
     """
     combos: list[tuple[list[str], dict[str, Any], dict[str, Any]]] = [([], dict(labels or {}), {})]
     for axis in axes:
         if not axis.values:
             raise ValueError(f"axis {axis.name!r} has no values")
+        seen: list[Any] = []
+        for label, _ in axis.values:
+            if label in seen:
+                raise ValueError(f"axis {axis.name!r} lists {label!r} more than once")
+            seen.append(label)
         combos = [(parts + [axis.fragment.format(label)], {**lab, axis.name: label},
                    {**opts, **options})
                   for parts, lab, opts in combos for label, options in axis.values]
@@ -306,6 +313,13 @@ def expand(table: str, base: RunConfig, axes: list[Axis],
         if len(run_id) > 64:  # run ids are at most 64 characters: keep them unique
             run_id = f"{run_id[:51]}-{hashlib.sha1(run_id.encode()).hexdigest()[:12]}"
         runs.append(GridRun(table, name, base.replace(run_id=run_id, **opts), lab))
+    folders: dict[str, dict[str, Any]] = {}
+    for run in runs:
+        if run.folder in folders:
+            raise ValueError(f"{folders[run.folder]} and {run.labels} would share the run "
+                             f"folder {run.folder!r}: make the labels differ in letters, digits, "
+                             "'_', '.' or '-'")
+        folders[run.folder] = run.labels
     return runs
 
 

@@ -68,6 +68,9 @@ def test_compare_averages_over_seeds(tmp_path, capsys):
     ("[axes]\nestimator = ['nope']\n", "estimator must be one of"),
     ("[base]\nticks = 1\n[axes]\nseed = [0]\n", "ticks must be an integer"),
     ("[axes.noise]\nbad = 3\n", "axes.noise.bad must be a table"),
+    ("[axes]\ncomm_period = [1.28, 0.64, 1.280]\n", "axis 'comm_period' lists 1.28 more than once"),
+    ("[axes.noise]\n'a b' = {}\na_b = { noise_range = 0.01 }\n",
+     "{'noise': 'a b'} and {'noise': 'a_b'} would share the run folder 'g/a_b'"),
 ])
 def test_bad_grid_files_are_refused(tmp_path, capsys, text, message):
     grid = tmp_path / "g.toml"
@@ -83,6 +86,8 @@ def test_bad_grid_files_are_refused(tmp_path, capsys, text, message):
     (["--estimators", ","], "--estimators must name at least one estimator"),
     (["--estimators", "persist,nope"], "estimator must be one of"),
     (["--workers", "0"], "--workers must be at least 1"),
+    (["--seeds", "0,1,0"], "axis 'seed' lists 0 more than once"),
+    (["--estimators", "persist,kalman,persist"], "axis 'estimator' lists 'persist' more than once"),
 ])
 def test_bad_compare_flags_are_refused(tmp_path, capsys, flags, message):
     assert main(["compare", "--out", str(tmp_path / "o"), *flags]) == 2
