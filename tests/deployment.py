@@ -20,11 +20,11 @@ import zenoh
 
 from protocol.session import free_port, zenoh_config
 from swarm.cli import main as swarm_main
+from tests import waiting
 
 ROUTER_IN_COMPOSE = "tls/zenoh:7447"
 WAIT_S = 15.0  # upper bound of every wait for something that must happen (a loaded machine)
 ABSENT_S = 0.5  # how long a message that must not arrive is given to arrive anyway
-POLL_S = 0.05
 ROUTER_PATH_KEYS = ("transport/auth/usrpwd/dictionary_file",
                     *(f"transport/link/tls/{name}" for name in (
                         "root_ca_certificate", "listen_certificate", "listen_private_key",
@@ -177,13 +177,8 @@ class Inbox:
 
 
 def until(condition: Callable[[], bool], timeout: float = WAIT_S) -> bool:
-    """Poll ``condition`` until it holds (True) or ``timeout`` seconds pass (False)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(POLL_S)
-    return False
+    """:func:`tests.waiting.until` with this module's default bound."""
+    return waiting.until(condition, timeout)
 
 
 def delivered(send: Callable[[], None], inbox: Inbox, item: tuple[str, bytes]) -> bool:

@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -18,6 +17,7 @@ from protocol import keys
 from protocol.config import RunConfig, dump_config
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.launch import agent_commands, launch
+from tests.waiting import wait_for
 from world.results import read_ticks
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,15 +52,6 @@ def procs():
 def _world_cmd(config: Path, endpoint: str, out: Path, *extra: str) -> list[str]:
     return [sys.executable, "-m", "world", "--config", str(config), "--listen", endpoint,
             "--out", str(out), *extra]
-
-
-def _wait_for(predicate, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 def _ticks_done(out: Path) -> int:
@@ -105,7 +96,7 @@ def test_second_process_with_a_live_id_refuses(tmp_path, procs):
             replies = session.liveliness().get(keys.alive("dup", 1), timeout=1.0)
             return any(r.ok is not None for r in replies)
 
-        _wait_for(first_is_live, 60, "the first follower's liveliness token")
+        wait_for(first_is_live, 60, "the first follower's liveliness token")
     second = subprocess.run(agent_commands(out / "config.toml", endpoint, 1)[1], cwd=ROOT,
                             capture_output=True, text=True, timeout=30)
     assert second.returncode == 1
@@ -127,7 +118,7 @@ def test_agents_exit_when_the_world_vanishes_and_resume_continues(tmp_path, proc
     dump_config(cfg, out / "config.toml")
     world = procs.start(_world_cmd(out / "config.toml", endpoint, out))
     agents = [procs.start(cmd) for cmd in agent_commands(out / "config.toml", endpoint, 2)]
-    _wait_for(lambda: _ticks_done(out) >= 10, 60, "tick 10")
+    wait_for(lambda: _ticks_done(out) >= 10, 60, "tick 10")
     world.send_signal(signal.SIGKILL)
     assert world.wait(timeout=10) == -signal.SIGKILL
     for proc in agents:
@@ -156,7 +147,7 @@ def test_ctrl_c_stops_everything_and_leaves_a_partial_result(tmp_path):
                              "--mode", "realtime", "--time-scale", "1.0", "--out", str(out)],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        _wait_for(lambda: _ticks_done(out) >= 2, 60, "two ticks")
+        wait_for(lambda: _ticks_done(out) >= 2, 60, "two ticks")
         children = _children(proc.pid)
         assert len(children) == 3
         proc.send_signal(signal.SIGINT)
@@ -165,7 +156,7 @@ def test_ctrl_c_stops_everything_and_leaves_a_partial_result(tmp_path):
         if proc.poll() is None:
             proc.kill()
         proc.communicate(timeout=10)
-    _wait_for(lambda: not any(_alive(pid) for pid in children), 10, "agent processes to end")
+    wait_for(lambda: not any(_alive(pid) for pid in children), 10, "agent processes to end")
     summary = json.loads((out / "summary.json").read_text())
     assert summary["complete"] is False and summary["ticks_completed"] >= 2
     assert read_ticks(out / "ticks.csv")  # readable

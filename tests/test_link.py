@@ -17,7 +17,7 @@ from agents.link import AgentAbort, AgentLink
 from protocol import keys
 from protocol.messages import Move
 from protocol.session import free_tcp_endpoint, zenoh_config
-from tests.test_faults import _wait_for
+from tests.waiting import wait_for
 
 RUN = "link-errors"
 
@@ -41,7 +41,7 @@ def test_a_zenoh_error_reply_is_not_reported_as_the_worlds_refusal(world_dies):
         with zenoh.open(zenoh_config("client", connect=[endpoint])) as agent:
             link = AgentLink(agent, RUN, 1, follow=0, query_timeout=5.0)
             try:
-                _wait_for(lambda: link._world_alive, 10, "the world's liveliness")
+                wait_for(lambda: link._world_alive, 10, "the world's liveliness")
                 with pytest.raises(AgentAbort) as err:
                     link.act(Move(tick=3, offset=(0.1, 0.2)))
             finally:

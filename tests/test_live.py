@@ -19,7 +19,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +42,7 @@ from world.sim import WorldSim
 from world.view import map_payload
 from tests.boundaries import check_imports
 from tests.deployment import Inbox
+from tests.waiting import until
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = Path("/usr/bin/chromium")
@@ -244,12 +244,7 @@ def _acl_router(endpoint: str, folder: Path) -> zenoh.Config:
 
 
 def _until(condition, timeout: float = WAIT_S) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.05)
-    return False
+    return until(condition, timeout)
 
 
 def test_observer_can_subscribe_but_neither_query_the_world_nor_publish(tmp_path):
