@@ -23,6 +23,7 @@ from agents.follower import run_follower
 from agents.leader import run_leader
 from agents.link import AgentAbort, RunFinished
 from protocol.config import AgentSettings, RunConfig
+from protocol.messages import safe_text
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.deploy import (OBSERVER, agent_user, private_dir, router_config, users,
                           write_credentials, write_secret)
@@ -91,6 +92,24 @@ def embedded_router_config(config: RunConfig, endpoint: str,
         dictionary_file=str(credentials.dictionary))))
 
 
+def last_error_line(log: Path, limit: int = 240) -> str | None:
+    """The last ``error: ...`` line an agent process wrote to ``log`` (its one-line report of
+    why it stopped), without the prefix and at most ``limit`` characters; None if there is
+    none or the log cannot be read."""
+    try:
+        with open(log, "rb") as f:
+            f.seek(max(0, f.seek(0, 2) - 8192))
+            lines = f.read().decode("utf-8", "replace").splitlines()
+    except OSError:
+        return None
+    said = next((line[len("error:"):].strip() for line in reversed(lines)
+                 if line.startswith("error:")), None)
+    if not said:
+        return None
+    said = safe_text(said)
+    return said if len(said) <= limit else said[:limit - 3] + "..."
+
+
 class _ProcessAgents:
     """Agents as child processes, logs under ``out/logs``; a watcher aborts the world on a crash."""
 
@@ -117,8 +136,10 @@ class _ProcessAgents:
             for k, proc in enumerate(self.procs):
                 code = proc.poll()
                 if code not in (None, 0):
-                    service.abort(f"agent {k} exited with status {code} "
-                                  f"(see {self.out_dir / 'logs' / f'agent-{k}.log'})")
+                    log = self.out_dir / "logs" / f"agent-{k}.log"
+                    said = last_error_line(log)
+                    service.abort(f"agent {k} exited with status {code}"
+                                  + (f": {said}" if said else "") + f" (see {log})")
                     return
 
     def stop(self, timeout: float = 10.0) -> None:

@@ -53,3 +53,19 @@ def test_plugin_errors_name_the_problem():
         RunConfig(estimator="no colon")
     policy = make_policy(AgentSettings.from_config(RunConfig(estimator=SPEC)))
     assert policy.name == "mean-step"
+
+
+def test_an_unimportable_plugin_is_reported_by_swarm_run_in_one_line(tmp_path, capsys,
+                                                                      monkeypatch):
+    """Only the follower process imports the estimator; `swarm run` still says why it
+    stopped (the follower's own error line), not just its exit status."""
+    from swarm.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", "--estimator", "tests.nowhere:X", "--ticks", "6",
+                 "--out", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith("error: run aborted before it started: agent 1 exited with status 2: "
+                             "estimator 'tests.nowhere:X': cannot import 'tests.nowhere'")
+    assert err[0].endswith(f"(see {tmp_path / 'o' / 'logs' / 'agent-1.log'})")
