@@ -341,9 +341,13 @@ def attack(endpoint: str, run_id: str, password: str, rounds: int, stop: threadi
                 for reply in session.get(key, payload=payload, timeout=2.0 if len(payload) > MAX_MESSAGE_SIZE else 10.0):
                     if reply.ok is not None:
                         counts["answered"] += 1
-                    else:
+                        continue
+                    try:
                         counts["refusals"].append(decode(reply.err.payload.to_bytes(),
                                                          ErrorReply).error)
+                    except ProtocolError:  # Zenoh's own error ("Timeout"): the world closed or stalled
+                        counts["unanswered"].append(reply.err.payload.to_string())
+                        return
             for key in samples:
                 session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
                 counts["samples"] += 1
@@ -355,10 +359,14 @@ ATTACK_ROUNDS = 10  # 30 queries and 40 samples, each payload twice
 def test_oversized_and_nested_payloads_leave_the_run_unchanged(tmp_path, caplog):
     caplog.set_level("WARNING")
     cfg = RunConfig(run_id="siege", surface="wavy", followers=2, ticks=30)
-    counts: dict = {"answered": 0, "refusals": [], "samples": 0}
+    counts: dict = {"answered": 0, "refusals": [], "samples": 0, "unanswered": []}
     clean, attacked = run_under_attack(cfg, tmp_path, lambda endpoint, credentials, stop: attack(
         endpoint, cfg.run_id, credentials.passwords["follower-1"], ATTACK_ROUNDS, stop, counts))
     assert counts["answered"] == 0
+    # At most one query gets Zenoh's own error instead of the world's refusal (the one in
+    # flight when the run ended and the world's session closed; seen once in CI); the
+    # attacker then stops. The results below must still equal the clean run's.
+    assert len(counts["unanswered"]) <= 1, counts["unanswered"]
     refusals = counts["refusals"]
     assert refusals, "the attack ended before the run served any query"
     too_big = f"refused: the limit is {limits.MAX_PAYLOAD_BYTES}"
