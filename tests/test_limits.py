@@ -337,15 +337,16 @@ def attack(endpoint: str, run_id: str, password: str, rounds: int, stop: threadi
             if stop.is_set():
                 return
             payload = payloads[i % len(payloads)]
+            timeout = 2.0 if len(payload) > MAX_MESSAGE_SIZE else 10.0
             for key in queries:
-                for reply in session.get(key, payload=payload, timeout=2.0 if len(payload) > MAX_MESSAGE_SIZE else 10.0):
+                for reply in session.get(key, payload=payload, timeout=timeout):
                     if reply.ok is not None:
                         counts["answered"] += 1
                         continue
                     try:
                         counts["refusals"].append(decode(reply.err.payload.to_bytes(),
                                                          ErrorReply).error)
-                    except ProtocolError:  # Zenoh's own error ("Timeout"): the world closed or stalled
+                    except ProtocolError:  # Zenoh's own ("Timeout"): the world closed or stalled
                         counts["unanswered"].append(reply.err.payload.to_string())
                         return
             for key in samples:
