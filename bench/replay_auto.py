@@ -90,9 +90,10 @@ class _Replayed(Policy):
     def _answer(self, pre: Sensing) -> tuple[tuple, object, float | None]:
         """The recorded answer for ``pre``: the next one, which must be about that sensing."""
         if self.at >= len(self.answers) or self.answers[self.at][0] != _key(pre):
+            had = self.answers[self.at][0] if self.at < len(self.answers) else "nothing"
             raise RuntimeError(f"replay of {self.name!r} diverged at call {self.at}: the "
                                f"variant asked about sensing {_key(pre)}, the recording has "
-                               f"{self.answers[self.at][0] if self.at < len(self.answers) else 'nothing'}")
+                               f"{had}")
         return self.answers[self.at]
 
     def leverage(self, pre: Sensing) -> float | None:
@@ -167,15 +168,15 @@ def record(config: RunConfig) -> Trace:
                  summary["followers"]["1"]["mean_required_range"])
 
 
-def replay(trace: Trace, leverage: bool = True, **options) -> float:
-    """The mean required range :class:`Auto` with ``options`` would have had in ``trace``
-    (``noise_floor`` defaults to the run's, as ``make_policy`` sets it; ``leverage=False``
-    switches the leverage rule off)."""
+def replay_errors(trace: Trace, leverage: bool = True, **options) -> dict[int, float]:
+    """Per estimated tick, the required range (``|offset - target|``) :class:`Auto` with
+    ``options`` would have had in ``trace`` (``noise_floor`` defaults to the run's, as
+    ``make_policy`` sets it; ``leverage=False`` switches the leverage rule off)."""
     auto = FallbackToPersist(make_auto(trace.settings, [
         _Replayed(name, answers, leverage) for name, answers in trace.answers.items()],
         **options))
     first = trace.config.init_ticks
-    errors, pending = [], None
+    errors, pending = {}, None
     for call in trace.calls:
         if call[0] == "propose":
             try:
@@ -185,13 +186,70 @@ def replay(trace: Trace, leverage: bool = True, **options) -> float:
         elif call[0] == "record":
             _, settled, target = call
             if pending is not None and target is not None and pending[0] >= first:
-                errors.append(float(np.hypot(*(pending[1] - target))))
+                errors[pending[0]] = float(np.hypot(*(pending[1] - target)))
             pending = None
             auto.record(settled, target)
         else:
             pending = None
             auto.skip()
-    return math.fsum(errors) / len(errors) if errors else math.nan
+    return errors
+
+
+def replay(trace: Trace, leverage: bool = True, **options) -> float:
+    """The mean of :func:`replay_errors`: the mean required range of that variant."""
+    errors = replay_errors(trace, leverage, **options)
+    return math.fsum(errors.values()) / len(errors) if errors else math.nan
+
+
+def candidate_errors(trace: Trace, name: str) -> dict[int, float]:
+    """Per estimated tick, the required range of candidate ``name`` on its own (what
+    ``--estimator name`` needs, up to the world's 1e-8): its recorded proposal at each
+    ``propose``, ``persist``'s (the first candidate) while it was not ready.
+
+    ``auto`` asks every candidate once per ``propose`` and once per ``record`` with a
+    target (to score it), in that order; the recording is walked the same way."""
+    if name not in trace.answers:
+        raise ValueError(f"no candidate {name!r} in the recording: {sorted(trace.answers)}")
+    anchor = next(iter(trace.answers))
+    walks = {n: iter(trace.answers[n]) for n in (anchor, name)}
+    first = trace.config.init_ticks
+    errors, pending = {}, None
+    for call in trace.calls:
+        if call[0] == "propose":
+            answers = {n: next(walk) for n, walk in walks.items()}
+            if any(a[0] != _key(call[1]) for a in answers.values()):
+                raise RuntimeError(f"the recording of {name!r} does not follow its calls")
+            own = answers[name][1]
+            pending = (call[1].tick, answers[anchor][1] if isinstance(own, str) else own)
+        elif call[0] == "record":
+            _, settled, target = call
+            if target is not None:
+                for walk in walks.values():
+                    next(walk)  # the scoring answer
+                if pending is not None and pending[0] >= first:
+                    errors[pending[0]] = float(np.hypot(*(np.asarray(pending[1]) - target)))
+            pending = None
+        else:
+            pending = None
+    return errors
+
+
+def where_it_loses(auto: dict[int, float], best: dict[int, float],
+                   startup: int = 4) -> tuple[float, float]:
+    """A cell's excess of ``auto``'s mean over the best classical baseline's (per-tick errors
+    of both, over the same ticks) and the part of it from the first ``startup`` estimated
+    ticks."""
+    ticks = sorted(auto)
+    excess = [(auto[t] - best[t]) / len(ticks) for t in ticks]
+    return math.fsum(excess), math.fsum(excess[:startup])
+
+
+def oracle_startup_above(auto: dict[int, float], best: dict[int, float], startup: int) -> bool:
+    """Whether ``auto``'s mean would still be above ``best``'s if, on the first ``startup``
+    estimated ticks, it had never been worse than ``best`` (an oracle no rule can be)."""
+    ticks = sorted(auto)
+    mine = [min(auto[t], best[t]) if i < startup else auto[t] for i, t in enumerate(ticks)]
+    return math.fsum(mine) > math.fsum(best[t] for t in ticks)
 
 
 VARIANTS = {
@@ -248,6 +306,32 @@ def main() -> None:
               f"{min(gains):>21.2f}{float(np.median(gains)):>8.1f}"
               f"   ({time.perf_counter() - start:.1f} s)")
     print(f"replaying auto reproduces the recorded runs to {mismatch:.1e} (relative)")
+    print(startup_report(clean))
+
+
+def startup_report(clean: dict, startup: int = 4, oracles: tuple[int, ...] = (1, 2, 4)) -> str:
+    """Where ``auto`` and ``auto-mix`` lose to the best classical baseline, noise-free: in how
+    many of those cells the first ``startup`` estimated ticks hold at least the whole excess,
+    and how many would remain if, on the first k ticks, the estimator had never been worse
+    than that baseline (an oracle start-up; each k of ``oracles``)."""
+    lines = ["where they lose (best classical baseline per cell from the recorded candidates; "
+             "oracle k: never worse than it on the first k estimated ticks)"]
+    best = {}
+    for cell, trace in clean.items():
+        errors = [candidate_errors(trace, name) for name in CLASSICAL]
+        best[cell] = min(errors, key=lambda e: math.fsum(e.values()))
+    for label in ("auto", "auto-mix"):
+        mine = {cell: replay_errors(trace, **VARIANTS[label]) for cell, trace in clean.items()}
+        excess = {cell: where_it_loses(mine[cell], best[cell], startup) for cell in clean}
+        above = [cell for cell, (total, _) in excess.items() if total > 0]
+        early = sum(1 for cell in above if excess[cell][1] >= excess[cell][0])
+        left = ", ".join(
+            f"oracle {k}: {sum(oracle_startup_above(mine[c], best[c], k) for c in above)}"
+            for k in oracles)
+        lines.append(f"{label:<10} above in {len(above)} of {len(clean)}; the first {startup} "
+                     f"estimated ticks hold the whole excess in {early}; still above with {left}")
+    return "\n".join(lines)
+
 
 if __name__ == "__main__":
     main()

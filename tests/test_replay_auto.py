@@ -5,7 +5,8 @@ import dataclasses
 
 import pytest
 
-from bench.replay_auto import record, replay
+from bench.replay_auto import (candidate_errors, oracle_startup_above, record, replay,
+                               where_it_loses)
 from protocol.config import RunConfig
 from swarm.local import run_local
 
@@ -43,3 +44,24 @@ def test_a_variant_that_asks_in_another_order_is_refused(trace):
 def test_record_refuses_actuation_noise():
     with pytest.raises(ValueError, match="noise_move"):
         record(RunConfig(noise_move=0.01, ticks=6))
+
+
+@pytest.mark.parametrize("name", ["kalman", "arx", "persist"])
+def test_a_candidates_recorded_errors_are_its_own_run(trace, name):
+    """A candidate's proposals inside auto are what it proposes on its own (persist standing
+    in while it is not ready), tick by tick."""
+    errors = candidate_errors(trace, name)
+    own = run_local(RunConfig(estimator=name, **NOISY))[0]["followers"]["1"]
+    assert sorted(errors) == list(range(trace.config.init_ticks, NOISY["ticks"]))
+    assert sum(errors.values()) / len(errors) == pytest.approx(own["mean_required_range"],
+                                                               rel=1e-9)
+    with pytest.raises(ValueError, match="no candidate 'nope'"):
+        candidate_errors(trace, "nope")
+
+
+def test_where_it_loses_splits_the_excess_and_the_oracle_start_up():
+    auto = {4: 3.0, 5: 1.0, 6: 1.0, 7: 2.0}
+    best = {4: 1.0, 5: 1.0, 6: 1.0, 7: 1.0}
+    assert where_it_loses(auto, best, startup=1) == pytest.approx((0.75, 0.5))
+    assert oracle_startup_above(auto, best, 1)  # tick 7's excess remains
+    assert not oracle_startup_above(auto, {**best, 7: 2.5}, 1)  # 1+1+1+2 <= 1+1+1+2.5
