@@ -145,6 +145,10 @@ def empty_followers(summary: dict, init_ticks: int) -> list[str]:
         if n and s["missed_ticks"] >= n:
             lines.append(f"follower {k} missed every tick ({s['missed_ticks']} of {n}): "
                          "it never settled in time, its numbers measure nothing it did")
+        elif s["estimated_ticks"] == 0 and s.get("fallback_ticks"):
+            lines.append(f"follower {k} estimated no tick: its estimator was never ready, "
+                         f"persist stood in on all {s['fallback_ticks']} ticks from tick "
+                         f"{init_ticks} (does it need more samples than the run has?)")
         elif s["estimated_ticks"] == 0:
             lines.append(f"follower {k} estimated no tick: estimation starts at tick "
                          f"{init_ticks} and the run has {n} ticks ({s['missed_ticks']} missed)")

@@ -329,21 +329,28 @@ def test_swarm_run_with_nothing_estimated_is_not_a_plain_success(tmp_path, capsy
     err = capsys.readouterr().err
     assert "warning: follower 1 estimated no tick: estimation starts at tick 4 and the run has " \
            "4 ticks (0 missed)" in err
+    assert _swarm("--ticks", "8", "--delays", "1000", "--out", str(tmp_path / "d")) \
+        == EXIT_NOTHING_ESTIMATED
+    assert "warning: follower 1 estimated no tick: its estimator was never ready, persist " \
+           "stood in on all 4 ticks from tick 4" in capsys.readouterr().err
 
 
 def test_empty_followers_names_each_case():
     """The rule behind exit 3 (a live realtime run that misses every tick depends on timing,
     so the missed-every-tick case is checked on summaries)."""
-    def follower(estimated, missed):
-        return {"estimated_ticks": estimated, "missed_ticks": missed}
+    def follower(estimated, missed, fallback=0):
+        return {"estimated_ticks": estimated, "missed_ticks": missed, "fallback_ticks": fallback}
 
     summary = {"ticks_completed": 40, "followers": {
-        "1": follower(36, 0), "2": follower(30, 40), "3": follower(0, 3)}}
+        "1": follower(36, 0), "2": follower(30, 40), "3": follower(0, 3),
+        "4": follower(0, 0, fallback=36)}}
     assert empty_followers(summary, init_ticks=4) == [
         "follower 2 missed every tick (40 of 40): it never settled in time, its numbers "
         "measure nothing it did",
         "follower 3 estimated no tick: estimation starts at tick 4 and the run has 40 ticks "
         "(3 missed)",
+        "follower 4 estimated no tick: its estimator was never ready, persist stood in on all "
+        "36 ticks from tick 4 (does it need more samples than the run has?)",
     ]
     summary["followers"] = {"1": follower(36, 0)}
     assert empty_followers(summary, init_ticks=4) == []
