@@ -124,7 +124,10 @@ class RunConfig:
                              f"got {_show(self.surface)}")
         for name, (low, high) in INT_RANGES.items():
             _check_int(name, getattr(self, name), low, high)
-        _check_int("init_ticks", self.init_ticks, 2, self.ticks)
+        _check_int("init_ticks", self.init_ticks, 2, INT_RANGES["ticks"][1])
+        if self.init_ticks > self.ticks:
+            raise ValueError(f"init_ticks ({self.init_ticks}) must be at most ticks "
+                             f"({self.ticks}): raise ticks or lower init_ticks")
         for name, bounds in FLOAT_RANGES.items():
             _check_range(name, getattr(self, name), *bounds)
         for name in ("online", "affine", "gps", "pipelined"):

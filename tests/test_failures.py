@@ -267,8 +267,10 @@ def _swarm(*args: str) -> int:
     (["--out", "/proc/x"], 2, "--out /proc/x cannot hold results"),
     (["--agent-timeout", "1e10"], 2, "agent_timeout must be in (0, 3600], got 10000000000.0"),
     (["--followers", "0"], 2, "followers must be an integer in [1, 1000], got 0"),
+    (["--ticks", "3"], 2, "init_ticks (4) must be at most ticks (3): raise ticks or lower"),
+    (["--init-ticks", "1"], 2, "init_ticks must be an integer in [2, 1000000], got 1"),
     (["--surface", "no_such_module_here:surface"], 1, "cannot import module 'no_such_module_here'"),
-], ids=["out-proc", "timeout", "followers", "no-module"])
+], ids=["out-proc", "timeout", "followers", "few-ticks", "init-ticks", "no-module"])
 def test_swarm_run_refusals_are_one_line(tmp_path, monkeypatch, capsys, args, status, fragment):
     monkeypatch.chdir(tmp_path)
     assert _swarm(*args) == status
