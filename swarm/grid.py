@@ -20,7 +20,8 @@ import re
 import shutil
 import statistics
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
@@ -168,21 +169,70 @@ def run_grid(runs: list[GridRun], runs_dir: Path, workers: int | None = None,
         if scheduler is not None:
             _run_on_cluster(todo, runs_dir, scheduler, record)
         elif todo:
-            workers = workers or min(2, os.cpu_count() or 1)
-            # spawn: workers start clean instead of inheriting this process's threads and sockets.
-            context = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
-                futures = {pool.submit(execute, run, runs_dir): run for run in todo}
-                try:
-                    for future in as_completed(futures):
-                        record(futures[future], future)
-                except KeyboardInterrupt:
-                    # Cancel the queued runs while the pool is still referenced (a pool
-                    # collected before its manager thread sees the request would go on
-                    # running them all).
-                    pool.shutdown(wait=True, cancel_futures=True)
-                    raise
+            _run_in_pool(todo, runs_dir, workers or min(2, os.cpu_count() or 1), record)
     return [outcomes[run.folder] for run in runs]
+
+
+def _run_in_pool(runs: list[GridRun], runs_dir: Path, workers: int, record) -> None:
+    """Run ``runs`` in local worker processes; ``record(run, future)`` each finished one.
+
+    A worker that dies (killed, out of memory) breaks the whole pool: every run not finished
+    then fails with ``BrokenProcessPool``. The runs that were still queued go to a new pool.
+    Those that were under way (they had written their ``config.toml`` since the pool started)
+    are run again one at a time, each in a worker of its own, so the one whose worker dies
+    again is known: it is reported, the others are not charged for it. Ctrl-C cancels the
+    queued runs.
+    """
+    suspects: list[GridRun] = []
+    while runs:
+        started, again = time.time(), []
+        for run, future in _pool(runs, runs_dir, workers):
+            if not isinstance(future.exception(), BrokenProcessPool):
+                record(run, future)
+            elif _under_way(runs_dir / run.folder, started):
+                suspects.append(run)
+            else:
+                again.append(run)
+        runs = again
+        for run in suspects:  # alone: a second death is its own
+            for _, future in _pool([run], runs_dir, 1):
+                if isinstance(future.exception(), BrokenProcessPool):
+                    future = _failed("its worker process died (killed, or out of memory), "
+                                     "twice")
+                record(run, future)
+        suspects = []
+
+
+def _pool(runs: list[GridRun], runs_dir: Path, workers: int):
+    """Yield ``(run, future)`` as each of ``runs`` finishes in a new pool of ``workers``
+    processes (spawned: they start clean instead of inheriting this process's threads and
+    sockets)."""
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+        futures = {pool.submit(execute, run, runs_dir): run for run in runs}
+        try:
+            for future in as_completed(futures):
+                yield futures[future], future
+        except BaseException:  # Ctrl-C, here or in the caller (which closes this generator)
+            # Cancel the queued runs while the pool is still referenced (a pool collected
+            # before its manager thread sees the request would go on running them all).
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
+
+
+def _under_way(folder: Path, since: float) -> bool:
+    """Whether a run wrote its ``config.toml`` (as its world starts) at or after ``since``."""
+    try:
+        return (folder / "config.toml").stat().st_mtime >= since
+    except OSError:
+        return False
+
+
+def _failed(reason: str) -> Future:
+    """A finished future whose result is a ``RuntimeError(reason)``."""
+    future: Future = Future()
+    future.set_exception(RuntimeError(reason))
+    return future
 
 
 def _run_on_cluster(runs: list[GridRun], runs_dir: Path, scheduler: str, record) -> None:

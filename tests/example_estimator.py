@@ -1,6 +1,9 @@
 """An estimator of one's own, loaded as ``--estimator tests.example_estimator:MeanStep``."""
 from __future__ import annotations
 
+import os
+import signal
+
 import numpy as np
 
 from agents.policies import NotReady, Proposal, relative
@@ -39,3 +42,13 @@ class LongName(MeanStep):
     """A policy whose name is too long to travel in an observation."""
 
     name = "x" * 200
+
+
+class KillsItsProcess(MeanStep):
+    """Ends the process it runs in at its first proposal, as the kernel's out-of-memory killer
+    would (for the grid runner's tests: a run whose worker dies every time)."""
+
+    name = "kills-its-process"
+
+    def propose(self, pre):
+        os.kill(os.getpid(), signal.SIGKILL)

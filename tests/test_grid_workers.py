@@ -1,0 +1,89 @@
+"""A grid's local worker processes dying (killed from outside, or by the run itself): the runs
+that were queued still run, the one under way runs again, and only a run whose worker dies
+again is reported failed. The kill moment is drawn from a printed seed (``FAULT_SEED``)."""
+from __future__ import annotations
+
+import os
+import random
+import signal
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from protocol.config import RunConfig
+from swarm.grid import Axis, estimator_axis, expand, run_grid
+from swarm.local import run_local
+from tests.waiting import wait_for
+
+SEED = int(os.environ.get("FAULT_SEED", str(int(time.time()) % 100_000)))
+KILLS = "tests.example_estimator:KillsItsProcess"
+
+
+def _workers() -> list[int]:
+    """This process's pool workers (spawned children running ``spawn_main``; not the
+    resource tracker, also a spawned child)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes()
+        except OSError:
+            continue
+        parent = int(stat.rsplit(")", 1)[1].split()[1])
+        if parent == os.getpid() and b"spawn_main" in cmdline:
+            found.append(int(entry.name))
+    return found
+
+
+def _started(runs_dir: Path) -> list[Path]:
+    return sorted(runs_dir.glob("*/*/config.toml"))
+
+
+@pytest.mark.timeout(300)
+def test_a_worker_killed_mid_run_costs_nothing(tmp_path):
+    print(f"FAULT_SEED={SEED} (rerun with this environment variable to replay)")
+    delay = random.Random(SEED).uniform(0.0, 0.5)
+    base = RunConfig(run_id="g", ticks=300)
+    runs = expand("killed", base, [estimator_axis(["persist", "kalman"]),
+                                   Axis.of_field("seed", [0, 1], "s{}")])
+    result: dict = {}
+    grid = threading.Thread(target=lambda: result.update(
+        outcomes=run_grid(runs, tmp_path, workers=2, progress=False)))
+    grid.start()
+    try:
+        wait_for(lambda: _started(tmp_path) and _workers(), 60, "a run under way")
+        time.sleep(delay)
+        victims, killed_at = _workers(), time.time()
+        assert victims, "no worker left to kill: the grid ended first"
+        os.kill(victims[0], signal.SIGKILL)
+        under_way = [path for path in _started(tmp_path)
+                     if not (path.parent / "summary.json").exists()
+                     or '"complete": true' not in (path.parent / "summary.json").read_text()]
+    finally:
+        grid.join(240)
+    assert not grid.is_alive(), "the grid did not finish"
+    # the killed worker's run was run again from its start
+    assert any(path.stat().st_mtime > killed_at for path in under_way), under_way
+    outcomes = result["outcomes"]
+    assert [o.run for o in outcomes] == runs
+    assert all(o.ok for o in outcomes), [o.error for o in outcomes if not o.ok]
+    for outcome in outcomes:  # the same numbers as an undisturbed run
+        own = run_local(outcome.run.config)[0]
+        assert outcome.summary["followers"] == own["followers"]
+
+
+@pytest.mark.timeout(300)
+def test_a_run_that_kills_its_worker_is_reported_and_the_others_finish(tmp_path):
+    base = RunConfig(run_id="g", ticks=8)
+    runs = expand("dies", base, [estimator_axis(["persist", KILLS, "kalman"])])
+    outcomes = run_grid(runs, tmp_path, workers=2, progress=False)
+    assert [o.run for o in outcomes] == runs
+    persist, kills, kalman = outcomes
+    assert persist.ok and kalman.ok
+    assert not kills.ok
+    assert kills.error == ("RuntimeError: its worker process died (killed, or out of memory), "
+                           "twice")
