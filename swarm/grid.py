@@ -4,8 +4,9 @@
 A :class:`GridRun` is a ``RunConfig`` with a table, a folder name and the key columns it fills;
 :func:`run_grid` runs a list of them (each one :func:`swarm.launch.launch` over Zenoh, in a
 local process pool or as tasks on a dask cluster) and returns one :class:`RunOutcome` per run;
-runs already finished in the folder (an interrupted grid run again) are not run again. :func:`write_table` /
-:func:`read_table` write and read the CSV tables.
+runs already finished in the folder (an interrupted grid run again) are not run again, and a
+dead local worker costs only the run it had. :func:`write_table` / :func:`read_table` write
+and read the CSV tables.
 """
 from __future__ import annotations
 
