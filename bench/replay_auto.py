@@ -168,6 +168,28 @@ def record(config: RunConfig) -> Trace:
                  summary["followers"]["1"]["mean_required_range"])
 
 
+def _errors(trace: Trace, propose, record, skip) -> dict[int, float]:
+    """Walk ``trace``'s calls: ``propose(pre)`` gives an offset (None: nothing to go by),
+    ``record(settled, target)`` and ``skip()`` follow the rest; returns ``|offset - target|``
+    per estimated tick (from ``init_ticks`` on)."""
+    first = trace.config.init_ticks
+    errors, pending = {}, None
+    for call in trace.calls:
+        if call[0] == "propose":
+            offset = propose(call[1])
+            pending = None if offset is None else (call[1].tick, offset)
+        elif call[0] == "record":
+            _, settled, target = call
+            if pending is not None and target is not None and pending[0] >= first:
+                errors[pending[0]] = float(np.hypot(*(np.asarray(pending[1]) - target)))
+            pending = None
+            record(settled, target)
+        else:
+            pending = None
+            skip()
+    return errors
+
+
 def replay_errors(trace: Trace, leverage: bool = True, **options) -> dict[int, float]:
     """Per estimated tick, the required range (``|offset - target|``) :class:`Auto` with
     ``options`` would have had in ``trace`` (``noise_floor`` defaults to the run's, as
@@ -175,29 +197,22 @@ def replay_errors(trace: Trace, leverage: bool = True, **options) -> dict[int, f
     auto = FallbackToPersist(make_auto(trace.settings, [
         _Replayed(name, answers, leverage) for name, answers in trace.answers.items()],
         **options))
-    first = trace.config.init_ticks
-    errors, pending = {}, None
-    for call in trace.calls:
-        if call[0] == "propose":
-            try:
-                pending = (call[1].tick, auto.propose(call[1]).offset)
-            except NotFitted:  # nothing to go by yet (the first tick), as in the run
-                pending = None
-        elif call[0] == "record":
-            _, settled, target = call
-            if pending is not None and target is not None and pending[0] >= first:
-                errors[pending[0]] = float(np.hypot(*(pending[1] - target)))
-            pending = None
-            auto.record(settled, target)
-        else:
-            pending = None
-            auto.skip()
-    return errors
+
+    def propose(pre: Sensing) -> np.ndarray | None:
+        try:
+            return auto.propose(pre).offset
+        except NotFitted:  # nothing to go by yet (the first tick), as in the run
+            return None
+
+    return _errors(trace, propose, auto.record, auto.skip)
 
 
 def replay(trace: Trace, leverage: bool = True, **options) -> float:
     """The mean of :func:`replay_errors`: the mean required range of that variant."""
-    errors = replay_errors(trace, leverage, **options)
+    return _mean(replay_errors(trace, leverage, **options))
+
+
+def _mean(errors: dict[int, float]) -> float:
     return math.fsum(errors.values()) / len(errors) if errors else math.nan
 
 
@@ -212,26 +227,20 @@ def candidate_errors(trace: Trace, name: str) -> dict[int, float]:
         raise ValueError(f"no candidate {name!r} in the recording: {sorted(trace.answers)}")
     anchor = next(iter(trace.answers))
     walks = {n: iter(trace.answers[n]) for n in (anchor, name)}
-    first = trace.config.init_ticks
-    errors, pending = {}, None
-    for call in trace.calls:
-        if call[0] == "propose":
-            answers = {n: next(walk) for n, walk in walks.items()}
-            if any(a[0] != _key(call[1]) for a in answers.values()):
-                raise RuntimeError(f"the recording of {name!r} does not follow its calls")
-            own = answers[name][1]
-            pending = (call[1].tick, answers[anchor][1] if isinstance(own, str) else own)
-        elif call[0] == "record":
-            _, settled, target = call
-            if target is not None:
-                for walk in walks.values():
-                    next(walk)  # the scoring answer
-                if pending is not None and pending[0] >= first:
-                    errors[pending[0]] = float(np.hypot(*(np.asarray(pending[1]) - target)))
-            pending = None
-        else:
-            pending = None
-    return errors
+
+    def propose(pre: Sensing) -> object:
+        answers = {n: next(walk) for n, walk in walks.items()}
+        if any(a[0] != _key(pre) for a in answers.values()):
+            raise RuntimeError(f"the recording of {name!r} does not follow its calls")
+        own = answers[name][1]
+        return answers[anchor][1] if isinstance(own, str) else own
+
+    def record(settled: Sensing, target: np.ndarray | None) -> None:
+        if target is not None:
+            for walk in walks.values():
+                next(walk)  # the scoring answer
+
+    return _errors(trace, propose, record, lambda: None)
 
 
 def where_it_loses(auto: dict[int, float], best: dict[int, float],
@@ -290,9 +299,13 @@ def main() -> None:
                            noise_bearing=NOISE_LEVELS[1][1], **base) for s in surfaces}
     print(f"{'variant':<30}{'noise-free > best classical':>30}{'geo-mean ratio':>16}"
           f"{'noisy persist/x min':>21}{'median':>8}   (middle level {NOISE_LEVELS[1]})")
+    replayed = {}  # per-tick errors of auto and auto-mix, for the start-up report
     for label, options in VARIANTS.items():
         start = time.perf_counter()
-        clean_means = {cell: replay(t, **options) for cell, t in clean.items()}
+        clean_errors = {cell: replay_errors(t, **options) for cell, t in clean.items()}
+        if label in STARTUP_REPORTED:
+            replayed[label] = clean_errors
+        clean_means = {cell: _mean(errors) for cell, errors in clean_errors.items()}
         noisy_means = {key: replay(t, **options) for key, t in noisy.items()}
         if not options:  # auto itself: the check that replay reproduces the runs
             mismatch = max(abs(means[key] - t.recorded_mean) / t.recorded_mean
@@ -306,22 +319,27 @@ def main() -> None:
               f"{min(gains):>21.2f}{float(np.median(gains)):>8.1f}"
               f"   ({time.perf_counter() - start:.1f} s)")
     print(f"replaying auto reproduces the recorded runs to {mismatch:.1e} (relative)")
-    print(startup_report(clean))
+    print(startup_report(clean, replayed))
 
 
-def startup_report(clean: dict, startup: int = 4, oracles: tuple[int, ...] = (1, 2, 4)) -> str:
-    """Where ``auto`` and ``auto-mix`` lose to the best classical baseline, noise-free: in how
-    many of those cells the first ``startup`` estimated ticks hold at least the whole excess,
-    and how many would remain if, on the first k ticks, the estimator had never been worse
-    than that baseline (an oracle start-up; each k of ``oracles``)."""
+STARTUP_REPORTED = ("auto", "auto-mix")
+
+
+def startup_report(clean: dict, replayed: dict, startup: int = 4,
+                   oracles: tuple[int, ...] = (1, 2, 4)) -> str:
+    """Where ``auto`` and ``auto-mix`` lose to the best classical baseline, noise-free (their
+    per-tick errors in ``replayed[label][cell]``): in how many of those cells the first
+    ``startup`` estimated ticks hold at least the whole excess, and how many would remain if,
+    on the first k ticks, the estimator had never been worse than that baseline (an oracle
+    start-up; each k of ``oracles``)."""
     lines = ["where they lose (best classical baseline per cell from the recorded candidates; "
              "oracle k: never worse than it on the first k estimated ticks)"]
     best = {}
     for cell, trace in clean.items():
         errors = [candidate_errors(trace, name) for name in CLASSICAL]
         best[cell] = min(errors, key=lambda e: math.fsum(e.values()))
-    for label in ("auto", "auto-mix"):
-        mine = {cell: replay_errors(trace, **VARIANTS[label]) for cell, trace in clean.items()}
+    for label in STARTUP_REPORTED:
+        mine = replayed[label]
         excess = {cell: where_it_loses(mine[cell], best[cell], startup) for cell in clean}
         above = [cell for cell, (total, _) in excess.items() if total > 0]
         early = sum(1 for cell in above if excess[cell][1] >= excess[cell][0])
