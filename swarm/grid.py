@@ -184,9 +184,8 @@ def _run_in_pool(runs: list[GridRun], runs_dir: Path, workers: int, record) -> N
     again is known: it is reported, the others are not charged for it. Ctrl-C cancels the
     queued runs.
     """
-    suspects: list[GridRun] = []
     while runs:
-        started, again = time.time(), []
+        started, again, suspects = time.time(), [], []
         for run, future in _pool(runs, runs_dir, workers):
             if not isinstance(future.exception(), BrokenProcessPool):
                 record(run, future)
@@ -194,14 +193,13 @@ def _run_in_pool(runs: list[GridRun], runs_dir: Path, workers: int, record) -> N
                 suspects.append(run)
             else:
                 again.append(run)
-        runs = again
         for run in suspects:  # alone: a second death is its own
             for _, future in _pool([run], runs_dir, 1):
                 if isinstance(future.exception(), BrokenProcessPool):
                     future = _failed("its worker process died (killed, or out of memory), "
                                      "twice")
                 record(run, future)
-        suspects = []
+        runs = again
 
 
 def _pool(runs: list[GridRun], runs_dir: Path, workers: int):
@@ -357,21 +355,18 @@ def expand(table: str, base: RunConfig, axes: list[Axis],
         combos = [(parts + [axis.fragment.format(label)], {**lab, axis.name: label},
                    {**opts, **options})
                   for parts, lab, opts in combos for label, options in axis.values]
-    runs = []
+    runs: dict[str, GridRun] = {}  # by folder name
     for parts, lab, opts in combos:
         name = re.sub(r"[^A-Za-z0-9_.-]", "_", "-".join(parts))
+        if name in runs:
+            raise ValueError(f"{runs[name].labels} and {lab} would share the run folder "
+                             f"'{table}/{name}': make the labels differ in letters, digits, "
+                             "'_', '.' or '-'")
         run_id = f"{table}-{name}"
         if len(run_id) > 64:  # run ids are at most 64 characters: keep them unique
             run_id = f"{run_id[:51]}-{hashlib.sha1(run_id.encode()).hexdigest()[:12]}"
-        runs.append(GridRun(table, name, base.replace(run_id=run_id, **opts), lab))
-    folders: dict[str, dict[str, Any]] = {}
-    for run in runs:
-        if run.folder in folders:
-            raise ValueError(f"{folders[run.folder]} and {run.labels} would share the run "
-                             f"folder {run.folder!r}: make the labels differ in letters, digits, "
-                             "'_', '.' or '-'")
-        folders[run.folder] = run.labels
-    return runs
+        runs[name] = GridRun(table, name, base.replace(run_id=run_id, **opts), lab)
+    return list(runs.values())
 
 
 def estimator_options(label: str) -> dict[str, Any]:
