@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -445,6 +446,37 @@ def cmd_terrain(args: argparse.Namespace) -> int:
     return _print_experiment(result, f"wall time {result['wall_time']:.1f} s (runs)")
 
 
+def cmd_dem_crop(args: argparse.Namespace) -> int:
+    """``dem-crop IN OUT.tif [--bounds XMIN,YMIN,XMAX,YMAX]``: a rectangle of a DEM with data
+    at every node."""
+    from swarm.terrain import crop_dem
+
+    try:
+        crop = crop_dem(args.source, args.out, args.bounds)
+    except (ValueError, OSError) as exc:
+        print(f"error: {describe(exc)}", file=sys.stderr)
+        return 2
+    (i0, i1), (j0, j1) = crop.columns, crop.rows
+    print(f"dem: {crop.path}: {i1 - i0 + 1} × {j1 - j0 + 1} nodes (columns {i0}–{i1}, rows "
+          f"{j0}–{j1} from the south of {args.source}; {crop.dropped} no-data node(s) left out)")
+    print(f"its frame: x ∈ [0, {crop.size[0]:.6g}], y ∈ [0, {crop.size[1]:.6g}] m; origin at "
+          f"({crop.origin[0]:.6g}, {crop.origin[1]:.6g}) m of {args.source}'s frame "
+          "(subtract it from a leader start given there)")
+    return 0
+
+
+def _bounds(text: str) -> tuple[float, float, float, float]:
+    """``--bounds XMIN,YMIN,XMAX,YMAX`` (argparse type)."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected four finite numbers XMIN,YMIN,XMAX,YMAX, "
+                                         f"got {text!r}")
+    return values
+
+
 def cmd_dem_from_npz(args: argparse.Namespace) -> int:
     """``dem-from-npz OUT.tif [--npz PATH]``: matplotlib's Jacksboro DEM as a GeoTIFF."""
     from swarm.terrain import dem_from_npz
@@ -549,6 +581,14 @@ def build_parser() -> argparse.ArgumentParser:
     dem.add_argument("out", metavar="OUT.tif")
     dem.add_argument("--npz", help="another .npz in the same layout (default: the sample)")
     dem.set_defaults(func=cmd_dem_from_npz)
+    crop = sub.add_parser("dem-crop", help="keep a rectangle of a DEM without no-data nodes "
+                                           "(by default the largest) as a GeoTIFF")
+    crop.add_argument("source", metavar="IN", help="a DEM raster (GeoTIFF, .asc, ...)")
+    crop.add_argument("out", metavar="OUT.tif")
+    crop.add_argument("--bounds", type=_bounds, metavar="XMIN,YMIN,XMAX,YMAX",
+                      help="keep these nodes instead (m, in IN's frame: origin at its "
+                           "south-west node)")
+    crop.set_defaults(func=cmd_dem_crop)
     plot = sub.add_parser("plot", help="draw one run's figures into RUN_DIR/figures")
     plot.add_argument("run_dir", metavar="RUN_DIR", help="a results folder of `swarm run`")
     plot.set_defaults(func=cmd_plot)

@@ -17,6 +17,8 @@ dictionary b; any other name is passed as ``--estimator``), so adding one is one
 
 ``python -m swarm dem-from-npz OUT.tif`` writes matplotlib's sample DEM (USGS, Jacksboro
 fault, Tennessee; public domain) as a GeoTIFF, the DEM of the committed study.
+``python -m swarm dem-crop IN OUT.tif`` (:func:`crop_dem`) keeps a rectangle of a DEM without
+no-data nodes, which ``dem:`` refuses (SPEC §3).
 """
 from __future__ import annotations
 
@@ -26,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 
 from protocol.config import AUTO, CLASSICAL, OWN_MOTION, RunConfig, write_atomic
@@ -364,3 +367,131 @@ def dem_from_npz(out: str | Path, npz: str | Path | None = None) -> Path:
         raise ValueError("npz: the grid's edges do not match its size and cell size")
     return write_geotiff(out, elevation[::-1], west=float(data["xmin"]), south=float(south),
                          cell_x=float(data["dx"]), cell_y=float(data["dy"]), crs="EPSG:4326")
+
+
+@dataclass(frozen=True)
+class Crop:
+    """What :func:`crop_dem` wrote. Indices count nodes of the source from the south-west
+    (columns east, rows north), inclusive; ``origin`` is the crop's south-west node in the
+    source's SPEC frame (m), so a point ``p`` of the source is ``p - origin`` in the crop's."""
+
+    path: Path
+    columns: tuple[int, int]
+    rows: tuple[int, int]
+    origin: tuple[float, float]
+    size: tuple[float, float]  # the crop's extent in its own frame (m), x then y
+    dropped: int  # no-data nodes of the source left out
+
+
+def crop_dem(source: str | Path, out: str | Path,
+             bounds: tuple[float, float, float, float] | None = None) -> Crop:
+    """Write a rectangle of the DEM at ``source`` without any no-data node as the GeoTIFF
+    ``out`` (same CRS, cell size, data type and no-data value; a geo-referenced window).
+
+    Parameters
+    ----------
+    bounds : (xmin, ymin, xmax, ymax), optional
+        The nodes to keep, in the source's SPEC frame (m, origin at its south-west node). By
+        default the largest rectangle (most nodes) of at least 4 × 4 nodes holding data.
+
+    Raises
+    ------
+    ValueError
+        The source cannot be read (:func:`world.dem.read_grid`), ``out`` is the source,
+        ``bounds`` hold no-data nodes or fewer than 4 × 4 nodes, or no rectangle of 4 × 4
+        nodes holds data.
+    """
+    import rasterio
+    from rasterio.transform import Affine
+    from rasterio.windows import Window
+
+    from world.dem import MIN_NODES, read_dem, read_grid
+
+    source, out = Path(source), Path(out)
+    x, y, z = read_grid(source)
+    valid = np.isfinite(z)
+    if out.resolve() == source.resolve():
+        raise ValueError(f"out {str(out)!r} is the source DEM; write the crop elsewhere")
+    if bounds is None:
+        j0, j1, i0, i1 = largest_rectangle(valid, MIN_NODES)
+        if j1 == j0:
+            raise ValueError(f"path {str(source)!r}: no rectangle of {MIN_NODES} × {MIN_NODES} "
+                             "nodes holds data")
+    else:
+        xmin, ymin, xmax, ymax = bounds
+        if not (xmin < xmax and ymin < ymax):
+            raise ValueError(f"bounds must be xmin,ymin,xmax,ymax with xmin < xmax and "
+                             f"ymin < ymax, got {bounds}")
+        cols = np.flatnonzero((x >= xmin) & (x <= xmax))
+        rows = np.flatnonzero((y >= ymin) & (y <= ymax))
+        if cols.size < MIN_NODES or rows.size < MIN_NODES:
+            raise ValueError(f"bounds {bounds} hold {cols.size} × {rows.size} nodes of "
+                             f"{str(source)!r}; a bicubic spline needs at least {MIN_NODES} × "
+                             f"{MIN_NODES} (its nodes: x ∈ [0, {x[-1]:.6g}], "
+                             f"y ∈ [0, {y[-1]:.6g}] m)")
+        i0, i1, j0, j1 = int(cols[0]), int(cols[-1]) + 1, int(rows[0]), int(rows[-1]) + 1
+        holes = int((~valid[j0:j1, i0:i1]).sum())
+        if holes:
+            raise ValueError(f"bounds {bounds} hold {holes} no-data node(s) of "
+                             f"{str(source)!r}; choose others, or leave --bounds out for the "
+                             "largest rectangle with data")
+    if out.suffix.lower() not in (".tif", ".tiff"):
+        raise ValueError(f"out {str(out)!r} must be a GeoTIFF path (.tif)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with rasterio.open(source) as src:
+        north_up = src.transform.e < 0
+        row_off = z.shape[0] - j1 if north_up else j0  # rasterio counts rows from the top
+        window = Window(i0, row_off, i1 - i0, j1 - j0)
+        heights = src.read(1, window=window)
+        profile = dict(driver="GTiff", width=i1 - i0, height=j1 - j0, count=1,
+                       dtype=src.dtypes[0], crs=src.crs, nodata=src.nodata,
+                       transform=src.transform @ Affine.translation(i0, row_off))
+    with rasterio.open(out, "w", **profile) as dst:
+        dst.write(heights, 1)
+    cx, cy, _ = read_dem(out)  # the crop loads as a surface
+    return Crop(out, (i0, i1 - 1), (j0, j1 - 1), (float(x[i0]), float(y[j0])),
+                (float(cx[-1]), float(cy[-1])), int((~valid).sum()))
+
+
+def largest_rectangle(valid: np.ndarray, min_side: int = 1) -> tuple[int, int, int, int]:
+    """The axis-aligned rectangle of ``valid`` (2-D bool) with the most True cells among those
+    at least ``min_side`` cells along both axes: ``(row0, row1, col0, col1)``, ends exclusive;
+    all zero if there is none. Ties go to the first found (rows ending lowest, then columns
+    farthest left).
+
+    Examples
+    --------
+    >>> valid = np.array([[1, 1, 0, 1], [1, 1, 1, 1], [0, 1, 1, 1]], dtype=bool)
+    >>> largest_rectangle(valid)
+    (1, 3, 1, 4)
+    """
+    valid = np.ascontiguousarray(valid, dtype=np.bool_)
+    if valid.ndim != 2:
+        raise ValueError(f"valid must be 2-D, got shape {valid.shape}")
+    return tuple(int(v) for v in _largest_rectangle(valid, int(min_side)))
+
+
+@numba.njit(cache=True)
+def _largest_rectangle(valid, min_side):
+    """For each row as the bottom, the largest rectangle under the histogram of valid runs
+    ending there (a stack of rising bars): O(rows × cols)."""
+    rows, cols = valid.shape
+    heights = np.zeros(cols + 1, dtype=np.int64)  # a zero bar past the end empties the stack
+    stack = np.empty(cols + 1, dtype=np.int64)
+    best = np.zeros(5, dtype=np.int64)  # area, row0, row1, col0, col1
+    for j in range(rows):
+        for i in range(cols):
+            heights[i] = heights[i] + 1 if valid[j, i] else 0
+        top = 0
+        for i in range(cols + 1):
+            while top > 0 and heights[stack[top - 1]] >= heights[i]:
+                top -= 1
+                height = heights[stack[top]]
+                left = stack[top - 1] + 1 if top > 0 else 0
+                width = i - left
+                if height >= min_side and width >= min_side and height * width > best[0]:
+                    best[0], best[1], best[2] = height * width, j + 1 - height, j + 1
+                    best[3], best[4] = left, i
+            stack[top] = i
+            top += 1
+    return best[1], best[2], best[3], best[4]

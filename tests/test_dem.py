@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 from protocol.config import RunConfig
-from swarm.terrain import write_geotiff
+from swarm.terrain import crop_dem, largest_rectangle, write_geotiff
 from tests.make_dem_data import (HILLS, HILLS_CELL, HILLS_CRS, HILLS_LEADER_START, HILLS_SHAPE,
                                  hills_function, hills_heights)
-from world.dem import METRES_PER_DEGREE, DemSurface, load_dem, spline_surface
+from world.dem import (METRES_PER_DEGREE, DemSurface, load_dem, read_dem, read_grid,
+                       spline_surface)
 from world.geometry import SurfaceDomainError, ideal_formation, integrate_geodesic, rod_end
 from world.surfaces import make_surface
 
@@ -180,8 +181,119 @@ def test_no_data_cells_are_refused(tmp_path):
     z = hills_heights().astype(np.float64)
     z[3, 4] = -9999.0
     path = write_ascii(tmp_path / "holes.asc", z, HILLS_CELL, nodata=-9999.0)
-    with pytest.raises(ValueError, match="no-data cell.*column 4, row 3"):
+    with pytest.raises(ValueError, match="no-data cell.*column 4, row 3.*python -m swarm "
+                                         "dem-crop"):  # the way out is named
         load_dem(path)
+
+
+# ------------------------------------------------------------------ cropping no-data away
+
+@pytest.mark.parametrize("min_side", [1, 3])
+def test_largest_rectangle_is_the_brute_force_one(min_side):
+    rng = np.random.default_rng(SEED)
+    for _ in range(200):
+        rows, cols = rng.integers(1, 9, size=2)
+        valid = rng.random((rows, cols)) < rng.uniform(0.3, 0.95)
+        best = 0
+        for j0 in range(rows):
+            for j1 in range(j0 + min_side, rows + 1):
+                for i0 in range(cols):
+                    for i1 in range(i0 + min_side, cols + 1):
+                        if valid[j0:j1, i0:i1].all():
+                            best = max(best, (j1 - j0) * (i1 - i0))
+        j0, j1, i0, i1 = largest_rectangle(valid, min_side)
+        assert (j1 - j0) * (i1 - i0) == best, valid
+        if best:
+            assert valid[j0:j1, i0:i1].all() and min(j1 - j0, i1 - i0) >= min_side
+
+
+def _holey_hills(nodata: float) -> np.ndarray:
+    """The hills heights (south row first) with no-data nodes along two edges and inside."""
+    z = hills_heights().astype(np.float64)
+    z[:2, :] = nodata  # the two southern rows
+    z[:, -3:] = nodata  # the three eastern columns
+    z[15, 5] = nodata  # one hole in the middle
+    return z
+
+
+@pytest.mark.parametrize("kind", ["geotiff", "ascii", "geographic"])
+def test_dem_crop_keeps_the_largest_rectangle_with_data(tmp_path, kind):
+    z = _holey_hills(-9999.0)
+    if kind == "ascii":
+        source = write_ascii(tmp_path / "holes.asc", z, HILLS_CELL, nodata=-9999.0)
+    else:
+        crs, cell = (HILLS_CRS, HILLS_CELL) if kind == "geotiff" else ("EPSG:4326", 1e-4)
+        source = write_geotiff(tmp_path / "holes.tif", np.ma.masked_equal(z, -9999.0)
+                               .filled(np.nan).astype(np.float32), west=1.0, south=50.0,
+                               cell_x=cell, cell_y=cell, crs=crs)
+    crop = crop_dem(source, tmp_path / "out" / "crop.tif")
+    x, y, heights = read_grid(source)
+    valid = np.isfinite(heights)
+    (i0, i1), (j0, j1) = crop.columns, crop.rows
+    assert valid[j0:j1 + 1, i0:i1 + 1].all()
+    assert (j1 - j0 + 1) * (i1 - i0 + 1) == np.prod(np.subtract(largest_rectangle(valid, 4)[1::2],
+                                                                largest_rectangle(valid, 4)[::2]))
+    assert crop.dropped == int((~valid).sum())
+    assert crop.origin == (x[i0], y[j0])
+    cx, cy, cz = read_dem(crop.path)  # loads: no no-data left
+    np.testing.assert_array_equal(cz, heights[j0:j1 + 1, i0:i1 + 1])
+    if kind != "geographic":  # metres: the crop's frame is the source's, shifted
+        np.testing.assert_allclose(cx, x[i0:i1 + 1] - x[i0], atol=1e-9)
+        np.testing.assert_allclose(cy, y[j0:j1 + 1] - y[j0], atol=1e-9)
+    import rasterio
+
+    with rasterio.open(source) as src, rasterio.open(crop.path) as dst:
+        assert dst.crs == src.crs and dst.res == pytest.approx(src.res)
+        # the crop's south-west node is where the source's node (i0, j0) is on the ground
+        north_up = src.transform.e < 0
+        row = src.height - 1 - j0 if north_up else j0
+        np.testing.assert_allclose(dst.xy(dst.height - 1, 0), src.xy(row, i0), rtol=1e-12)
+
+
+def test_dem_crop_bounds_keep_the_nodes_inside(tmp_path):
+    z = _holey_hills(-9999.0)
+    source = write_ascii(tmp_path / "holes.asc", z, HILLS_CELL, nodata=-9999.0)
+    x, y, heights = read_grid(source)
+    crop = crop_dem(source, tmp_path / "box.tif", bounds=(x[2], y[3], x[9] + 0.5, y[12]))
+    assert crop.columns == (2, 9) and crop.rows == (3, 12)
+    np.testing.assert_array_equal(read_dem(crop.path)[2], heights[3:13, 2:10])
+    with pytest.raises(ValueError, match="1 no-data node"):  # the hole at column 5, row 15
+        crop_dem(source, tmp_path / "bad.tif", bounds=(x[2], y[10], x[9], y[20]))
+    with pytest.raises(ValueError, match="at least 4 × 4"):
+        crop_dem(source, tmp_path / "bad.tif", bounds=(x[2], y[3], x[4], y[12]))
+    with pytest.raises(ValueError, match="xmin < xmax"):
+        crop_dem(source, tmp_path / "bad.tif", bounds=(x[9], y[3], x[2], y[12]))
+    with pytest.raises(ValueError, match="is the source DEM"):
+        crop_dem(source, source)
+    with pytest.raises(ValueError, match="GeoTIFF"):
+        crop_dem(source, tmp_path / "out.asc")
+    assert not (tmp_path / "bad.tif").exists()
+
+
+def test_dem_crop_refuses_a_dem_without_a_4x4_rectangle_of_data(tmp_path):
+    z = hills_heights().astype(np.float64)
+    z[::3, :] = -9999.0  # every third row: at most 2 rows of data in a row
+    source = write_ascii(tmp_path / "striped.asc", z, HILLS_CELL, nodata=-9999.0)
+    with pytest.raises(ValueError, match="no rectangle of 4 × 4 nodes holds data"):
+        crop_dem(source, tmp_path / "crop.tif")
+
+
+def test_dem_crop_command(tmp_path, capsys):
+    from swarm.cli import main
+
+    source = write_ascii(tmp_path / "holes.asc", _holey_hills(-9999.0), HILLS_CELL,
+                         nodata=-9999.0)
+    assert main(["dem-crop", str(source), str(tmp_path / "crop.tif")]) == 0
+    out = capsys.readouterr().out
+    # the hole at column 5, row 15 leaves columns 6-22 over rows 2-20 the largest rectangle
+    assert "columns 6–22, rows 2–20 from the south" in out
+    assert f"origin at ({6 * HILLS_CELL:g}, {2 * HILLS_CELL:g}) m" in out
+    assert main(["dem-crop", str(source), str(tmp_path / "c.tif"), "--bounds", "0,0,10,10"]) == 2
+    assert "no-data node" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stop:
+        main(["dem-crop", str(source), str(tmp_path / "c.tif"), "--bounds", "0,0,nan,1"])
+    assert stop.value.code == 2
+    assert "four finite numbers" in capsys.readouterr().err
 
 
 def test_unknown_crs_units_are_refused(tmp_path):

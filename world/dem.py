@@ -56,7 +56,26 @@ _HEADER = 6  # params: n_ty, n_tx, y0, y1, x0, x1, then ty, tx, coefficients
 
 
 def read_dem(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Read a DEM raster into the SPEC §3 frame.
+    """Read a DEM raster into the SPEC §3 frame: :func:`read_grid`, no-data cells refused.
+
+    Raises
+    ------
+    ValueError
+        As :func:`read_grid`, and for no-data cells (their count and the first one's column
+        and row, counted from the south).
+    """
+    x, y, z = read_grid(path)
+    missing = ~np.isfinite(z)
+    if missing.any():
+        j, i = np.argwhere(missing)[0]
+        raise ValueError(f"path {str(path)!r}: {int(missing.sum())} no-data cell(s), e.g. column "
+                         f"{i}, row {j} from the south; fill them, or keep the largest "
+                         f"rectangle without any: python -m swarm dem-crop {path} OUT.tif")
+    return x, y, z
+
+
+def read_grid(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a DEM raster into the SPEC §3 frame, no-data cells as NaN.
 
     Parameters
     ----------
@@ -70,13 +89,14 @@ def read_dem(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     y : ndarray, shape (ny,)
         Node y coordinates (m, north), ``y[0] = 0``.
     z : ndarray, shape (ny, nx)
-        Heights (m); row ``j`` is the ``j``-th row from the south.
+        Heights (m); row ``j`` is the ``j``-th row from the south; NaN where the raster has
+        no data.
 
     Raises
     ------
     ValueError
-        Missing or unreadable file, rotated grid, unknown CRS units, no-data cells, or fewer
-        than 4 × 4 nodes.
+        Missing or unreadable file, rotated grid, unknown CRS units, or fewer than 4 × 4
+        nodes.
     """
     import rasterio
     from rasterio.errors import CRSError, RasterioIOError
@@ -100,11 +120,6 @@ def read_dem(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     z = np.ma.filled(band.astype(np.float64), np.nan)
     if transform.e < 0:  # row 0 is the northern edge: count rows from the south
         z = z[::-1]
-    missing = ~np.isfinite(z)
-    if missing.any():
-        j, i = np.argwhere(missing)[0]
-        raise ValueError(f"path {str(path)!r}: {int(missing.sum())} no-data cell(s), e.g. column "
-                         f"{i}, row {j} from the south; fill or crop them first")
     step_x, step_y = abs(transform.a), abs(transform.e)
     if crs is None:
         scale_x = scale_y = 1.0
