@@ -29,44 +29,58 @@ _ENDPOINT_WRAPPER = re.compile(r"\bSingle\(([^()]*)\)")
 
 
 INTERRUPT_GRACE_S = 8.0
-"""Seconds a process may spend cleaning up after Ctrl-C before it exits regardless."""
+"""Seconds a process may spend cleaning up after Ctrl-C or SIGTERM before it exits regardless."""
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+"""Ctrl-C, and the stop a supervisor sends (``docker stop``, systemd, Slurm, ``kill``)."""
 
 
 @contextlib.contextmanager
 def bounded_interrupt(grace: float = INTERRUPT_GRACE_S) -> Iterator[None]:
-    """Within the block, Ctrl-C raises ``KeyboardInterrupt`` as usual, so every cleanup runs
-    (the partial summary, agents stopped, sessions closed), and the process exits with status
-    130 at the latest ``grace`` seconds later, whatever a cleanup is still waiting on: a Zenoh
-    teardown (undeclaring, closing a session) can wedge, and an operator's Ctrl-C must still
-    end the run. Nothing written is lost by that exit: results are appended and checkpointed
-    tick by tick. A second Ctrl-C acts at once. Outside the main thread this does nothing."""
+    """Within the block, Ctrl-C and SIGTERM raise ``KeyboardInterrupt``, so every cleanup runs
+    (the partial summary, agents stopped, sessions closed, temporary credentials removed), and
+    the process exits at the latest ``grace`` seconds later, whatever a cleanup is still
+    waiting on: a Zenoh teardown (undeclaring, closing a session) can wedge, and an operator's
+    Ctrl-C or a supervisor's stop must still end the run. Nothing written is lost by that exit:
+    results are appended and checkpointed tick by tick.
+
+    The status is the shell's for the signal, ``128 + signum``: after Ctrl-C 130 (as the
+    commands return themselves), after SIGTERM 143, once the cleanup is done. A second signal
+    acts at once (Ctrl-C raises again, SIGTERM kills). Outside the main thread this does
+    nothing."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.getsignal(signal.SIGINT)
+    previous = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
     deadline: list[threading.Timer] = []
+    received: list[int] = []
 
     def interrupted(signum, frame) -> None:
         signal.signal(signal.SIGINT, signal.default_int_handler)
-        timer = threading.Timer(grace, _exit_interrupted, args=(grace,))
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        received.append(signum)
+        timer = threading.Timer(grace, _exit_interrupted, args=(grace, 128 + signum))
         timer.daemon = True
         timer.start()
         deadline.append(timer)
         raise KeyboardInterrupt
 
-    signal.signal(signal.SIGINT, interrupted)
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, interrupted)
     try:
         yield
     finally:
         for timer in deadline:  # the cleanup finished in time
             timer.cancel()
-        signal.signal(signal.SIGINT, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        if signal.SIGTERM in received:  # terminated, whatever the command made of it
+            raise SystemExit(128 + signal.SIGTERM)
 
 
-def _exit_interrupted(grace: float) -> None:
+def _exit_interrupted(grace: float, status: int) -> None:
     sys.stderr.write(f"interrupted: cleanup still running after {grace:g} s; exiting\n")
     sys.stderr.flush()
-    os._exit(130)
+    os._exit(status)
 
 
 def add_log_level_flag(parser: argparse.ArgumentParser) -> None:

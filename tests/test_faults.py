@@ -141,17 +141,23 @@ def test_agents_exit_when_the_world_vanishes_and_resume_continues(tmp_path, proc
 
 
 @pytest.mark.skipif(os.name != "posix", reason="signals")
-def test_ctrl_c_stops_everything_and_leaves_a_partial_result(tmp_path):
-    out = tmp_path / "run"
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_stops_everything_and_leaves_a_partial_result(tmp_path, stop):
+    """Ctrl-C, or a supervisor's SIGTERM, to ``swarm run`` alone: every agent process ends, the
+    partial result stays, the run's temporary credentials are removed, status 128 + signal."""
+    out, scratch = tmp_path / "run", tmp_path / "tmp"
+    scratch.mkdir()
     proc = subprocess.Popen([sys.executable, "-m", "swarm", "run", "--followers", "2",
                              "--mode", "realtime", "--time-scale", "1.0", "--out", str(out)],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "TMPDIR": str(scratch)})
     try:
         wait_for(lambda: _ticks_done(out) >= 2, 60, "two ticks")
         children = _children(proc.pid)
         assert len(children) == 3
-        proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=20) == 130
+        assert len(_credentials(scratch)) == 1
+        proc.send_signal(stop)
+        assert proc.wait(timeout=20) == 128 + stop
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -160,6 +166,12 @@ def test_ctrl_c_stops_everything_and_leaves_a_partial_result(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["complete"] is False and summary["ticks_completed"] >= 2
     assert read_ticks(out / "ticks.csv")  # readable
+    assert not _credentials(scratch)  # the passwords did not outlive the run
+
+
+def _credentials(folder: Path) -> list[Path]:
+    """The temporary credential folders of ``swarm run`` in ``folder``."""
+    return [p for p in folder.iterdir() if p.name.startswith("swarm-credentials-")]
 
 
 def _children(pid: int) -> list[int]:
@@ -192,15 +204,17 @@ sys.exit(7)  # cleanup finished in time: the program's own status
 
 
 @pytest.mark.skipif(os.name != "posix", reason="signals")
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
 @pytest.mark.parametrize("cleanup", ["wedged", "prompt"])
-def test_ctrl_c_ends_a_process_whose_cleanup_wedges(cleanup):
-    """After Ctrl-C the cleanup runs; if it is still running after the grace period the process
-    exits with 130 anyway (a Zenoh teardown can wedge); if it finishes, the program decides."""
+def test_ctrl_c_ends_a_process_whose_cleanup_wedges(cleanup, stop):
+    """After Ctrl-C or SIGTERM the cleanup runs; if it is still running after the grace period
+    the process exits with 128 + signal anyway (a Zenoh teardown can wedge); if it finishes,
+    the program decides its status after Ctrl-C, and it is 143 after SIGTERM."""
     proc = subprocess.Popen([sys.executable, "-c", WEDGED_CLEANUP, "1.0", cleanup], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stdout.readline().strip() == "ready"
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(stop)
         code = proc.wait(timeout=20)
         out, err = proc.communicate(timeout=5)
     finally:
@@ -209,15 +223,17 @@ def test_ctrl_c_ends_a_process_whose_cleanup_wedges(cleanup):
             proc.communicate(timeout=5)
     assert "cleaning up" in out
     if cleanup == "wedged":
-        assert code == 130 and "cleanup still running after 1 s" in err
+        assert code == 128 + stop and "cleanup still running after 1 s" in err
     else:
-        assert code == 7 and "still running" not in err
+        assert code == (7 if stop == signal.SIGINT else 143) and "still running" not in err
 
 
 def test_bounded_interrupt_restores_the_signal_handler():
     from protocol.cli import bounded_interrupt
 
-    before = signal.getsignal(signal.SIGINT)
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     with bounded_interrupt(grace=1.0):
-        assert signal.getsignal(signal.SIGINT) is not before
-    assert signal.getsignal(signal.SIGINT) is before
+        for sig, handler in before.items():
+            assert signal.getsignal(sig) is not handler
+    for sig, handler in before.items():
+        assert signal.getsignal(sig) is handler
