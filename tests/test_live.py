@@ -36,7 +36,8 @@ from protocol.view import (
 from swarm.deploy import OBSERVER
 from swarm.launch import RunCredentials, launch
 from swarm.live.draw import follower_series, heading, hillshade, map_columns
-from swarm.live.store import COMPLETE, INCOMPLETE, RUNNING, WAITING, Frame, RunStore, load_run
+from swarm.live.store import (COMPLETE, INCOMPLETE, RUNNING, STARTING, WAITING, Frame,
+                              RunStore, load_run)
 from world.main import resolve_with_surface
 from world.sim import WorldSim
 from world.view import map_payload
@@ -129,6 +130,16 @@ def test_tick_rows_travel_in_chunks_and_bad_payloads_are_refused():
 
 
 def test_store_status_and_a_vanished_world():
+    from swarm.live.page import status_text
+
+    store = RunStore()
+    assert "python -m swarm replay RUN_DIR" in status_text(store.snapshot(), None)
+    store.world_seen()  # the world's token, before its first tick
+    assert store.snapshot().status == STARTING
+    assert status_text(store.snapshot(), None).endswith(STARTING)
+    store.world_gone()
+    assert (store.snapshot().status, store.snapshot().reason) == (
+        INCOMPLETE, "the world process disappeared")
     store = RunStore()
     store.world_gone()
     assert (store.snapshot().status, store.snapshot().reason) == (
@@ -592,6 +603,7 @@ def test_watch_page_of_a_run_assembled_elsewhere(browser, tmp_path):
         assert _until(lambda: "live view: " in (tmp_path / "watch.log").read_text(), 30.0)
         page = _open(browser, f"http://127.0.0.1:{port}/", [])
         page.get_by_text("waiting for the world").wait_for(timeout=WAIT_S * 1000)
+        page.get_by_text("python -m swarm replay RUN_DIR").wait_for(timeout=WAIT_S * 1000)
         world.start()
         last = page.get_by_text("tick 19 of 19")
         assert _until(lambda: last.is_visible() or "error" in result, RUN_TIMEOUT_S), (

@@ -65,6 +65,8 @@ class ZenohFeed:
     def _on_world(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
             self.store.world_gone()
+        else:
+            self.store.world_seen()
 
     def close(self) -> None:
         undeclare_all(self._handles)

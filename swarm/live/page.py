@@ -18,7 +18,7 @@ from swarm.live.draw import (
     agent_color, choice_points, contour_levels, empty_map_columns, follower_series, height_grid,
     hillshade, map_columns,
 )
-from swarm.live.store import COMPLETE, INCOMPLETE, RunStore, Snapshot
+from swarm.live.store import COMPLETE, INCOMPLETE, WAITING, RunStore, Snapshot
 
 REFRESH_MS = 200
 PLAY_EVERY = 1  # replay: ticks advanced per refresh while playing
@@ -26,6 +26,8 @@ MAX_RANGE_PLOTS = 8  # per-follower range plots drawn (the map shows every agent
 
 MAP_FRAME = (680, 470)  # map's plot area in pixels (width, height): the box is fitted to it
 NOSE = 0.6  # heading segment length, in rods
+WAITING_HINT = (f"{WAITING}: none of this run is alive on the router (not started yet, or "
+                "over: python -m swarm replay RUN_DIR shows a finished run)")
 
 
 class Page:
@@ -36,7 +38,7 @@ class Page:
         self.drawn_version = -1
         self.drawn_tick: int | None = None
         self.map_drawn = False
-        self.status = Div(text="waiting for the world", name="status",
+        self.status = Div(text=WAITING_HINT, name="status",
                           css_classes=["swarm-status"], styles={"font-size": "16px"})
         self.sources = {name: ColumnDataSource(name=f"{name}-source", data=data)
                         for name, data in empty_map_columns().items()}
@@ -183,7 +185,7 @@ class Page:
 
     def _draw_tick(self, snap: Snapshot) -> None:
         if not snap.frames:
-            self.status.text = _status_text(snap, None)
+            self.status.text = status_text(snap, None)
             return
         frames = {f.tick: f for f in snap.frames}
         want = int(self.slider.value) if self.replay else snap.frames[-1].tick
@@ -196,15 +198,17 @@ class Page:
             for _, cursor in self.range_plots.values():
                 cursor.location = tick
             self.drawn_tick = tick
-        self.status.text = _status_text(snap, frames[tick])
+        self.status.text = status_text(snap, frames[tick])
 
 
-def _status_text(snap: Snapshot, frame) -> str:
+def status_text(snap: Snapshot, frame) -> str:
     """``tick j of n · t = … · status`` (the last tick is ``ticks − 1``)."""
     if snap.status == COMPLETE:
         state = "complete"
     elif snap.status == INCOMPLETE:
         state = f"incomplete: {snap.reason}" if snap.reason else "incomplete"
+    elif snap.status == WAITING:
+        state = WAITING_HINT
     else:
         state = snap.status
     last = snap.map["ticks"] - 1 if snap.map else "?"

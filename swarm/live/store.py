@@ -16,6 +16,7 @@ from types import MappingProxyType
 from protocol.view import MAP_FILE, TICK_COLUMNS, check_map, tick_payloads
 
 WAITING, RUNNING = "waiting for the world", "running"
+STARTING = "world alive, waiting for its first tick"
 COMPLETE, INCOMPLETE = "complete", "incomplete"
 
 
@@ -70,7 +71,7 @@ class RunStore:
             if len(parts) >= body["agents"]:
                 del self._partial[body["tick"]]
                 self._frames[body["tick"]] = Frame(body["tick"], body["t"], parts)
-                if self._status == WAITING:
+                if self._status in (WAITING, STARTING):
                     self._status = RUNNING
                 self._version += 1
 
@@ -86,10 +87,17 @@ class RunStore:
             self._status, self._reason = (COMPLETE, "") if complete else (INCOMPLETE, reason)
             self._version += 1
 
+    def world_seen(self) -> None:
+        """The world's liveliness token is there (it is, or was when the observer joined)."""
+        with self._lock:
+            if self._status == WAITING:
+                self._status = STARTING
+                self._version += 1
+
     def world_gone(self) -> None:
         """The world's liveliness token vanished: an end without ``world/done`` is a failure."""
         with self._lock:
-            if self._status in (WAITING, RUNNING):
+            if self._status in (WAITING, STARTING, RUNNING):
                 self._status, self._reason = INCOMPLETE, "the world process disappeared"
                 self._version += 1
 
