@@ -20,6 +20,7 @@ import os
 import re
 import shutil
 import statistics
+import tempfile
 import time
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -64,12 +65,16 @@ class RunOutcome:
 
 # --- running -----------------------------------------------------------------------------------
 
-def execute(run: GridRun, runs_dir: Path, attempts: int = RUN_ATTEMPTS) -> RunOutcome:
+def execute(run: GridRun, runs_dir: Path, attempts: int = RUN_ATTEMPTS,
+            credentials_in: Path | None = None) -> RunOutcome:
     """Run one grid entry over Zenoh (in-process agents); a worker task of :func:`run_grid`.
 
     A run that raises or ends incomplete is tried again up to ``attempts`` times in all (a
     transient cause such as a port taken between choosing and binding it goes away; a
-    deterministic one fails again and is reported).
+    deterministic one fails again and is reported). Each attempt's credentials go to a new
+    folder in ``credentials_in`` (removed after the attempt; the caller removes
+    ``credentials_in``, so a worker killed mid-run leaves no password behind), by default to
+    a temporary folder of their own.
     """
     from swarm.launch import launch
 
@@ -77,12 +82,17 @@ def execute(run: GridRun, runs_dir: Path, attempts: int = RUN_ATTEMPTS) -> RunOu
     error = ""
     folder = runs_dir / run.folder
     for attempt in range(1, attempts + 1):
+        scratch = None if credentials_in is None else Path(tempfile.mkdtemp(dir=credentials_in))
         try:
             _clear_unfinished(run, folder)
-            summary = launch(run.config, folder, in_process=True)
+            summary = launch(run.config, folder, in_process=True,
+                             credentials_dir=None if scratch is None else scratch / "run")
         except (ValueError, RuntimeError, OSError) as exc:
             error = f"{type(exc).__name__}: {exc}"
             continue
+        finally:
+            if scratch is not None:
+                shutil.rmtree(scratch, ignore_errors=True)
         if summary["complete"]:
             return RunOutcome(run, summary, "", attempt, time.perf_counter() - start)
         error = f"incomplete: {summary['reason']}"
@@ -169,12 +179,15 @@ def run_grid(runs: list[GridRun], runs_dir: Path, workers: int | None = None,
     with bar:
         if scheduler is not None:
             _run_on_cluster(todo, runs_dir, scheduler, record)
-        elif todo:
-            _run_in_pool(todo, runs_dir, workers or min(2, os.cpu_count() or 1), record)
+        elif todo:  # the runs' credentials in one folder this process removes at the end
+            with tempfile.TemporaryDirectory(prefix="swarm-grid-credentials-") as scratch:
+                _run_in_pool(todo, runs_dir, workers or min(2, os.cpu_count() or 1), record,
+                             Path(scratch))
     return [outcomes[run.folder] for run in runs]
 
 
-def _run_in_pool(runs: list[GridRun], runs_dir: Path, workers: int, record) -> None:
+def _run_in_pool(runs: list[GridRun], runs_dir: Path, workers: int, record,
+                 credentials_in: Path) -> None:
     """Run ``runs`` in local worker processes; ``record(run, future)`` each finished one.
 
     A worker that dies (killed, out of memory) breaks the whole pool: every run not finished
@@ -182,11 +195,11 @@ def _run_in_pool(runs: list[GridRun], runs_dir: Path, workers: int, record) -> N
     Those that were under way (they had written their ``config.toml`` since the pool started)
     are run again one at a time, each in a worker of its own, so the one whose worker dies
     again is known: it is reported, the others are not charged for it. Ctrl-C cancels the
-    queued runs.
+    queued runs. Each run's credentials go to ``credentials_in`` (see :func:`execute`).
     """
     while runs:
         started, again, suspects = time.time(), [], []
-        for run, future in _pool(runs, runs_dir, workers):
+        for run, future in _pool(runs, runs_dir, workers, credentials_in):
             if not isinstance(future.exception(), BrokenProcessPool):
                 record(run, future)
             elif _under_way(runs_dir / run.folder, started):
@@ -194,7 +207,7 @@ def _run_in_pool(runs: list[GridRun], runs_dir: Path, workers: int, record) -> N
             else:
                 again.append(run)
         for run in suspects:  # alone: a second death is its own
-            for _, future in _pool([run], runs_dir, 1):
+            for _, future in _pool([run], runs_dir, 1, credentials_in):
                 if isinstance(future.exception(), BrokenProcessPool):
                     future = _failed("its worker process died (killed, or out of memory), "
                                      "twice")
@@ -202,13 +215,14 @@ def _run_in_pool(runs: list[GridRun], runs_dir: Path, workers: int, record) -> N
         runs = again
 
 
-def _pool(runs: list[GridRun], runs_dir: Path, workers: int):
+def _pool(runs: list[GridRun], runs_dir: Path, workers: int, credentials_in: Path):
     """Yield ``(run, future)`` as each of ``runs`` finishes in a new pool of ``workers``
     processes (spawned: they start clean instead of inheriting this process's threads and
     sockets)."""
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
-        futures = {pool.submit(execute, run, runs_dir): run for run in runs}
+        futures = {pool.submit(execute, run, runs_dir, RUN_ATTEMPTS, credentials_in): run
+                   for run in runs}
         try:
             for future in as_completed(futures):
                 yield futures[future], future

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import random
 import signal
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -43,8 +44,19 @@ def _started(runs_dir: Path) -> list[Path]:
     return sorted(runs_dir.glob("*/*/config.toml"))
 
 
+@pytest.fixture()
+def scratch(tmp_path, monkeypatch) -> Path:
+    """The temporary folder of this process and of the workers it spawns: the runs'
+    credentials, even a killed worker's, must not remain there."""
+    folder = tmp_path / "tmp"
+    folder.mkdir()
+    monkeypatch.setenv("TMPDIR", str(folder))
+    monkeypatch.setattr(tempfile, "tempdir", str(folder))
+    return folder
+
+
 @pytest.mark.timeout(300)
-def test_a_worker_killed_mid_run_costs_nothing(tmp_path):
+def test_a_worker_killed_mid_run_costs_nothing(tmp_path, scratch):
     print(f"FAULT_SEED={SEED} (rerun with this environment variable to replay)")
     delay = random.Random(SEED).uniform(0.0, 0.5)
     base = RunConfig(run_id="g", ticks=300)
@@ -71,13 +83,14 @@ def test_a_worker_killed_mid_run_costs_nothing(tmp_path):
     outcomes = result["outcomes"]
     assert [o.run for o in outcomes] == runs
     assert all(o.ok for o in outcomes), [o.error for o in outcomes if not o.ok]
+    assert not list(scratch.iterdir())  # no password outlived its run
     for outcome in outcomes:  # the same numbers as an undisturbed run
         own = run_local(outcome.run.config)[0]
         assert outcome.summary["followers"] == own["followers"]
 
 
 @pytest.mark.timeout(300)
-def test_a_run_that_kills_its_worker_is_reported_and_the_others_finish(tmp_path):
+def test_a_run_that_kills_its_worker_is_reported_and_the_others_finish(tmp_path, scratch):
     base = RunConfig(run_id="g", ticks=8)
     runs = expand("dies", base, [estimator_axis(["persist", KILLS, "kalman"])])
     outcomes = run_grid(runs, tmp_path, workers=2, progress=False)
@@ -87,3 +100,4 @@ def test_a_run_that_kills_its_worker_is_reported_and_the_others_finish(tmp_path)
     assert not kills.ok
     assert kills.error == ("RuntimeError: its worker process died (killed, or out of memory), "
                            "twice")
+    assert not list(scratch.iterdir())  # not even the killed runs' passwords
