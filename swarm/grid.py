@@ -226,10 +226,14 @@ def _pool(runs: list[GridRun], runs_dir: Path, workers: int, credentials_in: Pat
         try:
             for future in as_completed(futures):
                 yield futures[future], future
-        except BaseException:  # Ctrl-C, here or in the caller (which closes this generator)
-            # Cancel the queued runs while the pool is still referenced (a pool collected
-            # before its manager thread sees the request would go on running them all).
-            pool.shutdown(wait=True, cancel_futures=True)
+        except BaseException:  # Ctrl-C or SIGTERM, here or in the caller (which closes this
+            # generator): cancel the queued runs while the pool is still referenced (a pool
+            # collected before its manager thread sees the request would go on running them
+            # all), and stop the runs under way (a rerun does them again, as after any crash)
+            # instead of waiting for them, whose workers would outlive this process.
+            pool.shutdown(wait=False, cancel_futures=True)
+            for worker in multiprocessing.active_children():
+                worker.terminate()
             raise
 
 

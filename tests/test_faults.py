@@ -17,7 +17,7 @@ from protocol import keys
 from protocol.config import RunConfig, dump_config
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.launch import agent_commands, launch
-from tests.waiting import wait_for
+from tests.waiting import running, signalled, wait_for
 from world.results import read_ticks
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -156,13 +156,10 @@ def test_ctrl_c_stops_everything_and_leaves_a_partial_result(tmp_path, stop):
         children = _children(proc.pid)
         assert len(children) == 3
         assert len(_credentials(scratch)) == 1
-        proc.send_signal(stop)
-        assert proc.wait(timeout=20) == 128 + stop
     finally:
-        if proc.poll() is None:
-            proc.kill()
-        proc.communicate(timeout=10)
-    wait_for(lambda: not any(_alive(pid) for pid in children), 10, "agent processes to end")
+        code, _, err = signalled(proc, stop, 20)
+    assert code == 128 + stop, err
+    wait_for(lambda: not any(running(pid) for pid in children), 10, "agent processes to end")
     summary = json.loads((out / "summary.json").read_text())
     assert summary["complete"] is False and summary["ticks_completed"] >= 2
     assert read_ticks(out / "ticks.csv")  # readable
@@ -177,15 +174,6 @@ def _credentials(folder: Path) -> list[Path]:
 def _children(pid: int) -> list[int]:
     out = subprocess.run(["ps", "-o", "pid=", "--ppid", str(pid)], capture_output=True, text=True)
     return [int(x) for x in out.stdout.split()]
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    stat = Path(f"/proc/{pid}/stat")
-    return not (stat.exists() and stat.read_text().split()[2] == "Z")
 
 
 WEDGED_CLEANUP = """
@@ -214,13 +202,8 @@ def test_ctrl_c_ends_a_process_whose_cleanup_wedges(cleanup, stop):
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stdout.readline().strip() == "ready"
-        proc.send_signal(stop)
-        code = proc.wait(timeout=20)
-        out, err = proc.communicate(timeout=5)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate(timeout=5)
+        code, out, err = signalled(proc, stop, 20)
     assert "cleaning up" in out
     if cleanup == "wedged":
         assert code == 128 + stop and "cleanup still running after 1 s" in err

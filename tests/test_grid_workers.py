@@ -6,6 +6,8 @@ from __future__ import annotations
 import os
 import random
 import signal
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -16,15 +18,18 @@ import pytest
 from protocol.config import RunConfig
 from swarm.grid import Axis, estimator_axis, expand, run_grid
 from swarm.local import run_local
-from tests.waiting import wait_for
+from tests.waiting import running, signalled, wait_for
+
+ROOT = Path(__file__).resolve().parents[1]
 
 SEED = int(os.environ.get("FAULT_SEED", str(int(time.time()) % 100_000)))
 KILLS = "tests.example_estimator:KillsItsProcess"
 
 
-def _workers() -> list[int]:
-    """This process's pool workers (spawned children running ``spawn_main``; not the
-    resource tracker, also a spawned child)."""
+def _workers(parent: int | None = None) -> list[int]:
+    """The pool workers of ``parent`` (default this process): its spawned children running
+    ``spawn_main`` (not the resource tracker, also a spawned child)."""
+    parent = os.getpid() if parent is None else parent
     found = []
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
@@ -34,8 +39,7 @@ def _workers() -> list[int]:
             cmdline = (entry / "cmdline").read_bytes()
         except OSError:
             continue
-        parent = int(stat.rsplit(")", 1)[1].split()[1])
-        if parent == os.getpid() and b"spawn_main" in cmdline:
+        if int(stat.rsplit(")", 1)[1].split()[1]) == parent and b"spawn_main" in cmdline:
             found.append(int(entry.name))
     return found
 
@@ -101,3 +105,30 @@ def test_a_run_that_kills_its_worker_is_reported_and_the_others_finish(tmp_path,
     assert kills.error == ("RuntimeError: its worker process died (killed, or out of memory), "
                            "twice")
     assert not list(scratch.iterdir())  # not even the killed runs' passwords
+
+
+@pytest.mark.skipif(os.name != "posix", reason="signals")
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+@pytest.mark.timeout(300)
+def test_a_stopped_grid_stops_its_workers(tmp_path, scratch, stop):
+    """Ctrl-C or SIGTERM to a grid's own process alone (not its workers): the runs under way
+    stop with it instead of running on in orphaned workers, within the grace period, and no
+    run's credentials remain."""
+    out = tmp_path / "cmp"
+    proc = subprocess.Popen([sys.executable, "-m", "swarm", "compare", "--estimators",
+                             "persist,kalman", "--seeds", "0,1", "--ticks", "5000", "--workers",
+                             "2", "--out", str(out)], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(lambda: _started(out / "runs") and len(_workers(proc.pid)) == 2, 120,
+                 "runs under way")
+        workers = _workers(proc.pid)
+    finally:
+        code, _, err = signalled(proc, stop, 30)
+    assert code == 128 + stop, err
+    assert "interrupted: finished runs are in" in err and "cleanup still running" not in err
+    wait_for(lambda: not any(running(pid) for pid in workers), 10, "the workers to end")
+    assert not list(scratch.iterdir())
+    assert not any((path.parent / "summary.json").exists()
+                   and '"complete": true' in (path.parent / "summary.json").read_text()
+                   for path in _started(out / "runs"))  # stopped, not finished: rerun them
