@@ -220,6 +220,7 @@ def _pool(runs: list[GridRun], runs_dir: Path, workers: int, credentials_in: Pat
     processes (spawned: they start clean instead of inheriting this process's threads and
     sockets)."""
     context = multiprocessing.get_context("spawn")
+    others = set(multiprocessing.active_children())  # not the pool's: never stopped here
     with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
         futures = {pool.submit(execute, run, runs_dir, RUN_ATTEMPTS, credentials_in): run
                    for run in runs}
@@ -232,7 +233,7 @@ def _pool(runs: list[GridRun], runs_dir: Path, workers: int, credentials_in: Pat
             # all), and stop the runs under way (a rerun does them again, as after any crash)
             # instead of waiting for them, whose workers would outlive this process.
             pool.shutdown(wait=False, cancel_futures=True)
-            for worker in multiprocessing.active_children():
+            for worker in set(multiprocessing.active_children()) - others:
                 worker.terminate()
             raise
 
