@@ -23,6 +23,7 @@ from agents.follower import run_follower
 from agents.leader import run_leader
 from agents.link import AgentAbort, RunFinished
 from protocol.config import AgentSettings, RunConfig
+from protocol.cli import describe
 from protocol.messages import safe_text
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.deploy import (OBSERVER, agent_user, private_dir, router_config, users,
@@ -158,6 +159,11 @@ class _ProcessAgents:
                 proc.wait()
 
 
+SESSIONS_PER_PROCESS = 300
+"""Zenoh sessions one process opened reliably here: client sessions to the same router
+stopped opening at the 351st, whatever the file descriptors in use (``zenoh`` 1.x)."""
+
+
 class _ThreadAgents:
     """Agents as threads in this process, each with its own Zenoh session."""
 
@@ -182,14 +188,24 @@ class _ThreadAgents:
     def _agent(self, k: int, body: Callable[[zenoh.Session], None], service: WorldService) -> None:
         try:
             user = agent_user(k)
+            # the router is up before the agents start: a session that does not open within
+            # half the start timeout will not, and saying so first names the real cause
             with zenoh.open(zenoh_config("client", connect=[self.endpoint], user=user,
-                                         password=self.credentials.passwords[user])) as session:
+                                         password=self.credentials.passwords[user],
+                                         connect_timeout=self.settings.start_timeout / 2)
+                            ) as session:
                 body(session)
         except RunFinished:
             return
         except (AgentAbort, ValueError, RuntimeError) as exc:
             self.errors.append(f"agent {k}: {exc}")
             service.abort(f"agent {k} stopped: {exc}")
+        except zenoh.ZError as exc:  # its session did not open (or broke)
+            self.errors.append(f"agent {k}: {describe(exc)}")
+            service.abort(f"agent {k}'s Zenoh session failed: {describe(exc)}"
+                          + (f" ({self.settings.followers + 1} agents share this process: "
+                             "use the process layout for runs this large)"
+                             if self.settings.followers + 1 > SESSIONS_PER_PROCESS else ""))
 
     def stop(self, timeout: float = 10.0) -> None:
         deadline = time.monotonic() + timeout

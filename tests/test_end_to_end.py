@@ -127,6 +127,24 @@ def test_world_start_timeout(tmp_path):
     assert "agents 0, 1 did not come up within 1 s" in proc.stderr
 
 
+def test_an_in_process_agent_whose_session_fails_is_named(tmp_path):
+    """The router refuses follower 1 (its line in the router's password dictionary was changed
+    from outside): the run stops before tick 0 naming that agent's Zenoh session, not with
+    another agent's later timeout, and lists who had not come up."""
+    from swarm.launch import RunCredentials
+
+    config = RunConfig(run_id="refused", followers=2, ticks=6, start_timeout=6.0)
+    credentials = RunCredentials.create(tmp_path / "credentials", config.followers)
+    lines = credentials.dictionary.read_text().splitlines()
+    credentials.dictionary.write_text("\n".join(
+        "follower-1:not-its-password" if line.startswith("follower-1:") else line
+        for line in lines) + "\n")
+    with pytest.raises(RuntimeError, match=r"run aborted before it started: agent 1's Zenoh "
+                                           r"session failed: .*\(agents 1 had not come up: "
+                                           r"1 of 3\)"):
+        launch(config, tmp_path / "run", in_process=True, credentials=credentials)
+
+
 def test_agent_without_world_exits(tmp_path):
     from protocol.config import dump_config
 

@@ -30,6 +30,35 @@ from world.view import ViewPublisher
 log = logging.getLogger(__name__)
 
 
+
+def agent_ranges(agents, limit: int = 12) -> str:
+    """Agent ids with runs of three or more consecutive ones shortened, e.g. ``1, 2, 4–7, 9``;
+    past ``limit`` pieces, how many more ids there are.
+
+    >>> agent_ranges({9, 1, 2, 4, 5, 6, 7})
+    '1, 2, 4–7, 9'
+    >>> agent_ranges(range(0, 40, 2), limit=3)
+    '0, 2, 4 and 17 more'
+    """
+    ids = sorted(agents)
+    runs: list[list[int]] = []
+    for k in ids:
+        if runs and k == runs[-1][1] + 1:
+            runs[-1][1] = k
+        else:
+            runs.append([k, k])
+    pieces: list[tuple[str, int]] = []  # (text, how many ids it stands for)
+    for a, b in runs:
+        if b > a + 1:
+            pieces.append((f"{a}–{b}", b - a + 1))
+        else:
+            pieces.extend((str(k), 1) for k in range(a, b + 1))
+    shown = ", ".join(text for text, _ in pieces[:limit])
+    if len(pieces) <= limit:
+        return shown
+    return f"{shown} and {len(ids) - sum(n for _, n in pieces[:limit])} more"
+
+
 class NotYet(RequestError):
     """A follower's request before the world has its predecessor through the tick (the rod
     reached the follower first): answered with code ``wait``, the follower asks again."""
@@ -302,10 +331,12 @@ class WorldService:
         """Block until the leader and every follower are live (RuntimeError after ``timeout``)."""
         missing = self._wait_live(timeout, stop_when_ended=True)
         if missing and self._ended is not None:
-            raise RuntimeError(f"run aborted before it started: {self._ended}")
+            raise RuntimeError(f"run aborted before it started: {self._ended} (agents "
+                               f"{agent_ranges(missing)} had not come up: {len(missing)} of "
+                               f"{self.sim.n_agents})")
         if missing:
-            raise RuntimeError(f"agents {', '.join(map(str, sorted(missing)))} did not come up "
-                               f"within {timeout:.0f} s")
+            raise RuntimeError(f"agents {agent_ranges(missing)} did not come up within "
+                               f"{timeout:.0f} s ({len(missing)} of {self.sim.n_agents})")
 
     def _wait_until(self, done, timeout: float) -> None:
         """Wait up to ``timeout`` s, woken by every change of the agents' state, until
