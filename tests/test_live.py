@@ -576,6 +576,17 @@ def test_cli_refuses_bad_live_arguments(tmp_path, capsys):
     assert not (tmp_path / "r").exists()  # nothing ran
 
 
+def test_watch_without_a_router_names_replay(capsys):
+    """A watcher pointed at a router that is gone (a `swarm run` that ended) says so."""
+    from swarm.cli import main
+
+    assert main(["watch", "--connect", free_tcp_endpoint(), "--run-id", "gone", "--live-port",
+                 "0", "--cfg", "connect/timeout_ms:500"]) == 1
+    err = capsys.readouterr().err
+    assert "the live view cannot connect to Zenoh" in err and "swarm replay RUN_DIR" in err
+    assert ".rs:" not in err
+
+
 def test_watch_page_of_a_run_assembled_elsewhere(browser, tmp_path):
     """``swarm watch`` started before the world exists: the page waits for it, then follows the
     run (world and agents as processes on their own router) to its last tick and end. The run

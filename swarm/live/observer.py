@@ -9,6 +9,7 @@ import threading
 import zenoh
 
 from protocol import keys
+from protocol.cli import describe
 from swarm.live.feed import ZenohFeed
 from swarm.live.server import PageServer
 from swarm.live.store import RunStore
@@ -37,7 +38,10 @@ class LiveView:
         try:
             self._session = zenoh.open(conf)
         except zenoh.ZError as exc:
-            raise RuntimeError(f"the live view cannot connect to Zenoh: {exc}") from None
+            raise RuntimeError(f"the live view cannot connect to Zenoh: {describe(exc)} (is the "
+                               "run's router up? `swarm run` ends its router with the run: a "
+                               "finished run is shown by python -m swarm replay RUN_DIR)"
+                               ) from None
         self._feed = ZenohFeed(self._session, self.run_id, self.store)
 
     def serve_until_interrupted(self) -> None:
