@@ -68,4 +68,5 @@ def test_an_unimportable_plugin_is_reported_by_swarm_run_in_one_line(tmp_path, c
     assert len(err) == 1, err
     assert err[0].startswith("error: run aborted before it started: agent 1 exited with status 2: "
                              "estimator 'tests.nowhere:X': cannot import 'tests.nowhere'")
-    assert err[0].endswith(f"(see {tmp_path / 'o' / 'logs' / 'agent-1.log'})")
+    assert err[0].endswith(f"(see {tmp_path / 'o' / 'logs' / 'agent-1.log'}) (agent 1 had not "
+                           "come up)")

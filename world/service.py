@@ -331,12 +331,16 @@ class WorldService:
         """Block until the leader and every follower are live (RuntimeError after ``timeout``)."""
         missing = self._wait_live(timeout, stop_when_ended=True)
         if missing and self._ended is not None:
-            raise RuntimeError(f"run aborted before it started: {self._ended} (agents "
-                               f"{agent_ranges(missing)} had not come up: {len(missing)} of "
-                               f"{self.sim.n_agents})")
+            raise RuntimeError(f"run aborted before it started: {self._ended} "
+                               f"({self._not_up(missing)} had not come up)")
         if missing:
-            raise RuntimeError(f"agents {agent_ranges(missing)} did not come up within "
-                               f"{timeout:.0f} s ({len(missing)} of {self.sim.n_agents})")
+            raise RuntimeError(f"{self._not_up(missing)} did not come up within {timeout:.0f} s")
+
+    def _not_up(self, missing: set[int]) -> str:
+        """``agent 3`` or ``agents 1, 4–9 (7 of 12)``: who is missing, for a message."""
+        if len(missing) == 1:
+            return f"agent {next(iter(missing))}"
+        return f"agents {agent_ranges(missing)} ({len(missing)} of {self.sim.n_agents})"
 
     def _wait_until(self, done, timeout: float) -> None:
         """Wait up to ``timeout`` s, woken by every change of the agents' state, until
