@@ -452,7 +452,7 @@ def cmd_dem_crop(args: argparse.Namespace) -> int:
     from swarm.terrain import crop_dem
 
     try:
-        crop = crop_dem(args.source, args.out, args.bounds)
+        crop = crop_dem(args.source, args.out, args.bounds, force=args.force)
     except (ValueError, OSError) as exc:
         print(f"error: {describe(exc)}", file=sys.stderr)
         return 2
@@ -588,6 +588,7 @@ def build_parser() -> argparse.ArgumentParser:
     crop.add_argument("--bounds", type=_bounds, metavar="XMIN,YMIN,XMAX,YMAX",
                       help="keep these nodes instead (m, in IN's frame: origin at its "
                            "south-west node)")
+    crop.add_argument("--force", action="store_true", help="replace OUT if it exists")
     crop.set_defaults(func=cmd_dem_crop)
     plot = sub.add_parser("plot", help="draw one run's figures into RUN_DIR/figures")
     plot.add_argument("run_dir", metavar="RUN_DIR", help="a results folder of `swarm run`")

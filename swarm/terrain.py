@@ -384,7 +384,8 @@ class Crop:
 
 
 def crop_dem(source: str | Path, out: str | Path,
-             bounds: tuple[float, float, float, float] | None = None) -> Crop:
+             bounds: tuple[float, float, float, float] | None = None,
+             force: bool = False) -> Crop:
     """Write a rectangle of the DEM at ``source`` without any no-data node as the GeoTIFF
     ``out`` (same CRS, cell size, data type and no-data value; a geo-referenced window).
 
@@ -393,11 +394,14 @@ def crop_dem(source: str | Path, out: str | Path,
     bounds : (xmin, ymin, xmax, ymax), optional
         The nodes to keep, in the source's SPEC frame (m, origin at its south-west node). By
         default the largest rectangle (most nodes) of at least 4 × 4 nodes holding data.
+    force : bool
+        Replace ``out`` if it exists (default: refuse).
 
     Raises
     ------
     ValueError
-        The source cannot be read (:func:`world.dem.read_grid`), ``out`` is the source,
+        The source cannot be read (:func:`world.dem.read_grid`), ``out`` is the source or
+        exists (without ``force``),
         ``bounds`` hold no-data nodes or fewer than 4 × 4 nodes, or no rectangle of 4 × 4
         nodes holds data.
     """
@@ -412,6 +416,8 @@ def crop_dem(source: str | Path, out: str | Path,
     valid = np.isfinite(z)
     if out.resolve() == source.resolve():
         raise ValueError(f"out {str(out)!r} is the source DEM; write the crop elsewhere")
+    if out.exists() and not force:
+        raise ValueError(f"out {str(out)!r} exists; choose another path or replace it (--force)")
     if bounds is None:
         j0, j1, i0, i1 = largest_rectangle(valid, MIN_NODES)
         if j1 == j0:

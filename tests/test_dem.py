@@ -265,6 +265,11 @@ def test_dem_crop_bounds_keep_the_nodes_inside(tmp_path):
         crop_dem(source, tmp_path / "bad.tif", bounds=(x[9], y[3], x[2], y[12]))
     with pytest.raises(ValueError, match="is the source DEM"):
         crop_dem(source, source)
+    before = crop.path.read_bytes()
+    with pytest.raises(ValueError, match="exists; choose another path or replace it"):
+        crop_dem(source, crop.path)  # nothing is overwritten unasked
+    assert crop.path.read_bytes() == before
+    assert crop_dem(source, crop.path, force=True).rows == (2, 20)  # the largest rectangle
     with pytest.raises(ValueError, match="GeoTIFF"):
         crop_dem(source, tmp_path / "out.asc")
     assert not (tmp_path / "bad.tif").exists()
