@@ -72,9 +72,9 @@ def execute(run: GridRun, runs_dir: Path, attempts: int = RUN_ATTEMPTS,
     A run that raises or ends incomplete is tried again up to ``attempts`` times in all (a
     transient cause such as a port taken between choosing and binding it goes away; a
     deterministic one fails again and is reported). Each attempt's credentials go to a new
-    folder in ``credentials_in`` (removed after the attempt; the caller removes
-    ``credentials_in``, so a worker killed mid-run leaves no password behind), by default to
-    a temporary folder of their own.
+    folder in ``credentials_in`` (default: the temporary directory), removed after the
+    attempt; :func:`run_grid` removes ``credentials_in`` too, so a worker killed mid-run
+    leaves no password behind.
     """
     from swarm.launch import launch
 
@@ -82,17 +82,15 @@ def execute(run: GridRun, runs_dir: Path, attempts: int = RUN_ATTEMPTS,
     error = ""
     folder = runs_dir / run.folder
     for attempt in range(1, attempts + 1):
-        scratch = None if credentials_in is None else Path(tempfile.mkdtemp(dir=credentials_in))
         try:
             _clear_unfinished(run, folder)
-            summary = launch(run.config, folder, in_process=True,
-                             credentials_dir=None if scratch is None else scratch / "run")
+            with tempfile.TemporaryDirectory(prefix="swarm-credentials-",
+                                             dir=credentials_in) as scratch:
+                summary = launch(run.config, folder, in_process=True,
+                                 credentials_dir=Path(scratch) / "run")
         except (ValueError, RuntimeError, OSError) as exc:
             error = f"{type(exc).__name__}: {exc}"
             continue
-        finally:
-            if scratch is not None:
-                shutil.rmtree(scratch, ignore_errors=True)
         if summary["complete"]:
             return RunOutcome(run, summary, "", attempt, time.perf_counter() - start)
         error = f"incomplete: {summary['reason']}"
@@ -194,8 +192,9 @@ def _run_in_pool(runs: list[GridRun], runs_dir: Path, workers: int, record,
     then fails with ``BrokenProcessPool``. The runs that were still queued go to a new pool.
     Those that were under way (they had written their ``config.toml`` since the pool started)
     are run again one at a time, each in a worker of its own, so the one whose worker dies
-    again is known: it is reported, the others are not charged for it. Ctrl-C cancels the
-    queued runs. Each run's credentials go to ``credentials_in`` (see :func:`execute`).
+    again is known: it is reported, the others are not charged for it. Ctrl-C or SIGTERM
+    cancels the queued runs and ends those under way (:func:`_pool`). Each run's credentials
+    go to ``credentials_in`` (see :func:`execute`).
     """
     while runs:
         started, again, suspects = time.time(), [], []
@@ -222,7 +221,7 @@ def _pool(runs: list[GridRun], runs_dir: Path, workers: int, credentials_in: Pat
     context = multiprocessing.get_context("spawn")
     others = set(multiprocessing.active_children())  # not the pool's: never stopped here
     with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
-        futures = {pool.submit(execute, run, runs_dir, RUN_ATTEMPTS, credentials_in): run
+        futures = {pool.submit(execute, run, runs_dir, credentials_in=credentials_in): run
                    for run in runs}
         try:
             for future in as_completed(futures):

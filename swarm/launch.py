@@ -172,7 +172,6 @@ class _ThreadAgents:
         self.endpoint = endpoint
         self.credentials = credentials
         self.threads: list[threading.Thread] = []
-        self.errors: list[str] = []
 
     def start(self, service: WorldService) -> None:
         bodies: list[Callable[[zenoh.Session], None]] = [
@@ -198,10 +197,8 @@ class _ThreadAgents:
         except RunFinished:
             return
         except (AgentAbort, ValueError, RuntimeError) as exc:
-            self.errors.append(f"agent {k}: {exc}")
             service.abort(f"agent {k} stopped: {exc}")
         except zenoh.ZError as exc:  # its session did not open (or broke)
-            self.errors.append(f"agent {k}: {describe(exc)}")
             service.abort(f"agent {k}'s Zenoh session failed: {describe(exc)}"
                           + (f" ({self.settings.followers + 1} agents share this process: "
                              "use the process layout for runs this large)"

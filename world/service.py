@@ -30,7 +30,6 @@ from world.view import ViewPublisher
 log = logging.getLogger(__name__)
 
 
-
 def agent_ranges(agents, limit: int = 12) -> str:
     """Agent ids with runs of three or more consecutive ones shortened, e.g. ``1, 2, 4–7, 9``;
     past ``limit`` pieces, how many more ids there are.
