@@ -93,13 +93,19 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
     return config_from_dict(data)
 
 
-def parse_leader_start(text: str) -> tuple[float, ...]:
-    """``"X,Y,VX,VY"`` -> four floats (ValueError naming --leader-start otherwise)."""
+def comma_numbers(text: str, count: int) -> tuple[float, ...] | None:
+    """``text`` as ``count`` comma-separated numbers, or None if it is not that."""
     try:
         values = tuple(float(x) for x in text.split(","))
     except ValueError:
-        values = ()
-    if len(values) != 4:
+        return None
+    return values if len(values) == count else None
+
+
+def parse_leader_start(text: str) -> tuple[float, ...]:
+    """``"X,Y,VX,VY"`` -> four floats (ValueError naming --leader-start otherwise)."""
+    values = comma_numbers(text, 4)
+    if values is None:
         raise ValueError(f"--leader-start must be X,Y,VX,VY numbers, got {text!r}")
     return values
 
@@ -467,11 +473,8 @@ def cmd_dem_crop(args: argparse.Namespace) -> int:
 
 def _bounds(text: str) -> tuple[float, float, float, float]:
     """``--bounds XMIN,YMIN,XMAX,YMAX`` (argparse type)."""
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        values = ()
-    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+    values = comma_numbers(text, 4)
+    if values is None or not all(math.isfinite(v) for v in values):
         raise argparse.ArgumentTypeError(f"expected four finite numbers XMIN,YMIN,XMAX,YMAX, "
                                          f"got {text!r}")
     return values

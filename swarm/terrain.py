@@ -400,10 +400,9 @@ def crop_dem(source: str | Path, out: str | Path,
     Raises
     ------
     ValueError
-        The source cannot be read (:func:`world.dem.read_grid`), ``out`` is the source or
-        exists (without ``force``),
-        ``bounds`` hold no-data nodes or fewer than 4 × 4 nodes, or no rectangle of 4 × 4
-        nodes holds data.
+        ``out`` is the source, exists (without ``force``) or is not a ``.tif``; the source
+        cannot be read (:func:`world.dem.read_grid`); ``bounds`` hold no-data nodes or fewer
+        than 4 × 4 nodes; or no rectangle of 4 × 4 nodes holds data.
     """
     import rasterio
     from rasterio.transform import Affine
@@ -412,12 +411,17 @@ def crop_dem(source: str | Path, out: str | Path,
     from world.dem import MIN_NODES, read_dem, read_grid
 
     source, out = Path(source), Path(out)
-    x, y, z = read_grid(source)
-    valid = np.isfinite(z)
-    if out.resolve() == source.resolve():
+    if out.resolve() == source.resolve():  # what can be refused before reading the raster
         raise ValueError(f"out {str(out)!r} is the source DEM; write the crop elsewhere")
     if out.exists() and not force:
         raise ValueError(f"out {str(out)!r} exists; choose another path or replace it (--force)")
+    if out.suffix.lower() not in (".tif", ".tiff"):
+        raise ValueError(f"out {str(out)!r} must be a GeoTIFF path (.tif)")
+    if bounds is not None and not (bounds[0] < bounds[2] and bounds[1] < bounds[3]):
+        raise ValueError(f"bounds must be xmin,ymin,xmax,ymax with xmin < xmax and "
+                         f"ymin < ymax, got {bounds}")
+    x, y, z = read_grid(source)
+    valid = np.isfinite(z)
     if bounds is None:
         j0, j1, i0, i1 = largest_rectangle(valid, MIN_NODES)
         if j1 == j0:
@@ -425,9 +429,6 @@ def crop_dem(source: str | Path, out: str | Path,
                              "nodes holds data")
     else:
         xmin, ymin, xmax, ymax = bounds
-        if not (xmin < xmax and ymin < ymax):
-            raise ValueError(f"bounds must be xmin,ymin,xmax,ymax with xmin < xmax and "
-                             f"ymin < ymax, got {bounds}")
         cols = np.flatnonzero((x >= xmin) & (x <= xmax))
         rows = np.flatnonzero((y >= ymin) & (y <= ymax))
         if cols.size < MIN_NODES or rows.size < MIN_NODES:
@@ -441,8 +442,6 @@ def crop_dem(source: str | Path, out: str | Path,
             raise ValueError(f"bounds {bounds} hold {holes} no-data node(s) of "
                              f"{str(source)!r}; choose others, or leave --bounds out for the "
                              "largest rectangle with data")
-    if out.suffix.lower() not in (".tif", ".tiff"):
-        raise ValueError(f"out {str(out)!r} must be a GeoTIFF path (.tif)")
     out.parent.mkdir(parents=True, exist_ok=True)
     with rasterio.open(source) as src:
         north_up = src.transform.e < 0

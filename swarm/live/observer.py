@@ -12,7 +12,7 @@ from protocol import keys
 from protocol.cli import describe
 from swarm.live.feed import ZenohFeed
 from swarm.live.server import PageServer
-from swarm.live.store import RunStore
+from swarm.live.store import REPLAY_HINT, RunStore
 
 
 class LiveView:
@@ -39,9 +39,8 @@ class LiveView:
             self._session = zenoh.open(conf)
         except zenoh.ZError as exc:
             raise RuntimeError(f"the live view cannot connect to Zenoh: {describe(exc)} (is the "
-                               "run's router up? `swarm run` ends its router with the run: a "
-                               "finished run is shown by python -m swarm replay RUN_DIR)"
-                               ) from None
+                               "run's router up? `swarm run` ends its router with the run; "
+                               f"{REPLAY_HINT})") from None
         self._feed = ZenohFeed(self._session, self.run_id, self.store)
 
     def serve_until_interrupted(self) -> None:

@@ -18,7 +18,7 @@ from swarm.live.draw import (
     agent_color, choice_points, contour_levels, empty_map_columns, follower_series, height_grid,
     hillshade, map_columns,
 )
-from swarm.live.store import COMPLETE, INCOMPLETE, WAITING, RunStore, Snapshot
+from swarm.live.store import COMPLETE, INCOMPLETE, REPLAY_HINT, WAITING, RunStore, Snapshot
 
 REFRESH_MS = 200
 PLAY_EVERY = 1  # replay: ticks advanced per refresh while playing
@@ -27,7 +27,7 @@ MAX_RANGE_PLOTS = 8  # per-follower range plots drawn (the map shows every agent
 MAP_FRAME = (680, 470)  # map's plot area in pixels (width, height): the box is fitted to it
 NOSE = 0.6  # heading segment length, in rods
 WAITING_HINT = (f"{WAITING}: none of this run is alive on the router (not started yet, or "
-                "over: python -m swarm replay RUN_DIR shows a finished run)")
+                f"over: {REPLAY_HINT})")
 
 
 class Page:

@@ -17,6 +17,8 @@ from protocol.view import MAP_FILE, TICK_COLUMNS, check_map, tick_payloads
 
 WAITING, RUNNING = "waiting for the world", "running"
 STARTING = "world alive, waiting for its first tick"
+REPLAY_HINT = "python -m swarm replay RUN_DIR shows a finished run"
+"""What to do when no run is there to watch (it may be over)."""
 COMPLETE, INCOMPLETE = "complete", "incomplete"
 
 
