@@ -25,7 +25,6 @@ if str(REPO_ROOT) not in sys.path:
 
 from swarm.terrain import write_geotiff  # noqa: E402  (after the path set-up)
 
-NODATA = -9999.0
 STEPS = {
     "crop": "from swarm.terrain import crop_dem; crop_dem({src!r}, {out!r})",
     "load the crop": "from world.dem import load_dem; load_dem({out!r})",
@@ -38,13 +37,13 @@ def make_dem(path: Path, size: int, seed: int = 0) -> int:
     rng = np.random.default_rng(seed)
     x = np.linspace(0.0, 1.0, size, dtype=np.float32)
     z = 500.0 + 300.0 * np.sin(7.0 * x)[None, :] * np.cos(5.0 * x)[:, None]
-    z[-size // 20:, :] = NODATA  # northern rows (south row first here)
-    z[:, : size // 30] = NODATA  # western columns
+    z[-size // 20:, :] = np.nan  # northern rows (south row first here)
+    z[:, : size // 30] = np.nan  # western columns
     holes = rng.integers(0, size, size=(20, 2))
-    z[holes[:, 0], holes[:, 1]] = NODATA
-    write_geotiff(path, np.where(z == NODATA, np.nan, z).astype(np.float32), west=500_000.0,
-                  south=4_000_000.0, cell_x=30.0, cell_y=30.0, crs="EPSG:32616")
-    return int((z == NODATA).sum())
+    z[holes[:, 0], holes[:, 1]] = np.nan
+    write_geotiff(path, z, west=500_000.0, south=4_000_000.0, cell_x=30.0, cell_y=30.0,
+                  crs="EPSG:32616")
+    return int(np.isnan(z).sum())
 
 
 def run_step(code: str) -> tuple[float, float]:

@@ -17,7 +17,7 @@ from protocol import keys
 from protocol.config import RunConfig, dump_config
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.launch import agent_commands, launch
-from tests.waiting import running, signalled, wait_for
+from tests.waiting import children, running, signalled, wait_for
 from world.results import read_ticks
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -153,13 +153,13 @@ def test_ctrl_c_stops_everything_and_leaves_a_partial_result(tmp_path, stop):
                             env={**os.environ, "TMPDIR": str(scratch)})
     try:
         wait_for(lambda: _ticks_done(out) >= 2, 60, "two ticks")
-        children = _children(proc.pid)
-        assert len(children) == 3
+        agents = children(proc.pid)
+        assert len(agents) == 3
         assert len(_credentials(scratch)) == 1
     finally:
         code, _, err = signalled(proc, stop, 20)
     assert code == 128 + stop, err
-    wait_for(lambda: not any(running(pid) for pid in children), 10, "agent processes to end")
+    wait_for(lambda: not any(running(pid) for pid in agents), 10, "agent processes to end")
     summary = json.loads((out / "summary.json").read_text())
     assert summary["complete"] is False and summary["ticks_completed"] >= 2
     assert read_ticks(out / "ticks.csv")  # readable
@@ -169,11 +169,6 @@ def test_ctrl_c_stops_everything_and_leaves_a_partial_result(tmp_path, stop):
 def _credentials(folder: Path) -> list[Path]:
     """The temporary credential folders of ``swarm run`` in ``folder``."""
     return [p for p in folder.iterdir() if p.name.startswith("swarm-credentials-")]
-
-
-def _children(pid: int) -> list[int]:
-    out = subprocess.run(["ps", "-o", "pid=", "--ppid", str(pid)], capture_output=True, text=True)
-    return [int(x) for x in out.stdout.split()]
 
 
 WEDGED_CLEANUP = """

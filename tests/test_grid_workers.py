@@ -18,7 +18,7 @@ import pytest
 from protocol.config import RunConfig
 from swarm.grid import Axis, estimator_axis, expand, run_grid
 from swarm.local import run_local
-from tests.waiting import running, signalled, wait_for
+from tests.waiting import children, running, signalled, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -29,18 +29,13 @@ KILLS = "tests.example_estimator:KillsItsProcess"
 def _workers(parent: int | None = None) -> list[int]:
     """The pool workers of ``parent`` (default this process): its spawned children running
     ``spawn_main`` (not the resource tracker, also a spawned child)."""
-    parent = os.getpid() if parent is None else parent
     found = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
+    for pid in children(os.getpid() if parent is None else parent):
         try:
-            stat = (entry / "stat").read_text()
-            cmdline = (entry / "cmdline").read_bytes()
+            if b"spawn_main" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                found.append(pid)
         except OSError:
             continue
-        if int(stat.rsplit(")", 1)[1].split()[1]) == parent and b"spawn_main" in cmdline:
-            found.append(int(entry.name))
     return found
 
 

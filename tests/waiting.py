@@ -1,8 +1,8 @@
-"""Test support: bounded waits. Every wait of the tests for something to happen polls with a
-deadline, so a test that waits for what never comes fails instead of hanging."""
+"""Test support: bounded waits, and the processes they watch. Every wait of the tests for
+something to happen polls with a deadline, so a test that waits for what never comes fails
+instead of hanging."""
 from __future__ import annotations
 
-import os
 import subprocess
 import time
 from collections.abc import Callable
@@ -27,17 +27,25 @@ def wait_for(condition: Callable[[], object], timeout: float, what: str) -> None
         raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
+def stat_fields(pid: int) -> list[str] | None:
+    """The fields of ``/proc/PID/stat`` after the command name (state, parent, ...); None if
+    there is no such process."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+
+
 def running(pid: int) -> bool:
     """Whether process ``pid`` exists and is not a zombie (ended, not yet reaped)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    stat = Path(f"/proc/{pid}/stat")
-    try:
-        return stat.read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except (OSError, IndexError):
-        return False
+    fields = stat_fields(pid)
+    return fields is not None and fields[0] != "Z"
+
+
+def children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid``."""
+    return [int(entry.name) for entry in Path("/proc").iterdir() if entry.name.isdigit()
+            and (fields := stat_fields(int(entry.name))) is not None and int(fields[1]) == pid]
 
 
 def signalled(proc: subprocess.Popen, signum: int, timeout: float) -> tuple[int, str, str]:
