@@ -59,6 +59,7 @@ FLOAT_RANGES = {  # name: (low, high, low end exclusive)
     "noise_bearing": (0.0, 10.0, False),
     "noise_velocity": (0.0, 1e3, False),
     "noise_move": (0.0, 1e3, False),
+    "noise_gps": (0.0, 1e6, False),
     "sensing_range": (0.0, math.inf, True),
 }
 MAX_COORDINATE = 1e9  # bound on a leader start component and on a surface parameter
@@ -101,6 +102,7 @@ class RunConfig:
     noise_bearing: float = 0.0
     noise_velocity: float = 0.0
     noise_move: float = 0.0
+    noise_gps: float = 0.0
     seed: int = 0
     sensing_range: float = math.inf
     mode: str = "lockstep"

@@ -48,6 +48,7 @@ RUN_FLAGS: dict[str, tuple[str, dict]] = {
     "--noise-bearing": ("noise_bearing", {"type": float}),
     "--noise-velocity": ("noise_velocity", {"type": float}),
     "--noise-move": ("noise_move", {"type": float}),
+    "--noise-gps": ("noise_gps", {"type": float, "help": "GPS noise σ per coordinate (m)"}),
     "--side": ("side", {"choices": tuple(SIDES)}),
     "--leader-start": ("leader_start", {"metavar": "X,Y,VX,VY"}),
     "--seed": ("seed", {"type": int}),
