@@ -39,15 +39,16 @@ class TickOutcome:
 def displacement(offset: np.ndarray, pre: Sensing, moved: Sensing,
                  settings: AgentSettings) -> np.ndarray:
     """Where the follower's ideal position was relative to where it stood before moving (the
-    ``target`` its policy learns from): the offset it commanded plus the rod end it sensed after
-    the move, corrected for the move's actuation noise.
+    ``target`` its policy learns from), as well as the follower can tell: the offset it
+    commanded plus the rod end it read after the move (a noisy reading, SPEC §5), corrected for
+    the move's actuation noise.
 
     The move landed ``eta`` off the command (declared variance ``noise_move**2`` per
     coordinate), which would enter the target whole. The two readings of the leader around the
     move see it: ``relative(pre) - relative(moved) - offset = eta +`` their sensor noise
     (variance twice :func:`agents.policies.reading_variance`), so the estimate is added with
     the minimum-variance weight ``w = s_m / (s_m + 2 s_r)``: all of it without sensor noise,
-    none without actuation noise (the target is then ``offset + rod``, exactly).
+    none without actuation noise (the target is then ``offset + rod``).
     """
     target = offset + np.asarray(moved.rod)
     actuation = move_variance(settings)

@@ -69,12 +69,16 @@ class AgentLink:
         the run's timing."""
         return cls(session, settings.run_id, agent_id, agent_id - 1 if agent_id else None,
                    query_timeout=max(settings.agent_timeout, QUERY_TIMEOUT_S),
-                   lockstep=settings.mode == "lockstep")
+                   lockstep=settings.mode == "lockstep", end_timeout=settings.step_timeout)
 
     def __init__(self, session: zenoh.Session, run_id: str, agent_id: int, follow: int | None,
-                 query_timeout: float, lockstep: bool = True) -> None:
+                 query_timeout: float, lockstep: bool = True,
+                 end_timeout: float | None = None) -> None:
         self.session, self.run_id, self.agent_id = session, run_id, agent_id
         self.query_timeout, self.lockstep = query_timeout, lockstep
+        # how long to wait for world/done once the world said the run ends before this tick
+        # (it still completes the ticks before it with the other agents)
+        self.end_timeout = query_timeout if end_timeout is None else end_timeout
         self._cond = threading.Condition()
         self._latest = -1  # newest tick announced by whatever this agent waits for
         self._world_tick = -1  # newest tick the world announced
@@ -246,6 +250,8 @@ class AgentLink:
                 break
             if error.code == "missed":
                 raise TickMissed(error.error)
+            if error.code == "ended":
+                self._await_done(error.error)
             if error.code != "wait":
                 raise AgentAbort(f"the world refused {request.TYPE} at tick {request.tick}: "
                                  f"{error.error}")
@@ -254,6 +260,17 @@ class AgentLink:
             self._cond.wait_for(self._world_gone, timeout=1.0)
             self._raise_if_world_gone()
         raise AgentAbort(failure)
+
+    def _await_done(self, why: str) -> None:
+        """The world said the run ends before this agent's tick (``why``): wait for
+        ``world/done`` (raised as RunFinished) while the world completes the earlier ticks."""
+        with self._cond:
+            self._cond.wait_for(lambda: self._done is not None or self._world_gone(),
+                                timeout=self.end_timeout)
+            self._raise_if_finished()
+            self._raise_if_world_gone()
+        raise AgentAbort(f"the run ends ({why}), but world/done did not come within "
+                         f"{self.end_timeout:g} s")
 
     def join(self, timeout: float) -> Joined:
         """Wait (up to ``timeout`` s) for the world, then ask it where the run stands (the

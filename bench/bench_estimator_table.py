@@ -42,7 +42,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from protocol.config import AUTO, CLASSICAL, OWN_MOTION, RunConfig  # noqa: E402
 from swarm.cli import parse_leader_start  # noqa: E402
 from swarm.local import run_local  # noqa: E402
-from world.sim import RunEnded  # noqa: E402
 from world.surfaces import make_surface  # noqa: E402
 
 from bench import random_surfaces  # noqa: E402
@@ -84,11 +83,11 @@ def required(surface: str, comm_period: float = 1.28, seeds=(0,), **options) -> 
     run ends early)."""
     values = []
     for seed in seeds:
-        try:
-            summary, _ = run_local(RunConfig(surface=surface, comm_period=comm_period,
-                                             seed=seed, **options))
-        except RunEnded as exc:
-            raise IncompleteRun(f"{surface} at T_c {comm_period}, seed {seed}: {exc}") from None
+        summary, _ = run_local(RunConfig(surface=surface, comm_period=comm_period,
+                                         seed=seed, **options))
+        if not summary["complete"]:
+            raise IncompleteRun(f"{surface} at T_c {comm_period}, seed {seed}: "
+                                f"{summary['reason']}")
         values.append(summary["followers"]["1"]["mean_required_range"])
     return sum(values) / len(values)
 

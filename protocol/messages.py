@@ -200,10 +200,13 @@ class Sensing(Message):
     """Reply of ``world/sense/<id>``; every vector is xy in the agent's local frame (§5).
 
     ``r``/``theta``: Euclidean distance and bearing (rad, wrapped to (-pi, pi]) to the leader.
-    ``rod``: offset to the leader's rod end, or None beyond the sensing range.
+    ``rod``: offset to the leader's rod end, read by the same range/bearing sensor (its own
+    noise draws), or None beyond the sensing range.
     ``velocity``: odometry of the last completed interval (None before one exists).
-    ``oracle_velocity``: the exact velocity to the next ideal position (only if the run asks).
-    ``gps``/``leader_gps``: absolute (x, y, z) of agent and leader (only with GPS enabled).
+    ``oracle_velocity``: the velocity to the next ideal position, the paper's idealisation
+    (only to dictionary c with ``velocity = "oracle"``; with velocity noise).
+    ``gps``/``leader_gps``: absolute (x, y, z) of agent and leader (only with GPS enabled;
+    with GPS noise). Every field passes through its noise channel (SPEC §5).
     """
 
     TYPE: ClassVar[str] = "sensing"

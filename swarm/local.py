@@ -17,7 +17,7 @@ from protocol.config import AgentSettings, RunConfig
 from protocol.messages import ActSensing, Message, Move, Observation, Sensing, Snap, decode, encode
 from world.main import resolve_with_surface
 from world.results import RunRecorder
-from world.sim import WorldSim
+from world.sim import RunEnded, WorldSim
 
 
 class LocalLink:
@@ -63,24 +63,43 @@ def run_local(config: RunConfig, out_dir: str | Path | None = None,
         rows.extend(tick_rows)
         recorder.add_tick(tick_rows, observations)
 
+    def act(action: Callable, *args):
+        """``action(*args)``, or None if it met a condition that ends the run (the world
+        keeps the earliest such tick, ``sim.end_tick``, as in a Zenoh run)."""
+        try:
+            return action(*args)
+        except RunEnded:
+            return None
+
+    def ends_before(tick: int) -> bool:
+        return sim.end_tick is not None and tick >= sim.end_tick
+
     n, ticks = config.followers, config.ticks
     if config.pipelined:  # a wavefront: at step s, agent k does tick s - k (SPEC §4)
         pending: dict[int, list] = {}
         for step in range(ticks + n):
-            if step < ticks:
+            if step < ticks and not ends_before(step):
                 sim.open_tick(step)
-                sim.drive(0, step, sim.time_of(step))
+                act(sim.drive, 0, step, sim.time_of(step))
             for k in range(1, n + 1):
-                if 0 <= step - k < ticks:
-                    pending.setdefault(step - k, []).append(follower(k, step - k))
-            if step - n >= 0:
+                if 0 <= step - k < ticks and not ends_before(step - k):
+                    done = act(follower, k, step - k)
+                    if done is not None:
+                        pending.setdefault(step - k, []).append(done)
+            if step - n >= 0 and not ends_before(step - n):
                 finish(step - n, pending.pop(step - n))
     else:  # one agent at a time
         for tick in range(ticks):
+            if ends_before(tick):
+                break
             sim.start_tick(tick)
-            sim.drive(0, tick, sim.time_of(tick))
-            finish(tick, [follower(k, tick) for k in range(1, n + 1)])
+            act(sim.drive, 0, tick, sim.time_of(tick))
+            observations = [act(follower, k, tick) for k in range(1, n + 1)
+                            if not ends_before(tick)]
+            if not ends_before(tick):
+                finish(tick, observations)
+    complete, reason = sim.end_tick is None, sim.end_reason
     if out_dir is not None:
-        recorder.write_summary(complete=True)
+        recorder.write_summary(complete=complete, reason=reason)
         recorder.close()
-    return recorder.summary(complete=True), rows
+    return recorder.summary(complete=complete, reason=reason), rows

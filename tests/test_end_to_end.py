@@ -20,8 +20,8 @@ from tests.boundaries import check_imports
 
 ROOT = Path(__file__).resolve().parents[1]
 SUMMARY_KEYS = {"mean_required_range", "rmse", "mean_stay_range", "mean_persist_range",
-                "mean_persist_range_noise_free", "lost_ticks", "missed_ticks", "estimated_ticks",
-                "fallback_ticks", "followed"}
+                "mean_persist_range_noise_free", "mean_floor_range", "lost_ticks", "missed_ticks",
+                "estimated_ticks", "fallback_ticks", "followed"}
 
 
 def _numbers(run_dir: Path) -> tuple[str, dict]:
@@ -60,7 +60,9 @@ def test_results_folder(in_process_run, chain_config):
 
 
 def test_ground_truth(in_process_run, chain_config):
-    """With R_s = inf and no noise, every follower settles on the ideal formation of §3."""
+    """The leader drives the ideal formation's geodesic exactly; a follower settles near its
+    place in the ideal formation (under noise a snap is a move by the sensed offset, SPEC §4),
+    and every range is measured from where it really is."""
     out, _ = in_process_run
     rows = read_ticks(out / "ticks.csv")
     cfg = load_config(out / "config.toml")
@@ -68,16 +70,18 @@ def test_ground_truth(in_process_run, chain_config):
                             cfg.spacing, cfg.comm_period, cfg.ticks)
     for row in rows:
         pos = np.array([row["pos_x"], row["pos_y"]])
-        np.testing.assert_allclose(pos, truth[row["agent"], row["tick"]], atol=1e-9)
-        if row["agent"] > 0:
-            assert row["formation_error"] < 1e-9
-            ideal = np.array([row["ideal_x"], row["ideal_y"]])
-            np.testing.assert_allclose(ideal, truth[row["agent"], row["tick"]], atol=1e-9)
-            if row["tick"] >= cfg.init_ticks:
-                est = np.array([row["est_x"], row["est_y"]])
-                assert row["required_range"] == pytest.approx(np.hypot(*(est - ideal)), abs=1e-12)
-            else:
-                assert row["est_x"] is None and row["required_range"] is None
+        if row["agent"] == 0:
+            np.testing.assert_allclose(pos, truth[0, row["tick"]], atol=1e-9)
+            continue
+        error = np.hypot(*(pos - truth[row["agent"], row["tick"]]))
+        assert row["formation_error"] == pytest.approx(error, abs=1e-12)
+        assert 0 < row["formation_error"] < 0.2
+        ideal = np.array([row["ideal_x"], row["ideal_y"]])
+        if row["tick"] >= cfg.init_ticks:
+            est = np.array([row["est_x"], row["est_y"]])
+            assert row["required_range"] == pytest.approx(np.hypot(*(est - ideal)), abs=1e-12)
+        else:
+            assert row["est_x"] is None and row["required_range"] is None
 
 
 def test_processes_match_in_process(tmp_path, in_process_run, chain_config):

@@ -7,7 +7,12 @@ from __future__ import annotations
 
 import numpy as np
 
-CHANNELS = {"range": 1, "bearing": 2, "velocity": 3, "move": 4}
+# The leader reading's range and bearing, odometry, the move's actuation; then (added with the
+# honest rod-end reading, SPEC §5) the rod end's own range and bearing, the snap's actuation,
+# GPS of the follower and of its leader, the oracle velocity. Numbers are part of the streams'
+# keys: never renumber one.
+CHANNELS = {"range": 1, "bearing": 2, "velocity": 3, "move": 4, "rod-range": 5,
+            "rod-bearing": 6, "snap": 7, "gps": 8, "leader-gps": 9, "oracle-velocity": 10}
 PHASES = {"pre": 0, "moved": 1, "settled": 2, "act": 3}
 
 

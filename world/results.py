@@ -21,7 +21,7 @@ VERSION = "0.2.0"
 TICK_COLUMNS = (
     "tick", "t", "agent", "estimator", "ideal_x", "ideal_y", "est_x", "est_y", "pos_x", "pos_y",
     "required_range", "stay_range", "persist_range", "lost", "formation_error",
-    "persist_range_noise_free", "missed",
+    "persist_range_noise_free", "missed", "floor_range",
 )
 OBS_COLUMNS = ("tick", "agent", "estimator", "lost", "measurement", "prediction", "followed",
                "fallback")
@@ -71,6 +71,7 @@ class _FollowerMetrics:
     def __init__(self) -> None:
         self.required, self.squares = ExactSum(), ExactSum()
         self.stay, self.persist, self.persist_noise_free = ExactSum(), ExactSum(), ExactSum()
+        self.floor = ExactSum()
         self.lost = self.missed = self.fallback = 0
         self.followed: dict[str, int] = {}
 
@@ -83,6 +84,7 @@ class _FollowerMetrics:
             self.stay.add(row["stay_range"])
             self.persist.add(row["persist_range"])
             self.persist_noise_free.add(row["persist_range_noise_free"])
+            self.floor.add(row["floor_range"])
 
     def add_observation(self, row: dict) -> None:
         self.fallback += int(row.get("fallback") or 0)
@@ -97,6 +99,7 @@ class _FollowerMetrics:
             "mean_stay_range": self.stay.mean(),
             "mean_persist_range": self.persist.mean(),
             "mean_persist_range_noise_free": self.persist_noise_free.mean(),
+            "mean_floor_range": self.floor.mean(),
             "lost_ticks": self.lost,
             "missed_ticks": self.missed,
             "estimated_ticks": n - self.fallback,

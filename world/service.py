@@ -176,8 +176,9 @@ class WorldService:
             return
         except (ProtocolError, RequestError, ValueError) as exc:
             problem = str(exc)
-        except RunEnded as exc:
-            self.abort(str(exc))
+        except RunEnded as exc:  # the run ends before this tick (WorldSim.end_tick)
+            with self._cond:
+                self._cond.notify_all()
             problem, code = f"run ended: {exc}", "ended"
         self._rejected += 1
         log.info("world: refused %s: %s", query.key_expr, problem)
@@ -190,6 +191,7 @@ class WorldService:
         tick, and its successor must not have seen it moved."""
         if not 0 <= agent < self.sim.n_agents:
             return  # the simulation names the problem
+        self.sim.check_not_ended(tick)
         if tick == self._through[agent] + 2 and self.sim.is_settled(agent, tick - 1):
             raise NotYet(f"agent {agent}'s report of tick {tick - 1} has not reached the world yet")
         if agent > 0 and tick <= self.sim.tick and self._through[agent - 1] < tick:
@@ -403,6 +405,8 @@ class WorldService:
                 while True:
                     if self._ended is not None:
                         return self._ended
+                    if self.sim.over:
+                        return self.sim.end_reason
                     if self.sim.complete >= last:
                         return None
                     if min(self._through) > self.sim.complete:
@@ -437,7 +441,7 @@ class WorldService:
             # a dead agent misses at once: those behind it keep their time budget
             for agent in sorted(set(range(self.sim.n_agents)) - self._alive):
                 self._mark_missed(agent, "its process is not live")
-            while self._ended is None and min(self._through) < tick:
+            while self._ended is None and not self.sim.over and min(self._through) < tick:
                 waiting = min(k for k in range(self.sim.n_agents) if self._through[k] < tick)
                 # the clock restarts whenever some agent gets through the tick
                 deadline = min(self._progress + limit, self._tick_started + self.period)
@@ -448,6 +452,8 @@ class WorldService:
                 self._cond.wait(left)
             if self._ended is not None:
                 return self._ended
+            if self.sim.over:
+                return self.sim.end_reason
             self._complete_tick(tick)
             next_start = self._tick_started + self.period
             while self._ended is None and (left := next_start - time.monotonic()) > 0:

@@ -7,7 +7,13 @@ into :meth:`open_tick` (or :meth:`start_tick`) and :meth:`finish_tick`. Agents m
 different ticks (pipelined lockstep, SPEC §4); each begins a tick with its first request for
 it. Requests that break the protocol's rules raise :class:`RequestError` (answered as an
 error reply); conditions that end the run (leaving the surface's domain) raise
-:class:`RunEnded`.
+:class:`RunEnded`, and the run then ends at the earliest tick such a condition met, whatever
+the order in which agents got there (:attr:`WorldSim.end_tick`, SPEC §7).
+
+Sensing is honest (SPEC §5): every reading an agent gets passes through its own noise channel
+(:mod:`world.noise`) — the leader's range and bearing, the rod end's range and bearing, odometry,
+GPS — and every move, the snap included, through actuation noise. With every σ = 0 each noise
+term is an exact zero, so the numbers are the noise-free ones bit for bit.
 """
 from __future__ import annotations
 
@@ -18,11 +24,13 @@ import numpy as np
 
 from protocol.config import RunConfig
 from protocol.messages import ActResult, ActSensing, Drive, Message, Move, Sensing, Snap
+from protocol.sensing import reading_covariance
 from world import geometry
 from world.noise import gaussian, gaussian_scalar
 from world.surfaces import Surface, surface_leader_start
 
 MAX_OFFSET = 1e6
+FLOOR_JITTER = 1e-18  # keeps a reading's covariance invertible when sigma_r or sigma_theta is 0
 
 
 class RequestError(ValueError):
@@ -34,7 +42,8 @@ class TickMissed(RequestError):
 
 
 class RunEnded(RuntimeError):
-    """A condition that ends the run early (the result is written, marked incomplete)."""
+    """A condition that ends the run early (the result is written, marked incomplete): the
+    run keeps the ticks before the earliest one at which such a condition was met."""
 
 
 @dataclass(frozen=True)
@@ -113,6 +122,9 @@ class WorldSim:
         self._leader_at: dict[int, tuple[np.ndarray, float]] = {}  # (velocity, time) per tick
         self.tick = -1  # the newest tick opened (agents may be behind it)
         self.complete = -1  # the newest tick every agent is through (its rows are out)
+        # the earliest tick at which the run met a condition that ends it, and why
+        self.end_tick: int | None = None
+        self.end_reason = ""
         self._rod_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
     # --- ticks ---------------------------------------------------------------------------------
@@ -203,11 +215,13 @@ class WorldSim:
                 lead_now = self.agents[k - 1].settled[j]
                 lead_prev = self.agents[k - 1].settled.get(j - 1, lead_now)
                 persist_noise_free = prev + (lead_now - lead_prev)
+                persist, floor = self._counterfactuals(k, j)
                 row.update(
                     estimator=cfg.estimator, ideal_x=ideal[0], ideal_y=ideal[1],
                     stay_range=_dist(prev, ideal),
-                    persist_range=_dist(self._sensed_persist(k, j), ideal),
+                    persist_range=_dist(persist, ideal),
                     persist_range_noise_free=_dist(persist_noise_free, ideal),
+                    floor_range=_dist(floor, ideal),
                     lost=int(record.lost),
                     formation_error=_finite_or_none(_dist(pos, self.ideal[k, j])),
                 )
@@ -221,7 +235,7 @@ class WorldSim:
             _drop_ticks_before(state.headings, j - 1)
             _drop_ticks_before(state.records, j + 1)
         _drop_ticks_before(self._leader_at, j)
-        for key in [key for key in self._rod_cache if key[1] <= j]:
+        for key in [key for key in self._rod_cache if key[1] < j]:  # the next floor reads j's
             del self._rod_cache[key]
         return rows
 
@@ -269,6 +283,7 @@ class WorldSim:
         settled at begins that tick for it."""
         if not 0 <= agent < self.n_agents:
             raise RequestError(f"unknown agent id {agent} (this run has agents 0..{self.n_agents - 1})")
+        self.check_not_ended(tick)
         state = self.agents[agent]
         if tick < state.tick:
             raise TickMissed(f"tick {tick} is over: the world is at tick {self.tick}")
@@ -304,7 +319,7 @@ class WorldSim:
                     self.surface, leader.pos, self.leader_velocity, target - self.leader_time
                 )
             except geometry.SurfaceDomainError as exc:
-                raise RunEnded(f"the leader left the surface's domain: {exc}") from None
+                raise self._end(tick, f"the leader left the surface's domain: {exc}") from None
             leader.heading = self.leader_velocity.copy()
             self.leader_time = target
         self._settle(0, tick)
@@ -321,17 +336,72 @@ class WorldSim:
             cfg.seed, agent, tick, "bearing", phase, cfg.noise_bearing)
         return r, math.atan2(math.sin(theta), math.cos(theta))
 
-    def _sensed_persist(self, agent: int, tick: int) -> np.ndarray:
-        """Where ``persist`` would have put follower ``agent`` at ``tick`` from the same noisy
-        readings the follower had (SPEC §6): ``f_{j-1} + rel(pre_j) - rel(settled_{j-1})``,
-        with ``pre_j`` read from ``f_{j-1}`` with the leader at ``l_j``."""
+    def _reading_error(self, agent: int, tick: int, phase: str, offset: np.ndarray,
+                       channels: tuple[str, str] = ("range", "bearing")) -> np.ndarray:
+        """The error (xy, local frame) of the range/bearing reading ``agent`` gets in ``phase``
+        of ``tick`` of a point at the true local ``offset``, on the noise ``channels`` (range,
+        bearing): ``polar(r + n_r, theta + n_theta) - polar(r, theta)``, an exact zero when
+        both draws are."""
+        cfg = self.config
+        r, theta = math.hypot(float(offset[0]), float(offset[1])), math.atan2(offset[1], offset[0])
+        n_r = gaussian_scalar(cfg.seed, agent, tick, channels[0], phase, cfg.noise_range)
+        n_theta = gaussian_scalar(cfg.seed, agent, tick, channels[1], phase, cfg.noise_bearing)
+        return _polar(r + n_r, theta + n_theta) - _polar(r, theta)
+
+    def _rod_error(self, agent: int, tick: int, phase: str, offset: np.ndarray) -> np.ndarray:
+        """The error of ``agent``'s reading of its leader's rod end at the true local
+        ``offset``: the same range/bearing sensor as the leader reading, channels of its own."""
+        return self._reading_error(agent, tick, phase, offset, ("rod-range", "rod-bearing"))
+
+    def _move_noise(self, agent: int, tick: int) -> np.ndarray:
+        """The actuation noise of ``agent``'s move to its estimate at ``tick``."""
+        return gaussian(self.config.seed, agent, tick, "move", "act", self.config.noise_move, 2)
+
+    def _counterfactuals(self, agent: int, tick: int) -> tuple[np.ndarray, np.ndarray]:
+        """Where ``persist`` and the *sensing floor* would have put follower ``agent`` at
+        ``tick`` (``j``), from the same noisy readings and actuation the follower had (SPEC §6,
+        §7). Both start where the follower settled at ``j - 1`` (``prev``) and suffer its
+        actuation noise of the move.
+
+        ``persist`` moves by ``rel_pre - rel(settled_{j-1})``. The floor knows the formation's
+        true motion — the leader as seen from the ideal position (``x = l - ideal``) and the
+        ideal position's displacement — and locates its next ideal position with the three
+        readings of the tick that can: the ``pre`` leader reading (``rel_pre - x_j``), the
+        settled leader reading of ``j - 1`` and the settled rod-end reading of ``j - 1`` (each
+        plus the ideal position's displacement), combined with minimum variance by their
+        declared covariances (:func:`protocol.sensing.reading_covariance`). So its only errors
+        are those of the readings and of the move: how far each estimator is from it is what
+        its own knowledge of the motion costs."""
         own, lead = self.agents[agent].settled, self.agents[agent - 1].settled
         if tick - 1 not in own or tick - 1 not in lead:
-            return own[tick]
+            return own[tick], own[tick]
         prev = own[tick - 1]
-        pre = self._relative_reading(agent, tick, "pre", lead[tick], prev)
-        before = self._relative_reading(agent, tick - 1, "settled", lead[tick - 1], prev)
-        return prev + _polar(*pre) - _polar(*before)
+        pre = prev + _polar(*self._relative_reading(agent, tick, "pre", lead[tick], prev))
+        before = _polar(*self._relative_reading(agent, tick - 1, "settled", lead[tick - 1], prev))
+        noise = self._move_noise(agent, tick) if tick >= self.config.init_ticks else np.zeros(2)
+        ideal = self._leader_rod(agent, tick)[0]
+        return pre - before + noise, ideal + self._floor_error(agent, tick) + noise
+
+    def _floor_error(self, agent: int, tick: int) -> np.ndarray:
+        """The sensing floor's error at ``tick`` (see :meth:`_counterfactuals`): the
+        minimum-variance combination of the errors of the readings that locate the follower's
+        next ideal position, each reading's covariance taken at its true range and bearing."""
+        cfg = self.config
+        own, lead = self.agents[agent].settled, self.agents[agent - 1].settled
+        prev, earlier = own[tick - 1], self._leader_rod(agent, tick - 1)[0]
+        sightings = [(lead[tick] - prev, "pre", tick), (lead[tick - 1] - prev, "settled", tick - 1)]
+        errors = [self._reading_error(agent, t, phase, offset) for offset, phase, t in sightings]
+        offsets = [offset for offset, _, _ in sightings]
+        rod = earlier - prev
+        if self._sees_rod(tick - 1, _norm(rod)):
+            errors.append(self._rod_error(agent, tick - 1, "settled", rod))
+            offsets.append(rod)
+        if not any(error.any() for error in errors):
+            return np.zeros(2)
+        precisions = [np.linalg.inv(reading_covariance(_norm(o), math.atan2(o[1], o[0]),
+                                                       cfg.noise_range, cfg.noise_bearing)
+                                    + FLOOR_JITTER * np.eye(2)) for o in offsets]
+        return np.linalg.solve(sum(precisions), sum(p @ e for p, e in zip(precisions, errors)))
 
     def sense(self, agent: int, tick: int, phase: str) -> Sensing:
         """What follower ``agent``'s sensors read now, in its local frame (SPEC §5)."""
@@ -340,22 +410,31 @@ class WorldSim:
         cfg, state = self.config, self.agents[agent]
         leader_pos = self.agents[agent - 1].settled[tick]
         r, theta = self._relative_reading(agent, tick, phase, leader_pos, state.pos)
-        fx, fy = state.pos.tolist()
-        ex, ey = self._leader_rod(agent, tick)[0].tolist()
-        offset = (ex - fx, ey - fy)
-        visible = self._sees_rod(tick, math.hypot(*offset))
+        offset = self._leader_rod(agent, tick)[0] - state.pos
+        rod = None
+        if self._sees_rod(tick, _norm(offset)):
+            rod = _tup(offset + self._rod_error(agent, tick, phase, offset))
         velocity = self._odometry(agent, tick, phase)
         oracle = None
-        if cfg.velocity == "oracle" and self.is_settled(agent, tick):
+        if self._sends_oracle() and self.is_settled(agent, tick):
             oracle = (self.ideal[agent, tick + 1] - state.pos) / cfg.comm_period
             oracle = oracle if np.all(np.isfinite(oracle)) else None
+            if oracle is not None:
+                oracle = oracle + gaussian(cfg.seed, agent, tick, "oracle-velocity", phase,
+                                           cfg.noise_velocity, 2)
         gps = leader_gps = None
         if cfg.gps:
-            gps, leader_gps = self._gps(state.pos), self._gps(leader_pos)
+            gps = self._gps(agent, tick, phase, "gps", state.pos)
+            leader_gps = self._gps(agent, tick, phase, "leader-gps", leader_pos)
         return Sensing(
-            tick=tick, r=r, theta=theta, rod=offset if visible else None,
-            velocity=velocity, oracle_velocity=_tup(oracle), gps=gps, leader_gps=leader_gps,
+            tick=tick, r=r, theta=theta, rod=rod, velocity=velocity, oracle_velocity=_tup(oracle),
+            gps=gps, leader_gps=leader_gps,
         )
+
+    def _sends_oracle(self) -> bool:
+        """The oracle velocity is sent only to dictionary c's ``oracle`` variant (SPEC §5)."""
+        cfg = self.config
+        return cfg.estimator == "edmd" and cfg.dictionary == "c" and cfg.velocity == "oracle"
 
     def move(self, agent: int, tick: int, offset: tuple[float, float]) -> None:
         """Follower moves by the local-frame ``offset`` toward its estimate (with actuation noise)."""
@@ -369,22 +448,30 @@ class WorldSim:
             raise RequestError(f"tick {tick} is an initial tick: followers only snap")
         if state.acted:
             raise RequestError(f"agent {agent} already moved at tick {tick}")
-        step = step + gaussian(cfg.seed, agent, tick, "move", "act", cfg.noise_move, 2)
-        self._relocate(agent, state.pos + step)
+        self._relocate(agent, state.pos + step + self._move_noise(agent, tick))
         state.estimate = state.pos.copy()
         state.acted = "move"
 
     def snap(self, agent: int, tick: int) -> bool:
-        """Follower moves onto its leader's rod end if it sees it; returns False (lost) if not."""
+        """Follower moves by the rod-end offset it sensed last (after its move, or before it
+        in an initial tick), with actuation noise, if it sees the rod end, and takes the
+        heading of SPEC §3 at the true rod end; returns False (lost) if it does not see it.
+
+        The landing point is ``end + reading error + actuation noise``: the same point as
+        ``pos + sensed offset + actuation noise``, written so that with no noise it is the
+        rod end exactly."""
         self._check_request(agent, tick)
         self._check_follower_turn(agent, tick)
         state, cfg = self.agents[agent], self.config
         if tick >= cfg.init_ticks and state.acted != "move":
             raise RequestError(f"agent {agent} must move to its estimate before snapping")
         end, u = self._leader_rod(agent, tick)
-        seen = self._sees_rod(tick, _norm(end - state.pos))
+        offset = end - state.pos
+        seen = self._sees_rod(tick, _norm(offset))
         if seen:
-            self._relocate(agent, end)
+            error = self._rod_error(agent, tick, "moved" if state.acted else "pre", offset)
+            noise = gaussian(cfg.seed, agent, tick, "snap", "act", cfg.noise_move, 2)
+            self._relocate(agent, end + error + noise)
             state.heading = geometry.heading_at_rod_end(self.surface, end, u, self.side)
         state.lost = not seen
         self._settle(agent, tick)
@@ -421,7 +508,8 @@ class WorldSim:
                     self.config.spacing, self.side
                 )
             except geometry.SurfaceDomainError as exc:
-                raise RunEnded(f"agent {agent - 1}'s rod leaves the surface's domain: {exc}") from None
+                raise self._end(tick, f"agent {agent - 1}'s rod leaves the surface's domain: "
+                                      f"{exc}") from None
         return self._rod_cache[key]
 
     def _sees_rod(self, tick: int, distance: float) -> bool:
@@ -431,8 +519,27 @@ class WorldSim:
     def _relocate(self, agent: int, pos: np.ndarray) -> None:
         contains = getattr(self.surface, "contains", None)
         if contains is not None and not contains(pos):
-            raise RunEnded(f"agent {agent} would leave the surface's domain at {pos.tolist()}")
+            raise self._end(self.agents[agent].tick,
+                            f"agent {agent} would leave the surface's domain at {pos.tolist()}")
         self.agents[agent].pos = np.asarray(pos, dtype=float).copy()
+
+    def _end(self, tick: int, reason: str) -> RunEnded:
+        """Record that the run meets a condition that ends it at ``tick`` and return the error
+        to raise. The earliest such tick wins (an agent behind in a pipelined run may meet one
+        after an agent ahead did), so the run keeps the same ticks whatever the order."""
+        if self.end_tick is None or tick < self.end_tick:
+            self.end_tick, self.end_reason = tick, reason
+        return RunEnded(reason)
+
+    def check_not_ended(self, tick: int) -> None:
+        """Raise RunEnded if the run ends before ``tick`` (:attr:`end_tick`)."""
+        if self.end_tick is not None and tick >= self.end_tick:
+            raise RunEnded(self.end_reason)
+
+    @property
+    def over(self) -> bool:
+        """Every tick before :attr:`end_tick` is complete: the run ends here."""
+        return self.end_tick is not None and self.complete + 1 >= self.end_tick
 
     def _odometry(self, agent: int, tick: int, phase: str) -> tuple[float, float] | None:
         settled = self.agents[agent].settled
@@ -445,8 +552,13 @@ class WorldSim:
                              self.config.noise_velocity, 2)
         return _tup(v)
 
-    def _gps(self, pos: np.ndarray) -> tuple[float, float, float]:
-        return float(pos[0]), float(pos[1]), float(self.surface.height(pos))
+    def _gps(self, agent: int, tick: int, phase: str, channel: str,
+             pos: np.ndarray) -> tuple[float, float, float]:
+        """A GPS reading ``(x, y, z)`` of ``pos`` on ``channel`` (``--noise-gps`` σ each)."""
+        cfg = self.config
+        exact = np.array([pos[0], pos[1], self.surface.height(pos)], dtype=float)
+        reading = exact + gaussian(cfg.seed, agent, tick, channel, phase, cfg.noise_gps, 3)
+        return float(reading[0]), float(reading[1]), float(reading[2])
 
 
 def _drop_ticks_before(by_tick: dict, first: int) -> None:

@@ -17,16 +17,10 @@ import numpy as np
 from agents.estimators import NotFitted
 from agents.policies.base import Policy, Proposal, relative
 from protocol.messages import Sensing
+from protocol.sensing import reading_covariance
 
 # Relative cut-off of singular values in the least-squares fits (as StreamingEDMD's rcond).
 RCOND = 1e-10
-
-
-def cartesian_noise(r: float, theta: float, sigma_r: float, sigma_theta: float) -> np.ndarray:
-    """Covariance (2, 2) of ``relative(r, theta)`` for range/bearing noise (first order)."""
-    c, s = math.cos(theta), math.sin(theta)
-    jac = np.array([[c, -r * s], [s, r * c]])
-    return jac @ np.diag([sigma_r**2, sigma_theta**2]) @ jac.T
 
 
 class RelativeTracker(Policy):
@@ -220,7 +214,7 @@ class Kalman(RelativeTracker):
         self.cov = self.F @ self.cov @ self.F.T + self.Q
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
-        noise = cartesian_noise(settled.r, settled.theta, self.sigma_r, self.sigma_theta)
+        noise = reading_covariance(settled.r, settled.theta, self.sigma_r, self.sigma_theta)
         noise += 1e-12 * np.eye(2)
         x = relative(settled)
         if self.mean is None:

@@ -1,0 +1,86 @@
+"""A run that ends early (SPEC §7): it keeps the ticks before the earliest one at which an agent
+met the end (the leader leaving a DEM, a follower's rod leaving it), the same ticks, rows and
+numbers whatever the layout, the pipelining or the repeat."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from protocol.config import RunConfig
+from swarm.cli import main
+from swarm.launch import launch
+from swarm.local import run_local
+
+HILLS = Path(__file__).parent / "data" / "hills.tif"  # 50 m x 40 m
+RESULTS = ("ticks.csv", "observations.csv")
+CASES = {
+    # the leader drives east off the DEM (x 6 -> 57 m over 40 ticks)
+    "leader-leaves": dict(leader_start=(6.0, 8.0, 1.0, 0.0)),
+    # heading south-east with rods on the right: follower 2's rod end leaves the south edge
+    # long before the leader leaves (an agent behind meets the end after the leader went on)
+    "rod-leaves": dict(leader_start=(6.0, 10.0, 1.0, -0.15), side="right"),
+}
+
+
+def _config(case: str, pipelined: bool = True) -> RunConfig:
+    return RunConfig(run_id=f"end-{case}", surface=f"dem:{HILLS}", followers=2, ticks=40,
+                     estimator="auto", noise_range=0.02, noise_bearing=0.01, noise_move=0.01,
+                     seed=4, agent_timeout=20.0, pipelined=pipelined, **CASES[case])
+
+
+def _record(out: Path) -> dict:
+    summary = json.loads((out / "summary.json").read_text())
+    return {"files": {name: (out / name).read_bytes() for name in RESULTS},
+            "ticks": summary["ticks_completed"], "complete": summary["complete"],
+            "reason": summary["reason"], "followers": summary["followers"]}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """The unpipelined order in memory, per case."""
+    refs = {}
+    for case in CASES:
+        out = tmp_path_factory.mktemp(case)
+        summary, _ = run_local(_config(case, pipelined=False), out)
+        assert not summary["complete"] and 5 < summary["ticks_completed"] < 40
+        refs[case] = _record(out)
+    return refs
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_the_end_is_where_it_is_met_first(reference, case):
+    ticks, reason = reference[case]["ticks"], reference[case]["reason"]
+    if case == "leader-leaves":
+        assert "the leader left the surface's domain" in reason
+        assert ticks == 34  # x = 6 + 1.28 j leaves [0, 50] between ticks 34 and 35
+    else:
+        assert "agent 1's rod leaves" in reason or "agent 2 would leave" in reason, reason
+
+
+@pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.parametrize("repeat", [0, 1])
+def test_in_memory_wavefront_ends_alike(tmp_path, reference, case, repeat):
+    run_local(_config(case), tmp_path)
+    assert _record(tmp_path) == reference[case]
+
+
+@pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.parametrize("layout", ["in-process", "processes", "in-process-unpipelined"])
+@pytest.mark.parametrize("repeat", [0, 1])
+def test_zenoh_layouts_end_alike(tmp_path, reference, case, layout, repeat):
+    config = _config(case, pipelined=not layout.endswith("unpipelined"))
+    summary = launch(config, tmp_path / "run", in_process=layout.startswith("in-process"))
+    assert not summary["complete"]
+    assert _record(tmp_path / "run") == reference[case]
+
+
+def test_the_readme_dem_example_completes(tmp_path, capsys):
+    """The README's DEM command (30 ticks: the leader stays on the 50 m raster)."""
+    status = main(["run", "--surface", f"dem:{HILLS}", "--leader-start", "6,8,1,0",
+                   "--ticks", "30", "--in-process", "--out", str(tmp_path / "dem")])
+    assert status == 0, capsys.readouterr().err
+    summary = json.loads((tmp_path / "dem" / "summary.json").read_text())
+    assert summary["complete"] and summary["ticks_completed"] == 30
+
