@@ -21,6 +21,7 @@ from agents.policies.dictionaries import (EDMDPolicy, RelativeCartesian, Relativ
 from agents.policies.motion import MotionGP, RatioGP
 from agents.policies.plugin import load_estimator
 from protocol.config import AUTO, CLASSICAL, OWN_MOTION, AgentSettings
+from protocol.sensing import reading_variance as sensor_variance
 
 __all__ = ["ARX", "Auto", "ConstantVelocity", "EDMDPolicy", "FallbackToPersist",
            "GaussianProcess", "Kalman", "MotionGP", "NotReady", "Persist", "Policy", "Proposal", "RatioGP", "Stay",
@@ -32,7 +33,7 @@ __all__ = ["ARX", "Auto", "ConstantVelocity", "EDMDPolicy", "FallbackToPersist",
 def reading_variance(settings: AgentSettings) -> float:
     """The declared variance per xy coordinate of a range/bearing reading at the rod's
     distance ``d``: ``(sigma_r**2 + (d sigma_theta)**2) / 2``."""
-    return (settings.noise_range**2 + (settings.spacing * settings.noise_bearing) ** 2) / 2.0
+    return sensor_variance(settings.spacing, settings.noise_range, settings.noise_bearing)
 
 
 def move_variance(settings: AgentSettings) -> float:
@@ -60,11 +61,12 @@ def classical(name: str, settings: AgentSettings) -> Policy:
 def own_motion(name: str, settings: AgentSettings) -> Policy:
     """``gp-motion`` or ``gp-ratio`` with the run's declared noise: the actuation noise enters
     as the variance of a snapped displacement, the sensor noise as :func:`reading_variance`."""
+    noise = dict(move_variance=move_variance(settings), sigma_r=settings.noise_range,
+                 sigma_theta=settings.noise_bearing)
     if name == "gp-motion":
-        return MotionGP(settings.gp_samples, move_variance=move_variance(settings))
+        return MotionGP(settings.gp_samples, **noise)
     if name == "gp-ratio":
-        return RatioGP(settings.gp_samples, move_variance=move_variance(settings),
-                       reading_variance=reading_variance(settings))
+        return RatioGP(settings.gp_samples, reading_variance=reading_variance(settings), **noise)
     raise ValueError(f"unknown own-motion estimator {name!r}")
 
 

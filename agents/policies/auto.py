@@ -66,6 +66,15 @@ class Auto(Policy):
     following the lowest of 15 noisy 4-tick scores chases luck where no candidate is clearly
     better (large comm periods, sensor noise); the README has the comparison.
 
+    Why ``significance`` (``"best"`` only): the lowest of many candidates' window means is
+    biased low — with noisy scores some candidate is always lucky (the winner's curse), and
+    following it replaces the blend's averaging with one candidate's noise. So a candidate is
+    followed instead of the blend only when it beat the blend significantly over their common
+    window: the mean of the paired differences of squared errors below zero by more than
+    ``significance`` standard errors (a one-sided paired test; 2 is the usual ~95 % level).
+    Systematic differences (noise-free, or one candidate clearly right) pass it; luck does
+    not. ``None`` follows the lowest score as it is.
+
     Safeguard (``trust``): the first candidate is the anchor (``persist``). A proposal that
     differs from the anchor's by more than ``trust`` times the largest error the anchor made
     within the window (the largest recent change of relative position) is left out (of the
@@ -76,7 +85,8 @@ class Auto(Policy):
     def __init__(self, candidates: list[Policy], horizon: int = 4, trust: float | None = 3.0,
                  min_scores: int = 1, burn_in: int = 1, blend: bool = True,
                  combine: str = "best", sharpness: float = 1.0, memory: float = 0.6,
-                 noise_floor: float = 0.0, name: str | None = None) -> None:
+                 noise_floor: float = 0.0, significance: float | None = 2.0,
+                 name: str | None = None) -> None:
         if not candidates:
             raise ValueError("candidates must not be empty")
         if combine not in COMBINE.values():
@@ -88,6 +98,8 @@ class Auto(Policy):
             raise ValueError(f"memory must be in [0, 1), got {memory}")
         if not 0 <= noise_floor < math.inf:
             raise ValueError(f"noise_floor must be finite and >= 0, got {noise_floor}")
+        if significance is not None and not 0 <= significance < math.inf:
+            raise ValueError(f"significance must be finite and >= 0 or None, got {significance}")
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         if not 1 <= min_scores <= horizon:
@@ -106,6 +118,7 @@ class Auto(Policy):
         self.blend = blend
         self.combine, self.sharpness, self.memory = combine, sharpness, memory
         self.noise_floor = noise_floor
+        self.significance = significance
         self.name = name or next(n for n, how in COMBINE.items() if how == combine)
         # one score window per candidate, the blend's last
         self.errors = [deque(maxlen=horizon) for _ in range(len(candidates) + 1)]
@@ -158,6 +171,21 @@ class Auto(Policy):
         common = min(len(self.errors[i]) for i in ready)
         return {i: math.fsum(e * e for e in self._adjusted(i, now)[-common:]) / common
                 for i in ready}
+
+    def _beats(self, i: int, j: int, now: list[float | None] | None) -> bool:
+        """Candidate ``i``'s squared errors were lower than ``j``'s over their common window
+        by more than ``significance`` standard errors of the paired differences (always,
+        with ``significance`` None)."""
+        if self.significance is None:
+            return True
+        common = min(len(self.errors[i]), len(self.errors[j]))
+        if common < 2:
+            return False
+        mine, theirs = self._adjusted(i, now)[-common:], self._adjusted(j, now)[-common:]
+        diffs = [a * a - b * b for a, b in zip(mine, theirs)]
+        mean = math.fsum(diffs) / common
+        spread = math.sqrt(math.fsum((d - mean) ** 2 for d in diffs) / (common - 1))
+        return mean < -self.significance * spread / math.sqrt(common)
 
     def weights(self, proposals: list[Proposal | None],
                 now: list[float | None] | None = None) -> dict[int, float]:
@@ -237,6 +265,9 @@ class Auto(Policy):
         elif self.combine == "best":
             mse = self._mse(ready, now)
             top = min(ready, key=lambda i: (mse[i], i))
+            blend = len(self.candidates)
+            if top != blend and blend in ready and not self._beats(top, blend, now):
+                top = blend
         else:
             weights = self.mixture(ready, now)
             top = min(weights, key=lambda i: (-weights[i], i))
