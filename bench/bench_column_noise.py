@@ -1,0 +1,120 @@
+"""Errors travelling down a noisy column: formation error and required range per follower.
+
+``python bench/bench_column_noise.py [--out docs]`` runs a 10-follower column on the paper's
+three surfaces at three range/bearing noise levels, with ``persist`` and ``auto`` (mean over
+seeds 0-2, in-memory layout), prints per follower the mean formation error (distance from
+where it settled to its place in the ideal formation) and the mean required sensing range, and
+writes ``OUT/tables/column_noise.csv`` and ``OUT/figures/column_noise.png``.
+
+Under honest sensing a snapped follower stands near, not on, its rod end, and its own rod
+starts where it really stands, so each follower inherits its predecessors' placement errors:
+the formation error grows down the column; the required range (measured against the rod end
+of the predecessor's actual pose) need not.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from protocol.config import RunConfig  # noqa: E402
+from swarm.local import run_local  # noqa: E402
+
+SURFACES = ("elliptic", "hyperbolic", "wavy")
+LEVELS = ((0.005, 0.002), (0.02, 0.01), (0.05, 0.03))
+ESTIMATORS = ("persist", "auto")
+FOLLOWERS = 10
+SEEDS = (0, 1, 2)
+
+
+def column(surface: str, level: tuple[float, float], estimator: str) -> dict[int, dict]:
+    """Per follower, means over the seeds of its formation error and required range."""
+    out = {k: {"formation": 0.0, "required": 0.0} for k in range(1, FOLLOWERS + 1)}
+    for seed in SEEDS:
+        summary, rows = run_local(RunConfig(surface=surface, followers=FOLLOWERS, seed=seed,
+                                            estimator=estimator, noise_range=level[0],
+                                            noise_bearing=level[1]))
+        if not summary["complete"]:
+            raise RuntimeError(f"{surface} {level} {estimator} seed {seed}: {summary['reason']}")
+        for k in out:
+            errors = [r["formation_error"] for r in rows if r["agent"] == k]
+            out[k]["formation"] += sum(errors) / len(errors) / len(SEEDS)
+            out[k]["required"] += (summary["followers"][str(k)]["mean_required_range"]
+                                   / len(SEEDS))
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", default="docs", help="folder for tables/ and figures/ (docs)")
+    args = p.parse_args()
+    started = time.monotonic()
+    results = {(s, lv, e): column(s, lv, e) for s in SURFACES for lv in LEVELS
+               for e in ESTIMATORS}
+    rows = []
+    for (s, lv, e), by_follower in results.items():
+        for k, m in by_follower.items():
+            rows.append({"surface": s, "noise_range": lv[0], "noise_bearing": lv[1],
+                         "estimator": e, "follower": k,
+                         "mean_formation_error": m["formation"],
+                         "mean_required_range": m["required"]})
+    for s in SURFACES:
+        for lv in LEVELS:
+            print(f"\n{s}, range sigma {lv[0]}, bearing sigma {lv[1]}: per follower 1..{FOLLOWERS}")
+            for e in ESTIMATORS:
+                m = results[(s, lv, e)]
+                print(f"  {e:<8} formation " + " ".join(f"{m[k]['formation']:.3f}" for k in m))
+                print(f"  {e:<8} required  " + " ".join(f"{m[k]['required']:.3f}" for k in m))
+            growth = {e: results[(s, lv, e)][FOLLOWERS]["formation"]
+                      / results[(s, lv, e)][1]["formation"] for e in ESTIMATORS}
+            print("  formation error, follower 10 / follower 1: "
+                  + ", ".join(f"{e} {g:.2f}" for e, g in growth.items()))
+    out = Path(args.out)
+    (out / "tables").mkdir(parents=True, exist_ok=True)
+    with open(out / "tables" / "column_noise.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    draw(results, out / "figures" / "column_noise.png")
+    print(f"\ntable: {out / 'tables' / 'column_noise.csv'}\nfigure: "
+          f"{out / 'figures' / 'column_noise.png'}\nwall time {time.monotonic() - started:.0f} s")
+
+
+def draw(results: dict, path: Path) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(12, 6.5), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(2, len(SURFACES), sharex=True)
+    followers = list(range(1, FOLLOWERS + 1))
+    styles = {"persist": "--", "auto": "-"}
+    colours = ("tab:green", "tab:blue", "tab:red")
+    for col, s in enumerate(SURFACES):
+        for lv, colour in zip(LEVELS, colours):
+            for e in ESTIMATORS:
+                m = results[(s, lv, e)]
+                label = f"{e}, σr {lv[0]}, σθ {lv[1]}"
+                axes[0, col].plot(followers, [m[k]["formation"] for k in followers],
+                                  styles[e], color=colour, marker="o", ms=3, label=label)
+                axes[1, col].plot(followers, [m[k]["required"] for k in followers],
+                                  styles[e], color=colour, marker="o", ms=3, label=label)
+        axes[0, col].set_title(s)
+        axes[1, col].set_xlabel("follower")
+        for row in axes[:, col]:
+            row.set_yscale("log")
+            row.grid(True, alpha=0.3)
+    axes[0, 0].set_ylabel("mean formation error")
+    axes[1, 0].set_ylabel("mean required range")
+    axes[0, -1].legend(fontsize=7, loc="lower right")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+
+
+if __name__ == "__main__":
+    main()
