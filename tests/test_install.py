@@ -164,21 +164,24 @@ def test_console_scripts_are_declared_and_start():
         assert stop.value.code == 0, name
 
 
-def _installed_from_this_checkout() -> bool:
-    try:
-        dist = metadata.distribution(DISTRIBUTION)
-    except metadata.PackageNotFoundError:
-        return False
-    return json.loads(dist.read_text("direct_url.json") or "{}").get("url") == ROOT.as_uri()
+def _installed_from_this_checkout() -> metadata.Distribution | None:
+    """The installed distribution made from this checkout (pip records where it came from),
+    if any; not an ``.egg-info`` that an install left in the checkout itself."""
+    for dist in metadata.distributions(name=DISTRIBUTION):
+        if json.loads(dist.read_text("direct_url.json") or "{}").get("url") == ROOT.as_uri():
+            return dist
+    return None
 
 
-@pytest.mark.skipif(not _installed_from_this_checkout(),
-                    reason=f"the installed {DISTRIBUTION} is not this checkout "
-                           "(.ci/run installs it editable)")
+INSTALLED = _installed_from_this_checkout()
+
+
+@pytest.mark.skipif(INSTALLED is None, reason=f"the installed {DISTRIBUTION} is not this "
+                                              "checkout (.ci/run installs it editable)")
 def test_the_installed_commands_and_metadata_are_this_checkouts(tmp_path):
     """Installed from this checkout (as .ci/run does): the metadata's version is the
     checkout's (reinstall after changing it), and each installed command runs."""
-    dist = metadata.distribution(DISTRIBUTION)
+    dist = INSTALLED
     assert dist.version == PROJECT["version"] == version()
     assert {ep.name: ep.value for ep in dist.entry_points
             if ep.group == "console_scripts"} == SCRIPTS
