@@ -150,6 +150,12 @@ def run_grid(runs: list[GridRun], runs_dir: Path, workers: int | None = None,
     scheduler : str, optional
         Address of a dask ``distributed`` scheduler (``tcp://host:8786``): each run is one
         task, a whole run over Zenoh on the worker that takes it.
+
+    Raises
+    ------
+    protocol.distribution.MissingExtra
+        Before any run: a run's surface is a DEM without the ``[dem]`` extra, or
+        ``scheduler`` is given without the ``[cluster]`` extra.
     """
     from tqdm import tqdm
 
