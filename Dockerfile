@@ -1,6 +1,9 @@
 # One image for every Python service of deploy/docker-compose.yml (`python -m swarm deploy`):
 # `python -m world`, `python -m agents.leader`, `python -m agents.follower --id K`.
 # Build from the repository root: docker build -t koopman-swarm:local .
+# The core install is all these processes need (docs/install.md); `swarm deploy`, which makes
+# the TLS certificates, runs on the host with the [deploy] extra. A run.toml naming a DEM
+# surface needs the [dem] extra in the world's image: pip install '.[dem]' below.
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \

@@ -18,6 +18,7 @@ refuses the whole file with one line naming the file and the reason (:class:`Sta
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -135,7 +136,11 @@ class StateLog:
         write_atomic(self.path, _line(self.header) + "".join(_line(e.body()) for e in entries))
 
     def remove(self) -> None:
+        """Delete the log (its run is complete), and its folder if that leaves it empty: the
+        last follower to finish removes the folder the first one created."""
         self.path.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # others' logs still in it, a mount point, gone
+            self.path.parent.rmdir()
 
 
 def _entry(body: dict) -> Entry:

@@ -176,7 +176,8 @@ def main(argv: list[str] | None = None) -> int:
     p = parser("Follower agent of a column-formation run.")
     p.add_argument("--id", type=int, required=True, help="follower id K (1 = behind the leader)")
     p.add_argument("--state-dir", help="where to keep this follower's state (replay log) "
-                                        "(default: <config dir>/state; 'none' disables)")
+                                        "(default: <config dir>/state; 'none' disables); "
+                                        "removed at the end of a complete run if then empty")
     args = p.parse_args(argv)
     state = args.state_dir or str(Path(args.config).resolve().parent / "state")
     state = None if state == "none" else state

@@ -12,6 +12,7 @@ from protocol.cli import (
 )
 from protocol.config import (DICTIONARIES, ESTIMATORS, MODES, SIDES, VELOCITY_VARIANTS, RunConfig,
                              config_from_dict, config_from_file, read_toml)
+from protocol.distribution import DISTRIBUTION, MissingExtra, version
 from protocol.session import add_credential_flags
 
 EXIT_NOTHING_ESTIMATED = 3
@@ -529,6 +530,7 @@ def cmd_deploy(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m swarm",
                                 description="Column formation on an unknown surface over Zenoh.")
+    p.add_argument("--version", action="version", version=f"{DISTRIBUTION} {version()}")
     sub = p.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="run one case (default: the paper's type I case)")
     add_run_flags(run)
@@ -643,5 +645,9 @@ def add_live_port(parser: argparse.ArgumentParser) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    with bounded_interrupt():
-        return args.func(args)
+    try:
+        with bounded_interrupt():
+            return args.func(args)
+    except MissingExtra as exc:  # a feature whose extra is not installed
+        print(f"error: {exc}", file=sys.stderr)
+        return 2

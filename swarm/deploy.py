@@ -11,24 +11,27 @@ One run id and a number of followers determine everything but the secrets:
 - :func:`write_deployment`: a folder with ``run.toml``, ``zenoh/router.json5``,
   ``docker-compose.yml`` and ``.gitignore`` (deterministic), and ``secrets/`` (random: a
   password per user, a CA, the router's and each user's certificate and key; the CA's private
-  key is never written, so no further certificate can be signed with it). Secrets come from
-  the operating system's CSPRNG (``secrets``, ``cryptography``), deliberately unseeded: they
-  must not be reproducible from anything in the repository or the run configuration.
+  key is never written, so no further certificate can be signed with it;
+  :mod:`swarm.certificates`, the ``[deploy]`` extra). Secrets come from the operating
+  system's CSPRNG (``secrets``, ``cryptography``), deliberately unseeded: they must not be
+  reproducible from anything in the repository or the run configuration.
 """
 from __future__ import annotations
 
-import datetime
-import ipaddress
 import json
 import os
 import secrets as random_secrets
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from protocol import keys
 from protocol.config import RunConfig
 from protocol.session import MAX_MESSAGE_SIZE, scouting_settings, tls_settings
+
+if TYPE_CHECKING:  # swarm.certificates needs the [deploy] extra; swarm run imports this module
+    from swarm.certificates import Identity
 
 ZENOH_IMAGE = "eclipse/zenoh:1.10.2"  # kept at the eclipse-zenoh version of pyproject.toml
 SWARM_IMAGE = "koopman-swarm:local"
@@ -36,7 +39,6 @@ ROUTER_HOST = "zenoh"  # the router's name on the compose network (and in its ce
 ROUTER_PORT = 7447
 OBSERVER = "observer"
 SECRETS = "secrets"
-CERT_DAYS = 365
 PRIVATE_DIR_MODE = 0o700
 SECRET_FILE_MODE = 0o600
 
@@ -221,74 +223,6 @@ def write_credentials(folder: Path, names: list[str]) -> dict[str, str]:
     return passwords
 
 
-def _pem_key(key) -> bytes:
-    from cryptography.hazmat.primitives import serialization
-
-    return key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
-                             serialization.NoEncryption())
-
-
-def _certificate(name: str, public_key, issuer_name, signing_key, *, ca: bool,
-                 hosts: tuple[str, ...] = ()):
-    """An X.509 certificate for ``name`` (ECDSA P-256 with SHA-256), valid CERT_DAYS days."""
-    from cryptography import x509
-    from cryptography.hazmat.primitives import hashes
-    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
-
-    now = datetime.datetime.now(datetime.timezone.utc)
-    subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)])
-    builder = (x509.CertificateBuilder()
-               .subject_name(subject)
-               .issuer_name(subject if issuer_name is None else issuer_name)
-               .public_key(public_key)
-               .serial_number(x509.random_serial_number())
-               .not_valid_before(now - datetime.timedelta(minutes=5))
-               .not_valid_after(now + datetime.timedelta(days=CERT_DAYS))
-               .add_extension(x509.BasicConstraints(ca=ca, path_length=0 if ca else None),
-                              critical=True))
-    if ca:
-        builder = builder.add_extension(x509.KeyUsage(
-            digital_signature=False, content_commitment=False, key_encipherment=False,
-            data_encipherment=False, key_agreement=False, key_cert_sign=True, crl_sign=True,
-            encipher_only=False, decipher_only=False), critical=True)
-    else:
-        builder = builder.add_extension(x509.KeyUsage(
-            digital_signature=True, content_commitment=False, key_encipherment=False,
-            data_encipherment=False, key_agreement=True, key_cert_sign=False, crl_sign=False,
-            encipher_only=False, decipher_only=False), critical=True)
-        builder = builder.add_extension(x509.ExtendedKeyUsage(
-            [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
-        alt_names = []
-        for host in hosts:
-            try:
-                alt_names.append(x509.IPAddress(ipaddress.ip_address(host)))
-            except ValueError:
-                alt_names.append(x509.DNSName(host))
-        builder = builder.add_extension(x509.SubjectAlternativeName(
-            alt_names or [x509.DNSName(name)]), critical=False)
-    return builder.sign(signing_key, hashes.SHA256())
-
-
-def write_tls(names: dict[str, Path], router_hosts: tuple[str, ...]) -> None:
-    """A fresh CA, and for each ``name -> folder``: ``ca.pem``, ``cert.pem``, ``key.pem``
-    (key mode 0600). The certificate of the name ``"router"`` is valid for ``router_hosts``;
-    every other one names its user in the common name. The CA's key is discarded."""
-    from cryptography.hazmat.primitives import serialization
-    from cryptography.hazmat.primitives.asymmetric import ec
-
-    ca_key = ec.generate_private_key(ec.SECP256R1())
-    ca_cert = _certificate("koopman-swarm deployment CA", ca_key.public_key(), None, ca_key,
-                           ca=True)
-    ca_pem = ca_cert.public_bytes(serialization.Encoding.PEM)
-    for name, folder in names.items():
-        key = ec.generate_private_key(ec.SECP256R1())
-        cert = _certificate(name, key.public_key(), ca_cert.subject, ca_key, ca=False,
-                            hosts=router_hosts if name == "router" else ())
-        (folder / "ca.pem").write_bytes(ca_pem)
-        (folder / "cert.pem").write_bytes(cert.public_bytes(serialization.Encoding.PEM))
-        write_secret(folder / "key.pem", _pem_key(key))
-
-
 # --- the deployment folder ------------------------------------------------------------------------
 
 
@@ -427,18 +361,27 @@ def generated_files(config: RunConfig) -> dict[str, str]:
     }
 
 
-def write_secrets(out: Path, followers: int, router_hosts: tuple[str, ...]) -> None:
-    """``out/secrets/``: for the router ``zenoh/`` (credentials.txt, CA, its certificate and
-    key); for each user ``<user>/`` (password, CA, certificate and key). Mode 0700 / 0600."""
+def write_secrets(out: Path, followers: int, router: Identity,
+                  tls: dict[str, Identity]) -> None:
+    """``out/secrets/``: for the router ``zenoh/`` (credentials.txt, and its TLS identity
+    ``router``: CA, certificate and key); for each user ``<user>/`` (password, and its
+    identity from ``tls``). Mode 0700 / 0600."""
     root = private_dir(out / SECRETS)
     names = users(followers)
     router_dir = private_dir(root / "zenoh")
     passwords = write_credentials(router_dir, names)
-    folders = {"router": router_dir}
+    _write_identity(router_dir, router)
     for user in names:
-        folders[user] = private_dir(root / user)
-        write_secret(folders[user] / "password", passwords[user] + "\n")
-    write_tls(folders, router_hosts)
+        folder = private_dir(root / user)
+        write_secret(folder / "password", passwords[user] + "\n")
+        _write_identity(folder, tls[user])
+
+
+def _write_identity(folder: Path, identity: Identity) -> None:
+    """``ca.pem``, ``cert.pem`` and ``key.pem`` (mode 0600) in ``folder``."""
+    (folder / "ca.pem").write_bytes(identity.ca)
+    (folder / "cert.pem").write_bytes(identity.cert)
+    write_secret(folder / "key.pem", identity.key)
 
 
 def write_deployment(out: str | Path, config: RunConfig, *, force: bool = False,
@@ -449,6 +392,8 @@ def write_deployment(out: str | Path, config: RunConfig, *, force: bool = False,
     Refuses (ValueError) if ``out`` already holds secrets, unless ``force``: then the old
     secrets are replaced (a running router must be restarted with the new ones).
     """
+    from swarm.certificates import identities  # before anything is written: [deploy] extra
+
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} exists and is not a folder")
@@ -457,12 +402,13 @@ def write_deployment(out: str | Path, config: RunConfig, *, force: bool = False,
             raise ValueError(f"{out / SECRETS} already exists: refusing to replace its passwords "
                              "and keys (use --force to generate new ones)")
         shutil.rmtree(out / SECRETS)
+    router, tls = identities(users(config.followers), router_hosts)
     written = []
     for rel, text in generated_files(config).items():
         path = out / rel
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(text, encoding="utf-8")
         written.append(path)
-    write_secrets(out, config.followers, router_hosts)
+    write_secrets(out, config.followers, router, tls)
     written += sorted(p for p in (out / SECRETS).rglob("*") if p.is_file())
     return written

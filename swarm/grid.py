@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from protocol.config import DICTIONARIES, GPS_DICTIONARIES, RunConfig, load_config, write_atomic
+from protocol.distribution import needs, require
 
 RUN_ATTEMPTS = 2
 
@@ -149,9 +150,19 @@ def run_grid(runs: list[GridRun], runs_dir: Path, workers: int | None = None,
     scheduler : str, optional
         Address of a dask ``distributed`` scheduler (``tcp://host:8786``): each run is one
         task, a whole run over Zenoh on the worker that takes it.
+
+    Raises
+    ------
+    protocol.distribution.MissingExtra
+        Before any run: a run's surface is a DEM without the ``[dem]`` extra, or
+        ``scheduler`` is given without the ``[cluster]`` extra.
     """
     from tqdm import tqdm
 
+    from world.surfaces import DEM_PREFIX
+
+    if any(run.config.surface.startswith(DEM_PREFIX) for run in runs):
+        require("dem")  # refused here, not once per run in the workers
     outcomes: dict[str, RunOutcome] = {}
     todo = []
     for run in runs:
@@ -255,8 +266,9 @@ def _failed(reason: str) -> Future:
 def _run_on_cluster(runs: list[GridRun], runs_dir: Path, scheduler: str, record) -> None:
     """Submit each run as one task to the dask scheduler at ``scheduler``; ``record`` each
     finished one. Ctrl-C cancels the tasks not yet finished."""
-    from distributed import Client
-    from distributed import as_completed as completed
+    with needs("cluster"):
+        from distributed import Client
+        from distributed import as_completed as completed
 
     try:
         client = Client(scheduler, timeout="30s")

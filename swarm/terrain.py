@@ -32,6 +32,7 @@ import numba
 import numpy as np
 
 from protocol.config import AUTO, CLASSICAL, OWN_MOTION, RunConfig, write_atomic
+from protocol.distribution import needs
 from swarm.experiment import draw_jobs
 from swarm.grid import (Axis, GridRun, RunOutcome, estimator_axis, expand, follower_rows, is_nan,
                         mean_over, run_grid, write_tables)
@@ -330,8 +331,9 @@ def write_geotiff(path: str | Path, heights: np.ndarray, *, west: float, south: 
     crs : str or None
         E.g. ``"EPSG:4326"``; None writes no CRS.
     """
-    import rasterio
-    from rasterio.transform import Affine
+    with needs("dem"):
+        import rasterio
+        from rasterio.transform import Affine
 
     z = np.asarray(heights)
     if z.ndim != 2:
@@ -404,9 +406,10 @@ def crop_dem(source: str | Path, out: str | Path,
         cannot be read (:func:`world.dem.read_grid`); ``bounds`` hold no-data nodes or fewer
         than 4 × 4 nodes; or no rectangle of 4 × 4 nodes holds data.
     """
-    import rasterio
-    from rasterio.transform import Affine
-    from rasterio.windows import Window
+    with needs("dem"):
+        import rasterio
+        from rasterio.transform import Affine
+        from rasterio.windows import Window
 
     from world.dem import MIN_NODES, read_dem, read_grid
 

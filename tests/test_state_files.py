@@ -171,3 +171,18 @@ def test_a_fresh_world_refuses_a_folder_with_results_unless_forced(tmp_path):
     assert (tmp_path / "ticks.csv").read_text() == "kept\n"
     world_checkpoint.claim(tmp_path, force=True)
     assert not any((tmp_path / name).exists() for name in RESULT_FILES)
+
+
+def test_the_last_log_removed_takes_its_emptied_folder_along(tmp_path):
+    """Followers share a state folder: a complete run's logs go one by one, and the folder with
+    the last (a folder holding anything else stays)."""
+    folder = tmp_path / "state"
+    logs = [StateLog.open(folder, RUN, agent, START)[0] for agent in (1, 2)]
+    logs[0].remove()
+    assert sorted(p.name for p in folder.iterdir()) == [state_path(folder, 2).name]
+    logs[1].remove()
+    assert not folder.exists()
+    kept = StateLog.open(folder, RUN, 1, START)[0]
+    (folder / "notes.txt").write_text("mine\n")
+    kept.remove()
+    assert [p.name for p in folder.iterdir()] == ["notes.txt"]

@@ -98,8 +98,11 @@ def read_grid(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         Missing or unreadable file, rotated grid, unknown CRS units, or fewer than 4 × 4
         nodes.
     """
-    import rasterio
-    from rasterio.errors import CRSError, RasterioIOError
+    from protocol.distribution import needs  # rasterio comes with the [dem] extra
+
+    with needs("dem"):
+        import rasterio
+        from rasterio.errors import CRSError, RasterioIOError
 
     path = Path(path)
     if not path.is_file():

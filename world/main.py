@@ -13,6 +13,7 @@ from protocol.cli import (
     setup_logging,
 )
 from protocol.config import RunConfig, dump_config, load_config
+from protocol.distribution import MissingExtra
 from protocol.session import add_credential_flags, credentials, tls_options, zenoh_config
 from world import checkpoint
 from world.service import WorldService
@@ -110,6 +111,9 @@ def _serve(args: argparse.Namespace) -> int:
     except EXPECTED_FAILURES as exc:
         print(f"error: {describe(exc)}", file=sys.stderr)
         return 1
+    except MissingExtra as exc:  # e.g. a DEM surface without the [dem] extra
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         return 130
     if not summary["complete"]:

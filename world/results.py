@@ -16,8 +16,8 @@ import re
 from pathlib import Path
 
 from protocol.config import RunConfig, write_atomic
+from protocol.distribution import version
 
-VERSION = "0.2.0"
 TICK_COLUMNS = (
     "tick", "t", "agent", "estimator", "ideal_x", "ideal_y", "est_x", "est_y", "pos_x", "pos_y",
     "required_range", "stay_range", "persist_range", "lost", "formation_error",
@@ -194,7 +194,7 @@ class RunRecorder:
         cfg = self.config
         return {
             "followers": {str(k): m.summary() for k, m in self._metrics.items()},
-            "version": VERSION,
+            "version": version(),
             "run_id": cfg.run_id,
             "seed": cfg.seed,
             "surface": cfg.surface,

@@ -7,18 +7,28 @@ one drawn and refreshes the sources when it changed.
 from __future__ import annotations
 
 import numpy as np
-from bokeh.document import Document
-from bokeh.layouts import column, row
-from bokeh.models import (
-    ColumnDataSource, DataRange1d, Div, FactorRange, Range1d, Slider, Span, Toggle,
-)
-from bokeh.plotting import figure
 
+from protocol.distribution import needs
 from swarm.live.draw import (
     agent_color, choice_points, contour_levels, empty_map_columns, follower_series, height_grid,
     hillshade, map_columns,
 )
 from swarm.live.store import COMPLETE, INCOMPLETE, REPLAY_HINT, WAITING, RunStore, Snapshot
+
+with needs("live"):
+    from bokeh.document import Document
+    from bokeh.layouts import column, row
+    from bokeh.models import (
+        ColumnDataSource,
+        DataRange1d,
+        Div,
+        FactorRange,
+        Range1d,
+        Slider,
+        Span,
+        Toggle,
+    )
+    from bokeh.plotting import figure
 
 REFRESH_MS = 200
 PLAY_EVERY = 1  # replay: ticks advanced per refresh while playing

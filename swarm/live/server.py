@@ -10,16 +10,18 @@ import asyncio
 import functools
 import threading
 
-from bokeh.application import Application
-from bokeh.application.handlers.function import FunctionHandler
-from bokeh.server.server import Server
-from bokeh.settings import settings
-from tornado.ioloop import IOLoop
-
+from protocol.distribution import needs
 from protocol.session import free_port
 from swarm.live import DEFAULT_PORT
 from swarm.live.page import build_page
 from swarm.live.store import RunStore
+
+with needs("live"):
+    from bokeh.application import Application
+    from bokeh.application.handlers.function import FunctionHandler
+    from bokeh.server.server import Server
+    from bokeh.settings import settings
+    from tornado.ioloop import IOLoop
 
 START_TIMEOUT_S = 15.0
 
