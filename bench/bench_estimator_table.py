@@ -18,14 +18,14 @@
 
 Surfaces: the paper's three (used to choose auto's rules), and held out: ``gaussian-hill``,
 ``ripple`` and this benchmark's own ``crossed-waves`` and ``slanted-folds``
-(``bench/held_out_surfaces.py``; never used to choose auto's rules, but the own-motion
+(``world/held_out.py``; never used to choose auto's rules, but the own-motion
 candidates were screened on them too), ``dunes``, ``bowl-ridge``, ``egg-crate``,
 ``tilted-bump``, ``terraces`` and ``twin-hills``, defined later and among the cases auto-mix
 and the leverage rule were weighed on, and ``twisted-saddle`` and ``long-waves``, defined after
 the last change to auto and auto-mix and used for nothing else. Noise levels: the issue's
 three and six held-out ones (the last defined with the last two surfaces).
 ``--random N --random-seed S`` runs every table on N surfaces drawn at random instead
-(``bench/random_surfaces.py``: seeds S ... S+N-1), a check on surfaces nobody chose;
+(``world/random_waves.py``: seeds S ... S+N-1), a check on surfaces nobody chose;
 ``--surfaces A,B,...`` on yours (``--leader-start X,Y,VX,VY`` for every run, which a DEM
 needs), and ``--noise-levels R/B,...`` at your noise levels.
 Noise-free runs do not depend on the seed, so they run once. Runs use the in-memory layout,
@@ -45,15 +45,15 @@ from swarm.cli import parse_leader_start  # noqa: E402
 from swarm.local import run_local  # noqa: E402
 from world.surfaces import make_surface  # noqa: E402
 
-from bench import random_surfaces  # noqa: E402
+from world import random_waves  # noqa: E402
 
 PAPER = ("elliptic", "hyperbolic", "wavy")
-HELD_OUT = ("gaussian-hill", "ripple", "bench.held_out_surfaces:crossed_waves",
-            "bench.held_out_surfaces:slanted_folds", "bench.held_out_surfaces:dunes",
-            "bench.held_out_surfaces:bowl_ridge", "bench.held_out_surfaces:egg_crate",
-            "bench.held_out_surfaces:tilted_bump", "bench.held_out_surfaces:terraces",
-            "bench.held_out_surfaces:twin_hills", "bench.held_out_surfaces:twisted_saddle",
-            "bench.held_out_surfaces:long_waves")
+HELD_OUT = ("gaussian-hill", "ripple", "world.held_out:crossed_waves",
+            "world.held_out:slanted_folds", "world.held_out:dunes",
+            "world.held_out:bowl_ridge", "world.held_out:egg_crate",
+            "world.held_out:tilted_bump", "world.held_out:terraces",
+            "world.held_out:twin_hills", "world.held_out:twisted_saddle",
+            "world.held_out:long_waves")
 UNSEEN = HELD_OUT[-2:]  # defined after the last change to auto and auto-mix
 ESTIMATORS = {"stay": {"estimator": "stay"}, "persist": {"estimator": "persist"},
               "edmd-b": {"estimator": "edmd", "dictionary": "b"},
@@ -147,7 +147,7 @@ def add_surface_arguments(parser: argparse.ArgumentParser) -> None:
     random), or ``--surfaces A,B,...`` (yours), with ``--leader-start`` for every run."""
     parser.add_argument("--random", type=int, default=0, metavar="N",
                         help="instead of the fixed surfaces, N surfaces drawn at random "
-                             "(bench/random_surfaces.py)")
+                             "(world/random_waves.py)")
     parser.add_argument("--random-seed", type=int, default=0, metavar="S",
                         help="the first random surface's seed (with --random; default 0)")
     parser.add_argument("--surfaces", metavar="A,B,...",
@@ -185,7 +185,7 @@ def chosen_surfaces(parser: argparse.ArgumentParser, args: argparse.Namespace,
     if not args.random:
         return fixed, base
     print(f"random surfaces: seeds {args.random_seed}-{args.random_seed + args.random - 1}")
-    return tuple(random_surfaces.name(args.random_seed + i) for i in range(args.random)), base
+    return tuple(random_waves.name(args.random_seed + i) for i in range(args.random)), base
 
 
 def parse_levels(parser: argparse.ArgumentParser, text: str) -> tuple[tuple[float, float], ...]:

@@ -157,7 +157,7 @@ def test_outside_the_grid_is_not_inside():
 
 def test_rod_ends_across_knot_lines_match_a_restarted_reference():
     """Rods crossing several 2 m knot cells agree with DOP853 restarted at every knot line."""
-    from bench.bench_dem import make_cases, reference_rod_end
+    from tests.dem_reference import make_cases, reference_rod_end
 
     dem = load_dem(HILLS)
     crossed = 0
@@ -483,7 +483,7 @@ def test_rod_ends_on_unseen_terrain_match_the_reference(kind):
     """Terrain the code was not tuned on, on an uneven 0.5–2.5 m grid: random heights
     (slopes of several units, interpolated), or a smooth field with noise fitted by a
     smoothing spline (fewer, uneven knots)."""
-    from bench.bench_dem import make_cases, reference_rod_end
+    from tests.dem_reference import make_cases, reference_rod_end
 
     x, y, rng = _uneven_grid(SEED + 1)
     if kind == "steep":

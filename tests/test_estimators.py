@@ -430,19 +430,6 @@ def test_delay_embed_rejects_bad_arguments(history: np.ndarray, delays: int, nam
         delay_embed(history, delays)
 
 
-# ---------------------------------------------------------------- benchmark script
-
-
-def test_benchmark_runs_and_reports_its_figures() -> None:
-    from bench.bench_estimators import run
-
-    figures = run(lengths=(20, 40), n_steps=5, rounds=1)
-    for result in figures.values():
-        assert set(result["online_us"]) == {20, 40}
-        assert result["online_flatness"] > 0 and result["batch_over_online"] > 0
-        assert set(result["reference_over_online"]) == {"odmd", "river"}
-
-
 @pytest.mark.parametrize("options", [{"forget": 0.9}, {"forget": 0.9, "delays": 1},
                                      {"forget": 0.8, "affine": True}])
 def test_online_forgetting_without_ridge_does_not_wind_up(options: dict) -> None:

@@ -1,4 +1,4 @@
-"""Surfaces drawn at random, for held-out checks nobody chose: ``bench.random_surfaces:w<SEED>``.
+"""Surfaces drawn at random, for held-out checks nobody chose: ``world.random_waves:w<SEED>``.
 
 Hand-made held-out surfaces are chosen by someone who knows the estimators; a surface drawn
 from a seed is not. ``w<SEED>`` (any non-negative integer SEED, e.g. ``w17``) is
@@ -80,7 +80,7 @@ class RandomWaves:
 
 
 def name(seed: int) -> str:
-    """The surface reference of ``seed``: ``bench.random_surfaces:w<seed>``."""
+    """The surface reference of ``seed``: ``world.random_waves:w<seed>``."""
     RandomWaves(seed)  # refuses a bad seed here, not in the world
     return f"{__name__}:{PREFIX}{seed}"
 

@@ -1,4 +1,4 @@
-"""Held-out surfaces of this benchmark's own (``bench.held_out_surfaces:crossed_waves``,
+"""Held-out surfaces of this benchmark's own (``world.held_out:crossed_waves``,
 ``slanted_folds``, ``dunes``, ``bowl_ridge``, ``egg_crate``, ``tilted_bump``, ``terraces``,
 ``twin_hills``, ``twisted_saddle`` and ``long_waves``); each class says when it was defined and
 what it was used for.
