@@ -50,7 +50,8 @@ def classical(name: str, settings: AgentSettings) -> Policy:
     if name == "cv":
         return ConstantVelocity()
     if name == "kalman":
-        return Kalman(settings.noise_range, settings.noise_bearing, accel=settings.kalman_accel)
+        return Kalman(settings.noise_range, settings.noise_bearing, accel=settings.kalman_accel,
+                      move_variance=move_variance(settings))
     if name == "arx":
         return ARX(settings.arx_order, settings.arx_window or None)
     if name == "gp":

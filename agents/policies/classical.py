@@ -17,7 +17,7 @@ import numpy as np
 from agents.estimators import NotFitted
 from agents.policies.base import Policy, Proposal, relative
 from protocol.messages import Sensing
-from protocol.sensing import reading_covariance
+from protocol.sensing import reading_covariance, reading_variance
 
 # Relative cut-off of singular values in the least-squares fits (as StreamingEDMD's rcond).
 RCOND = 1e-10
@@ -185,20 +185,23 @@ class Kalman(RelativeTracker):
 
     State ``[x, y, vx, vy]`` with ``x_{j+1} = x_j + v_j``; white-acceleration process noise of
     variance ``accel`` (length² per tick⁴); measurement noise from the run's declared range and
-    bearing noise (``sigma_r``, ``sigma_theta``), mapped to xy at each measurement.
+    bearing noise (``sigma_r``, ``sigma_theta``), mapped to xy at each measurement, plus where
+    the snap left the follower off its rod end: the rod-end reading's variance at the settled
+    reading's distance and the actuation variance ``move_variance``, per coordinate.
     """
 
     name = "kalman"
     F = np.block([[np.eye(2), np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])
 
-    def __init__(self, sigma_r: float = 0.0, sigma_theta: float = 0.0, accel: float = 1e-3) -> None:
+    def __init__(self, sigma_r: float = 0.0, sigma_theta: float = 0.0, accel: float = 1e-3,
+                 move_variance: float = 0.0) -> None:
         super().__init__(history=1)
         for name, value in (("sigma_r", sigma_r), ("sigma_theta", sigma_theta)):
             if not value >= 0.0:
                 raise ValueError(f"{name} must be >= 0, got {value}")
         if not accel > 0.0:
             raise ValueError(f"accel must be > 0, got {accel}")
-        self.sigma_r, self.sigma_theta = sigma_r, sigma_theta
+        self.sigma_r, self.sigma_theta, self.move_variance = sigma_r, sigma_theta, move_variance
         half, one = 0.5 * np.eye(2), np.eye(2)
         self.Q = accel * np.block([[0.25 * one, half], [half, one]])
         self.mean: np.ndarray | None = None
@@ -215,6 +218,10 @@ class Kalman(RelativeTracker):
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
         noise = reading_covariance(settled.r, settled.theta, self.sigma_r, self.sigma_theta)
+        if settled.rod is not None:  # the snap put it off the rod end: the reading and the move
+            rod = float(np.hypot(*settled.rod))
+            snap = reading_variance(rod, self.sigma_r, self.sigma_theta) + self.move_variance
+            noise += snap * np.eye(2)
         noise += 1e-12 * np.eye(2)
         x = relative(settled)
         if self.mean is None:
