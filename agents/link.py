@@ -40,7 +40,7 @@ class RunFinished(AgentAbort):
         self.complete = complete
 
 
-class TickMissed(RuntimeError):
+class MarkedMissed(RuntimeError):
     """The world marked this agent as having missed the current tick; go on with the next."""
 
 
@@ -245,7 +245,7 @@ class AgentLink:
                            f"{request.tick}: {problem}")
                 break
             if error.code == "missed":
-                raise TickMissed(error.error)
+                raise MarkedMissed(error.error)
             if error.code != "wait":
                 raise AgentAbort(f"the world refused {request.TYPE} at tick {request.tick}: "
                                  f"{error.error}")

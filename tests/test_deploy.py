@@ -195,7 +195,7 @@ def _reveals(reply: Sensing, pose: tuple[float, float, float]) -> bool:
 
 def test_sensing_never_reveals_absolute_positions_without_gps(monkeypatch):
     log = _sensing_log(monkeypatch, RunConfig(run_id="privacy", followers=2, ticks=8,
-                                              velocity="oracle"))
+                                              dictionary="c", velocity="oracle"))
     assert len(log) >= 2 * 8 * 2  # every follower senses at least twice a tick
     for _, reply, poses in log:
         assert reply.gps is None and reply.leader_gps is None
