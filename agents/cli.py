@@ -10,7 +10,7 @@ from agents.link import AgentAbort, RunFinished
 from protocol.cli import (FAILED, REFUSED, add_log_level_flag, describe, ends_with, fail,
                           run_command, setup_logging)
 from protocol.config import AgentSettings, load_agent_settings
-from protocol.session import add_connection_flags, connection_config
+from protocol.session import add_connection_flags, connection_config, open_session
 
 
 def parser(description: str) -> argparse.ArgumentParser:
@@ -32,7 +32,7 @@ def _run(args: argparse.Namespace, body: Callable[[zenoh.Session, AgentSettings]
         settings = load_agent_settings(args.config)
         conf = connection_config(args, connect_timeout=settings.start_timeout)
     try:
-        session = zenoh.open(conf)
+        session = open_session(conf)
     except zenoh.ZError as exc:
         where = ", ".join(args.connect) or "the network"
         fail(f"no world reachable at {where} within {settings.start_timeout:g} s (is the world "

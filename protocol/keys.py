@@ -8,7 +8,7 @@ import re
 
 from protocol.limits import MAX_RUN_ID
 
-_RUN_ID = re.compile(r"^[A-Za-z0-9_.-]{1,%d}$" % MAX_RUN_ID)
+_RUN_ID = re.compile(rf"^[A-Za-z0-9_.-]{{1,{MAX_RUN_ID}}}$")
 
 
 def check_run_id(run_id: str) -> str:

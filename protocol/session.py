@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import socket
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -137,6 +138,30 @@ def zenoh_config(
             raise ValueError(f"extra config must be KEY:VALUE, got {item!r}")
         conf.insert_json5(key, value)
     return conf
+
+
+def open_session(conf: zenoh.Config) -> zenoh.Session:
+    """``zenoh.open(conf)``, waited for in a way Ctrl-C and SIGTERM interrupt: a session whose
+    router is not up yet retries inside Zenoh until its connect timeout, where no Python
+    signal handler runs, so it is opened in a helper thread. Interrupted, the wait raises
+    ``KeyboardInterrupt`` at once (the process is ending; the helper is a daemon)."""
+    outcome: list = []
+
+    def open_it() -> None:
+        try:
+            outcome.append(zenoh.open(conf))
+        except zenoh.ZError as exc:
+            outcome.append(exc)
+
+    opener = threading.Thread(target=open_it, name="zenoh-open", daemon=True)
+    opener.start()
+    while opener.is_alive():
+        opener.join(0.1)
+    if not outcome:
+        raise RuntimeError("the Zenoh session could not be opened")
+    if isinstance(outcome[0], zenoh.ZError):
+        raise outcome[0]
+    return outcome[0]
 
 
 def token_live(session: zenoh.Session, key: str, timeout: float = 0.5) -> bool:
