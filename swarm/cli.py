@@ -7,8 +7,8 @@ import sys
 from pathlib import Path
 
 from protocol.cli import (
-    EXPECTED_FAILURES, FAILED, REFUSED, add_log_level_flag, check_out_dir, describe, ends_with,
-    fail, refuse, run_command, setup_logging,
+    EXPECTED_FAILURES, FAILED, INTERRUPTED, REFUSED, add_log_level_flag, check_out_dir, describe,
+    ends_with, fail, refuse, run_command, setup_logging,
 )
 from protocol.config import (OPTIONS, Option, RunConfig, applies_to, config_from_dict,
                              config_from_file, flag_of, read_toml)
@@ -216,7 +216,7 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
         fail(describe(exc))
     except KeyboardInterrupt:
         print(f"interrupted: partial result in {out}", file=sys.stderr)
-        return 130
+        return INTERRUPTED
     finally:
         bar.close()
     print(format_summary(summary))
