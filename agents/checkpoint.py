@@ -14,7 +14,7 @@ The file is JSON lines. The first line is the header ``{"schema", "run_id", "age
 run id is refused. Every line carries ``"sum"``, the SHA-256 of its canonical JSON without
 that key (:func:`protocol.config.json_checksum`, as for the world's checkpoint). A torn last line (a crash in the middle of an append: no
 final newline) is dropped, since its tick was never reported to anyone; any other defect
-refuses the whole file with one line naming the file and the reason (:class:`StateError`).
+refuses the whole file with one line naming the file and the reason (:class:`StateLogError`).
 """
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ SCHEMA = 1
 MAX_LINE = 8192  # bytes; a real line is a few hundred
 
 
-class StateError(RuntimeError):
+class StateLogError(RuntimeError):
     """A state file this follower refuses to use; the message names the file and why."""
 
 
@@ -75,7 +75,7 @@ class StateLog:
     @classmethod
     def open(cls, state_dir: str | os.PathLike[str], run_id: str, agent: int,
              start: str) -> tuple[StateLog, list[Entry]]:
-        """The log and its entries (none for a new file). Raises :class:`StateError`."""
+        """The log and its entries (none for a new file). Raises :class:`StateLogError`."""
         path = state_path(state_dir, agent)
         header = {"schema": SCHEMA, "run_id": run_id, "agent": agent, "start": start}
         log = cls(path, header)
@@ -85,11 +85,11 @@ class StateLog:
             log.rewrite([])
             return log, []
         except OSError as exc:
-            raise StateError(f"state file {path}: cannot read it ({exc.strerror})") from None
+            raise StateLogError(f"state file {path}: cannot read it ({exc.strerror})") from None
         return log, log._parse(raw)
 
-    def _refuse(self, why: str) -> StateError:
-        return StateError(f"state file {self.path}: {why}; refusing it (remove the file to "
+    def _refuse(self, why: str) -> StateLogError:
+        return StateLogError(f"state file {self.path}: {why}; refusing it (remove the file to "
                           "start this follower afresh, losing its history)")
 
     def _parse(self, raw: bytes) -> list[Entry]:

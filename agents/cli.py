@@ -2,25 +2,21 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Callable
 
 import zenoh
 
 from agents.link import AgentAbort, RunFinished
-from protocol.cli import add_log_level_flag, bounded_interrupt, describe, setup_logging
+from protocol.cli import (FAILED, REFUSED, add_log_level_flag, describe, ends_with, fail,
+                          run_command, setup_logging)
 from protocol.config import AgentSettings, load_agent_settings
-from protocol.session import add_credential_flags, credentials, tls_options, zenoh_config
+from protocol.session import add_connection_flags, connection_config, open_session
 
 
 def parser(description: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=description)
     p.add_argument("--config", required=True, help="run configuration (the config.toml of a run)")
-    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
-    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
-    p.add_argument("--mode", choices=("peer", "client"), default="client")
-    add_credential_flags(p)
+    add_connection_flags(p)
     add_log_level_flag(p)
     return p
 
@@ -28,37 +24,23 @@ def parser(description: str) -> argparse.ArgumentParser:
 def run_cli(args: argparse.Namespace, body: Callable[[zenoh.Session, AgentSettings], None]) -> int:
     """Open the session from ``args``, run ``body``; map the outcome to an exit status."""
     setup_logging(args.log_level)
-    try:
+    return run_command(lambda: _run(args, body))
+
+
+def _run(args: argparse.Namespace, body: Callable[[zenoh.Session, AgentSettings], None]) -> None:
+    with ends_with(REFUSED, ValueError):
         settings = load_agent_settings(args.config)
-        user, password = credentials(args)
-        conf = zenoh_config(args.mode, connect=args.connect, listen=args.listen, user=user,
-                            password=password, connect_timeout=settings.start_timeout,
-                            extra=args.cfg, **tls_options(args))
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        conf = connection_config(args, connect_timeout=settings.start_timeout)
     try:
-        session = zenoh.open(conf)
+        session = open_session(conf)
     except zenoh.ZError as exc:
         where = ", ".join(args.connect) or "the network"
-        print(f"error: no world reachable at {where} within {settings.start_timeout:g} s "
-              f"(is the world or the Zenoh router running there?): {describe(exc)}",
-              file=sys.stderr)
-        return 1
-    try:
-        with bounded_interrupt(), session:  # Ctrl-C: the session closes, or 130 within 8 s
-            body(session, settings)
-    except zenoh.ZError as exc:
-        print(f"error: {describe(exc)}", file=sys.stderr)
-        return 1
-    except ValueError as exc:
-        print(f"error: {describe(exc)}", file=sys.stderr)
-        return 2
-    except RunFinished:
-        return 0
-    except (AgentAbort, RuntimeError, OSError) as exc:
-        print(f"error: {describe(exc)}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        return 130
-    return 0
+        fail(f"no world reachable at {where} within {settings.start_timeout:g} s (is the world "
+             f"or the Zenoh router running there?): {describe(exc)}")
+    with ends_with(REFUSED, ValueError), \
+            ends_with(FAILED, zenoh.ZError, AgentAbort, RuntimeError, OSError):
+        try:
+            with session:
+                body(session, settings)
+        except RunFinished:
+            return

@@ -17,7 +17,7 @@ import zenoh
 
 from agents.checkpoint import Entry, StateLog, replay
 from agents.cli import parser, run_cli
-from agents.link import AgentAbort, AgentLink, RunFinished, TickMissed
+from agents.link import AgentAbort, AgentLink, MarkedMissed, RunFinished
 from agents.policies import (NotReady, Policy, make_policy, move_variance, reading_variance,
                              relative)
 from protocol.config import AgentSettings
@@ -146,7 +146,7 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
             last = tick
             try:
                 outcome = follower_tick(link, policy, settings, tick)
-            except TickMissed:
+            except MarkedMissed:
                 entry = Entry(tick=tick, skips=skips, settled=None, target=None)
                 outcome = None
             else:
@@ -163,7 +163,7 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
                     state = None
             if outcome is not None:
                 link.publish_obs(outcome.observation)
-                link.publish_rod(tick, settings.spacing, settings.side)
+                link.publish_rod(tick, settings.spacing, settings.side_sign)
     except RunFinished as end:
         if state is not None and end.complete:
             state.remove()

@@ -6,7 +6,7 @@ import sys
 import zenoh
 
 from agents.cli import parser, run_cli
-from agents.link import AgentLink, TickMissed
+from agents.link import AgentLink, MarkedMissed
 from protocol.config import AgentSettings
 from protocol.messages import Drive
 
@@ -25,9 +25,9 @@ def run_leader(session: zenoh.Session, settings: AgentSettings) -> None:
             t = tick * settings.comm_period
             try:
                 link.act(Drive(tick=tick, t=t))
-            except TickMissed:  # realtime: too late for this tick; the world keeps the pose
+            except MarkedMissed:  # realtime: too late for this tick; the world keeps its pose
                 continue
-            link.publish_rod(tick, settings.spacing, settings.side)
+            link.publish_rod(tick, settings.spacing, settings.side_sign)
     finally:
         link.close()
 

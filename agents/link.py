@@ -40,7 +40,7 @@ class RunFinished(AgentAbort):
         self.complete = complete
 
 
-class TickMissed(RuntimeError):
+class MarkedMissed(RuntimeError):
     """The world marked this agent as having missed the current tick; go on with the next."""
 
 
@@ -249,7 +249,7 @@ class AgentLink:
                            f"{request.tick}: {problem}")
                 break
             if error.code == "missed":
-                raise TickMissed(error.error)
+                raise MarkedMissed(error.error)
             if error.code == "ended":
                 self._await_done(error.error)
             if error.code != "wait":

@@ -1,5 +1,7 @@
 """Command-line plumbing every process shares: the ``--log-level`` flag, the results-folder
-check and the one line that describes a failure (never a traceback, never a Rust source path).
+check, the one line that describes a failure (never a traceback, never a Rust source path) and
+the exit status of every command (SPEC §9: 0 done, 1 failed or incomplete, 2 refused before
+anything ran, 130/143 after Ctrl-C/SIGTERM), given in one place (:func:`run_command`).
 """
 from __future__ import annotations
 
@@ -12,11 +14,13 @@ import signal
 import sys
 import tempfile
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import NoReturn
 
 import zenoh
 
+from protocol.distribution import MissingExtra
 from protocol.limits import MAX_TEXT
 
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
@@ -26,6 +30,58 @@ EXPECTED_FAILURES = (ValueError, RuntimeError, OSError, zenoh.ZError)
 # Zenoh's errors end with the Rust source location they were raised at.
 _RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
 _ENDPOINT_WRAPPER = re.compile(r"\bSingle\(([^()]*)\)")
+
+
+DONE, FAILED, REFUSED, INTERRUPTED = 0, 1, 2, 130
+"""Exit statuses: done; the run failed or ended incomplete; the command line or configuration
+was refused before anything ran; Ctrl-C (SIGTERM gives 143, see :func:`bounded_interrupt`)."""
+
+
+class CommandError(Exception):
+    """Ends a command with one line (``error: <message>``) and ``status``, no traceback."""
+
+    def __init__(self, message: str, status: int) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+def refuse(message: str) -> NoReturn:
+    """End the command: its command line or configuration is refused (status 2)."""
+    raise CommandError(message, REFUSED)
+
+
+def fail(message: str) -> NoReturn:
+    """End the command: what it ran failed or ended incomplete (status 1)."""
+    raise CommandError(message, FAILED)
+
+
+@contextlib.contextmanager
+def ends_with(status: int, *kinds: type[BaseException]) -> Iterator[None]:
+    """Within the block, an exception of ``kinds`` ends the command with ``status`` and the
+    exception's one-line description (:func:`describe`)."""
+    try:
+        yield
+    except kinds as exc:
+        raise CommandError(describe(exc), status) from None
+
+
+def run_command(command: Callable[[], int | None]) -> int:
+    """Run a command's body and return its exit status: its own (None is 0), or for a
+    :class:`CommandError` the error's, printed as one line (a missing extra is refused, 2);
+    Ctrl-C gives 130 and SIGTERM 143
+    once the cleanup is done (:func:`bounded_interrupt`)."""
+    with bounded_interrupt():
+        try:
+            return command() or DONE
+        except CommandError as exc:
+            print(f"error: {exc}", file=sys.stderr, flush=True)
+            return exc.status
+        except MissingExtra as exc:  # a feature whose extra is not installed: refused
+            print(f"error: {exc}", file=sys.stderr, flush=True)
+            return REFUSED
+        except KeyboardInterrupt:
+            print("interrupted", file=sys.stderr, flush=True)
+            return INTERRUPTED
 
 
 INTERRUPT_GRACE_S = 8.0

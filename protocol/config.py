@@ -1,9 +1,18 @@
-"""The run configuration shared by every process (SPEC §9), read from and written to TOML.
+"""The run configuration shared by every process (SPEC §9): each option declared once.
 
-``RunConfig`` holds every option of ``python -m swarm run``; :func:`load_config` reads a TOML
-file, :func:`dump_config` writes one (atomically), and :meth:`RunConfig.replace` applies CLI
-overrides with validation. Agents read only :class:`AgentSettings` (via
-:func:`load_agent_settings`): the estimator, the timing and their rods, never the surface.
+Every option of a run is one field of :class:`RunConfig`, declared with :func:`option`: its
+name (the TOML key; the CLI flag is derived from it), type and default (the field's), unit,
+one-line meaning, allowed range or choices, and whether the agents see it. Everything else is
+derived from those declarations (:data:`OPTIONS`): the validation in
+:meth:`RunConfig.__post_init__`, the TOML keys (:func:`load_config`, :func:`dump_config`), the
+flags and ``--help`` of ``swarm run``/``compare`` (:mod:`swarm.cli`), :class:`AgentSettings`
+(the agent-visible subset: never the surface, the leader start, the seed or any other
+world-only option) and the table of ``docs/options.md`` (:func:`options_table`).
+
+An option that does nothing in a run is refused, not ignored: which estimator uses which
+option is declared once in :data:`ESTIMATOR_OPTIONS`, other dependencies in each option's
+``needs`` (:func:`idle_reason`). A value equal to the default is never refused, so a
+``config.toml`` that lists every option loads back.
 """
 from __future__ import annotations
 
@@ -15,6 +24,7 @@ import os
 import re
 import tempfile
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,107 +44,187 @@ VELOCITY_VARIANTS = ("oracle", "lagged", "estimated")
 SIDES = {"left": 1, "right": -1}
 MODES = ("lockstep", "realtime")
 
-# Sane ranges of every number of a run (inclusive; a float range's low end is exclusive when
-# the option must be positive). Timeouts are seconds; a day-long wait is never meant.
-INT_RANGES = {
-    "followers": (1, 1000),
-    "ticks": (2, 1_000_000),
-    "delays": (0, 1000),
-    "window": (0, 1_000_000),
-    "arx_order": (1, 100),
-    "arx_window": (0, 1_000_000),
-    "gp_samples": (3, 1000),
-    "seed": (0, 2**63 - 1),
+_EDMD = ("dictionary", "velocity", "online", "delays", "affine", "forget", "window", "ridge")
+_AUTO = ("arx_order", "arx_window", "gp_samples", "kalman_accel")  # its candidates' options
+ESTIMATOR_OPTIONS: dict[str, tuple[str, ...]] = {
+    "edmd": _EDMD, "arx": ("arx_order", "arx_window"), "gp": ("gp_samples",),
+    "gp-motion": ("gp_samples",), "gp-ratio": ("gp_samples",), "kalman": ("kalman_accel",),
+    "auto": _AUTO, "auto-mix": _AUTO,
 }
-FLOAT_RANGES = {  # name: (low, high, low end exclusive)
-    "comm_period": (0.0, 1e4, True),
-    "spacing": (0.0, 1e4, True),
-    "time_scale": (0.0, 1e3, True),
-    "agent_timeout": (0.0, 3600.0, True),
-    "start_timeout": (0.0, 3600.0, True),
-    "forget": (0.0, 1.0, True),
-    "kalman_accel": (0.0, 1e6, True),
-    "ridge": (0.0, 1e12, False),
-    "noise_range": (0.0, 1e3, False),
-    "noise_bearing": (0.0, 10.0, False),
-    "noise_velocity": (0.0, 1e3, False),
-    "noise_move": (0.0, 1e3, False),
-    "noise_gps": (0.0, 1e6, False),
-    "sensing_range": (0.0, math.inf, True),
-}
+"""The options only some estimators use, by estimator (the others use none of them). Your own
+estimator (``package.module:Name``) may read any of them from its settings."""
+
 MAX_COORDINATE = 1e9  # bound on a leader start component and on a surface parameter
 MAX_SURFACE_PARAMS = 32
 MAX_SURFACE_NAME = 4096  # room for a 'dem:PATH' with a long path (Linux PATH_MAX)
 _PARAM_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,31}")
 MAX_CONFIG_BYTES = 64 * 1024  # a real run.toml is under 2 KiB
 MAX_CONFIG_DEPTH = 3  # real files have 2: the file's table, and surface_params or leader_start
+MAX_TIMEOUT = 3600.0  # seconds: a day-long wait is never meant
+
+
+@dataclass(frozen=True)
+class Option:
+    """The declaration of one run option (the metadata of its :class:`RunConfig` field).
+
+    Attributes
+    ----------
+    meaning : str
+        One line for ``--help`` and the options table.
+    unit : str
+        ``"m"``, ``"s"``, ``"rad"``, ``"ticks"``...; ``"1"`` for a dimensionless number,
+        ``""`` for a name or a choice.
+    low, high : float, optional
+        Allowed range of a number, inclusive (``low`` exclusive with ``low_open``).
+    choices : tuple of str
+        Allowed values of a choice.
+    agents : bool
+        The agent processes see it (in :class:`AgentSettings`); else only the world does.
+    needs : (str, value), optional
+        The option does something only when option ``needs[0]`` has value ``needs[1]``.
+    flag : str or None
+        Its flag of ``swarm run`` (default ``--`` and the name with dashes; None for none).
+    metavar : str, optional
+        How ``--help`` shows the flag's value.
+    name, default :
+        Filled in from the field.
+    """
+
+    meaning: str
+    unit: str = ""
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    choices: tuple[str, ...] = ()
+    agents: bool = False
+    needs: tuple[str, Any] | None = None
+    flag: str | None = ""
+    metavar: str | None = None
+    name: str = ""
+    default: Any = None
+
+    @property
+    def kind(self) -> type:
+        """The option's type: bool, int, float, str, tuple (leader start) or dict."""
+        return tuple if self.name == "leader_start" else type(self.default)
+
+    @property
+    def estimators(self) -> tuple[str, ...]:
+        """The built-in estimators that use it; empty if every run uses it."""
+        return tuple(e for e, names in ESTIMATOR_OPTIONS.items() if self.name in names)
+
+    def show(self, value: Any) -> str:
+        """``value`` as written in a TOML file (``inf``, ``true``, ``"c"``)."""
+        if isinstance(value, dict):
+            return "{" + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + "}"
+        return _toml_value(list(value) if isinstance(value, tuple) else value)
+
+
+def option(default: Any, meaning: str, **declaration: Any) -> Any:
+    """A :class:`RunConfig` field declaring one option (see :class:`Option`)."""
+    metadata = {"option": Option(meaning, **declaration)}
+    if isinstance(default, dict):
+        return field(default_factory=dict, metadata=metadata)
+    return field(default=default, metadata=metadata)
 
 
 @dataclass(frozen=True)
 class RunConfig:
-    """Every option of a run; defaults are the paper's type I case (SPEC §4, §9)."""
+    """Every option of a run; defaults are the paper's type I case (SPEC §4, §9).
 
-    run_id: str = "run"
-    surface: str = "elliptic"
-    surface_params: dict[str, float] = field(default_factory=dict)
-    leader_start: tuple[float, float, float, float] | None = None
-    followers: int = 1
-    comm_period: float = 1.28
-    spacing: float = 3.57
-    ticks: int = 40
-    init_ticks: int = 4
-    side: str = "left"
-    estimator: str = "edmd"
-    dictionary: str = "b"
-    velocity: str = "lagged"
-    online: bool = False
-    delays: int = 0
-    affine: bool = False
-    forget: float = 1.0
-    window: int = 0
-    ridge: float = 0.0
-    arx_order: int = 1
-    arx_window: int = 10
-    gp_samples: int = 8
-    kalman_accel: float = 1e-3
-    gps: bool = False
-    noise_range: float = 0.0
-    noise_bearing: float = 0.0
-    noise_velocity: float = 0.0
-    noise_move: float = 0.0
-    noise_gps: float = 0.0
-    seed: int = 0
-    sensing_range: float = math.inf
-    mode: str = "lockstep"
-    pipelined: bool = True
-    time_scale: float = 1.0
-    agent_timeout: float = 10.0
-    start_timeout: float = 30.0
+    Lengths are in the surface's unit (metres on a DEM), times in seconds.
+    """
+
+    run_id: str = option("run", "the run's id (1-64 of A-Z a-z 0-9 _ . -): its Zenoh key "
+                         "prefix and results folder",
+                         agents=True, metavar="ID")
+    surface: str = option("elliptic", "the hidden surface: a preset (elliptic, hyperbolic, "
+                          "wavy, plane, gaussian-hill, ripple, hemisphere), dem:PATH or "
+                          "package.module:name", metavar="NAME")
+    surface_params: dict[str, float] = option({}, "the surface's parameters (a TOML table)",
+                                              flag=None)
+    leader_start: tuple[float, float, float, float] | None = option(
+        None, "the leader's start position and velocity",
+        unit="m, m/s", metavar="X,Y,VX,VY")
+    followers: int = option(1, "followers in the column", unit="agents", low=1, high=1000,
+                            agents=True)
+    comm_period: float = option(1.28, "T_c, time between messages", unit="s", low=0.0,
+                                high=1e4, low_open=True, agents=True)
+    spacing: float = option(3.57, "rod length d (Riemannian)", unit="m", low=0.0, high=1e4,
+                            low_open=True, agents=True)
+    ticks: int = option(40, "ticks of the run", unit="ticks", low=2, high=1_000_000,
+                        agents=True)
+    init_ticks: int = option(4, "initial ticks that only sense (estimation starts after)",
+                             unit="ticks", low=2, high=1_000_000, agents=True)
+    side: str = option("left", "side of the heading the rods point to", choices=tuple(SIDES),
+                       agents=True)
+    estimator: str = option("edmd", "the followers' estimator: a built-in one, edmd-<letter> "
+                            "(edmd on that dictionary) or your own package.module:Name",
+                            choices=ESTIMATORS, agents=True, metavar="NAME")
+    dictionary: str = option("b", "EDMD dictionary (d-g need gps)", choices=DICTIONARIES,
+                             agents=True)
+    velocity: str = option("lagged", "the velocity dictionary c lifts", agents=True,
+                           choices=VELOCITY_VARIANTS, needs=("dictionary", "c"))
+    online: bool = option(False, "EDMD: recursive update instead of a refit per tick",
+                          agents=True)
+    delays: int = option(0, "EDMD: delay embeddings", unit="ticks", low=0, high=1000,
+                         agents=True)
+    affine: bool = option(False, "EDMD: a constant in the dictionary", agents=True)
+    forget: float = option(1.0, "EDMD: forgetting factor λ per pair", unit="1", low=0.0,
+                           high=1.0, low_open=True, agents=True)
+    window: int = option(0, "EDMD: sliding window of pairs (0 = all)", unit="pairs", low=0,
+                         high=1_000_000, agents=True)
+    ridge: float = option(0.0, "EDMD: ridge regularisation α", unit="1", low=0.0, high=1e12,
+                          agents=True)
+    arx_order: int = option(1, "arx: past (x, u) pairs per regressor", unit="pairs", low=1,
+                            high=100, agents=True)
+    arx_window: int = option(10, "arx: pairs fitted (0 = all)", unit="pairs", low=0,
+                             high=1_000_000, agents=True)
+    gp_samples: int = option(8, "gp: samples fitted", unit="samples", low=3, high=1000,
+                             agents=True)
+    kalman_accel: float = option(1e-3, "kalman: process noise", unit="m²/tick⁴", low=0.0,
+                                 high=1e6, low_open=True, agents=True)
+    gps: bool = option(False, "agents read their absolute position (GPS)", agents=True)
+    noise_range: float = option(0.0, "σ of a range reading", unit="m", low=0.0, high=1e3,
+                                agents=True)
+    noise_bearing: float = option(0.0, "σ of a bearing reading", unit="rad", low=0.0,
+                                  high=10.0, agents=True)
+    noise_velocity: float = option(0.0, "σ of a velocity (odometry) reading", unit="m/s",
+                                   low=0.0, high=1e3)
+    noise_move: float = option(0.0, "σ of a move's actuation, per coordinate", unit="m",
+                               low=0.0, high=1e3, agents=True)
+    noise_gps: float = option(0.0, "σ of a GPS reading, per coordinate", unit="m", low=0.0,
+                              high=1e6, needs=("gps", True))
+    seed: int = option(0, "seed of every noise stream", low=0, high=2**63 - 1)
+    sensing_range: float = option(math.inf, "R_s: how far a follower sees its leader's rod "
+                                  "end (inf = unlimited)", unit="m", low=0.0, high=math.inf,
+                                  low_open=True)
+    mode: str = option("lockstep", "lockstep, or realtime (paced by the wall clock)",
+                       choices=MODES, agents=True)
+    pipelined: bool = option(True, "agents overlap ticks as a wavefront (--unpipelined: one "
+                             "agent at a time, for comparison)", flag="--unpipelined",
+                             needs=("mode", "lockstep"))
+    time_scale: float = option(1.0, "realtime: wall-clock seconds per simulated second",
+                               unit="1", low=0.0, high=1e3, low_open=True, agents=True,
+                               needs=("mode", "realtime"))
+    agent_timeout: float = option(10.0, "how long an agent may take to settle", unit="s",
+                                  low=0.0, high=MAX_TIMEOUT, low_open=True, agents=True)
+    start_timeout: float = option(30.0, "how long the world waits for every agent to start",
+                                  unit="s", low=0.0, high=MAX_TIMEOUT, low_open=True,
+                                  agents=True)
 
     def __post_init__(self) -> None:
         check_run_id(self.run_id)
-        if not (isinstance(self.estimator, str) and PLUGIN_ESTIMATOR.match(self.estimator)):
-            _check_choice("estimator", self.estimator, ESTIMATORS + ("package.module:Name",))
-        _check_choice("dictionary", self.dictionary, DICTIONARIES)
-        _check_choice("velocity", self.velocity, VELOCITY_VARIANTS)
-        _check_choice("side", self.side, tuple(SIDES))
-        _check_choice("mode", self.mode, MODES)
         if (not isinstance(self.surface, str) or not 0 < len(self.surface) <= MAX_SURFACE_NAME
                 or not self.surface.isprintable()):
             raise ValueError("surface must be a preset name, 'package.module:name' or 'dem:PATH' "
                              f"(at most {MAX_SURFACE_NAME} printable characters), "
                              f"got {_show(self.surface)}")
-        for name, (low, high) in INT_RANGES.items():
-            _check_int(name, getattr(self, name), low, high)
-        _check_int("init_ticks", self.init_ticks, 2, INT_RANGES["ticks"][1])
+        for name, declared in OPTIONS.items():
+            _check_declared(declared, getattr(self, name))
         if self.init_ticks > self.ticks:
             raise ValueError(f"init_ticks ({self.init_ticks}) must be at most ticks "
                              f"({self.ticks}): raise ticks or lower init_ticks")
-        for name, bounds in FLOAT_RANGES.items():
-            _check_range(name, getattr(self, name), *bounds)
-        for name in ("online", "affine", "gps", "pipelined"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
         if self.estimator == "edmd" and self.dictionary in GPS_DICTIONARIES and not self.gps:
             raise ValueError(f"dictionary {self.dictionary!r} uses absolute positions: enable gps")
         if self.leader_start is not None:
@@ -154,6 +244,7 @@ class RunConfig:
                 raise ValueError("surface_params names must be identifiers of at most 32 "
                                  f"characters, got {_show(key)}")
             _check_range(f"surface_params.{key}", value, -MAX_COORDINATE, MAX_COORDINATE)
+        check_effective(self.to_dict(omit_none=False))
 
     @property
     def side_sign(self) -> int:
@@ -162,56 +253,74 @@ class RunConfig:
 
     def replace(self, **changes: Any) -> RunConfig:
         """A copy with ``changes`` applied (unknown names raise ValueError)."""
-        unknown = set(changes) - {f.name for f in dataclasses.fields(self)}
+        unknown = set(changes) - set(OPTIONS)
         if unknown:
             raise ValueError(f"unknown configuration option(s): {sorted(unknown)}")
         return dataclasses.replace(self, **changes)
 
-    def to_dict(self) -> dict[str, Any]:
-        """Plain dict (TOML-ready: ``leader_start`` a list, None omitted)."""
+    def to_dict(self, omit_none: bool = True) -> dict[str, Any]:
+        """Plain dict (TOML-ready: ``leader_start`` a list, None omitted unless not
+        ``omit_none``)."""
         out = {}
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if value is None:
+        for name in OPTIONS:
+            value = getattr(self, name)
+            if value is None and omit_none:
                 continue
-            out[f.name] = list(value) if isinstance(value, tuple) else value
+            out[name] = list(value) if isinstance(value, tuple) else value
         return out
 
 
-@dataclass(frozen=True)
-class AgentSettings:
-    """What an agent process is told: timing, rods and its estimator. Never the surface."""
+OPTIONS: dict[str, Option] = {
+    f.name: dataclasses.replace(f.metadata["option"], name=f.name,
+                                default={} if f.default is dataclasses.MISSING else f.default)
+    for f in dataclasses.fields(RunConfig)
+}
+"""Every option's declaration, by name, in the order of :class:`RunConfig`."""
 
-    run_id: str
-    followers: int
-    comm_period: float
-    spacing: float
-    ticks: int
-    init_ticks: int
-    side: int
-    estimator: str
-    dictionary: str
-    velocity: str
-    online: bool
-    delays: int
-    affine: bool
-    forget: float
-    window: int
-    ridge: float
-    arx_order: int
-    arx_window: int
-    gp_samples: int
-    kalman_accel: float
-    noise_range: float
-    noise_bearing: float
-    noise_move: float
-    gps: bool
-    mode: str
-    time_scale: float
-    agent_timeout: float
-    start_timeout: float
 
-    @property
+def idle_reason(name: str, values: Mapping[str, Any]) -> str | None:
+    """Why option ``name`` does nothing in a run whose options are ``values`` (every one),
+    e.g. ``"with estimator persist (only edmd uses it)"``; None if it does something. Your own
+    estimator may read any estimator option from its settings: none is idle with it."""
+    declared, estimator = OPTIONS[name], values["estimator"]
+    users = declared.estimators
+    if users and estimator not in ESTIMATORS:
+        return None
+    if users and estimator not in users:
+        verb = "uses" if len(users) == 1 else "use"
+        return f"with estimator {estimator} (only {', '.join(users)} {verb} it)"
+    if declared.needs is not None:
+        other, wanted = declared.needs
+        if values[other] != wanted:
+            return (f"with {other} = {OPTIONS[other].show(values[other])} (only with "
+                    f"{other} = {OPTIONS[other].show(wanted)})")
+    return None
+
+
+def check_effective(values: Mapping[str, Any]) -> None:
+    """Refuse (ValueError, one line naming the option, its value and why) an option set to
+    something other than its default in a run where it does nothing (:func:`idle_reason`)."""
+    for name, declared in OPTIONS.items():
+        value = values[name]
+        if value != declared.default and (why := idle_reason(name, values)) is not None:
+            raise ValueError(f"{name} = {declared.show(value)} does nothing {why}: leave it out")
+
+
+def estimator_options(label: str) -> dict[str, Any]:
+    """The options an estimator label names: ``edmd-<letter>`` is ``edmd`` on that
+    dictionary (with gps for d-g); any other label is the ``estimator`` itself (a built-in
+    name or ``package.module:Name``). The one reader of this form, for ``run``, TOML files and
+    the estimator axis of grids."""
+    letter = label[5:] if isinstance(label, str) and label.startswith("edmd-") else None
+    if letter in DICTIONARIES:
+        options = {"estimator": "edmd", "dictionary": letter}
+        return {**options, "gps": True} if letter in GPS_DICTIONARIES else options
+    return {"estimator": label}
+
+
+def _agent_settings() -> type:
+    """:class:`AgentSettings`, derived from the declarations of the agent-visible options."""
+
     def step_timeout(self) -> float:
         """How long an agent waits for its next step before concluding the run is stuck:
         the whole chain's time budget, and in realtime at least two wall-clock ticks."""
@@ -220,22 +329,99 @@ class AgentSettings:
             budget = max(budget, 2 * self.comm_period * self.time_scale)
         return max(budget, 10.0)
 
-    @classmethod
     def from_config(cls, config: RunConfig) -> AgentSettings:
-        names = {f.name for f in dataclasses.fields(cls)} - {"side"}
-        return cls(side=config.side_sign, **{n: getattr(config, n) for n in names})
+        """What an agent of ``config``'s run is told."""
+        return cls(**{name: getattr(config, name) for name in AGENT_OPTIONS})
+
+    fields = [(f.name, f.type) for f in dataclasses.fields(RunConfig) if f.name in AGENT_OPTIONS]
+    return dataclasses.make_dataclass("AgentSettings", fields, frozen=True, namespace={
+        "__module__": __name__,
+        "__doc__": "What an agent process is told: the agent-visible options of "
+                   ":class:`RunConfig` (timing, rods, its estimator; never the surface).",
+        "side_sign": RunConfig.side_sign,
+        "step_timeout": property(step_timeout),
+        "from_config": classmethod(from_config),
+    })
 
 
-def config_from_dict(data: dict[str, Any]) -> RunConfig:
-    """Build a RunConfig from a plain dict (e.g. parsed TOML); unknown keys raise ValueError."""
-    known = {f.name for f in dataclasses.fields(RunConfig)}
-    unknown = set(data) - known
+DEFAULTS: dict[str, Any] = {name: declared.default for name, declared in OPTIONS.items()}
+"""Every option's default (``surface_params``: an empty table)."""
+AGENT_OPTIONS = tuple(name for name, declared in OPTIONS.items() if declared.agents)
+AgentSettings = _agent_settings()
+
+
+def options_table() -> str:
+    """The Markdown table of every option, from the declarations (``docs/options.md`` holds
+    it verbatim; a test keeps the two equal)."""
+    lines = ["| option (TOML key) | flag | default | unit | allowed | seen by | meaning |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for name, declared in OPTIONS.items():
+        flag, where = flag_of(declared), applies_to(declared)
+        cells = [f"`{name}`", f"`{flag}`" if flag else "—",
+                 "—" if declared.default is None else f"`{declared.show(declared.default)}`",
+                 declared.unit or "—", allowed(declared),
+                 "world, agents" if declared.agents else "world",
+                 f"{declared.meaning}; {where}" if where else declared.meaning]
+        lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def flag_of(declared: Option) -> str | None:
+    """The option's flag of ``swarm run`` (None if it has none)."""
+    if declared.flag is None:
+        return None
+    return declared.flag or "--" + declared.name.replace("_", "-")
+
+
+def allowed(declared: Option) -> str:
+    """The allowed values in words: ``[1, 1000]``, ``(0, 1]``, ``a, b, c``, ``true/false``."""
+    if declared.choices:
+        return ", ".join(declared.choices) + (
+            ", edmd-<letter>, package.module:Name" if declared.name == "estimator" else "")
+    if declared.kind is bool:
+        return "true, false"
+    if declared.low is None:
+        return "see meaning"
+    left = "(" if declared.low_open else "["
+    return f"{left}{declared.low:g}, {declared.high:g}]"
+
+
+def applies_to(declared: Option) -> str:
+    """Where the option does something, in words (empty if in every run)."""
+    where = []
+    if declared.estimators:
+        where.append("estimator " + ", ".join(declared.estimators))
+    if declared.needs is not None:
+        other, wanted = declared.needs
+        where.append(f"{other} = {OPTIONS[other].show(wanted)}")
+    return ("only with " + " and ".join(where)) if where else ""
+
+
+def config_from_dict(data: Mapping[str, Any]) -> RunConfig:
+    """Build a RunConfig from the options a user gave (e.g. parsed TOML, flags): see
+    :func:`given_options`."""
+    return RunConfig(**given_options(data))
+
+
+def given_options(data: Mapping[str, Any]) -> dict[str, Any]:
+    """The options in ``data`` as :class:`RunConfig` takes them: an estimator label
+    (:func:`estimator_options`) replaced by the options it names, ``leader_start`` a tuple.
+    ValueError for an unknown key, or a label that contradicts an option given."""
+    unknown = set(data) - set(OPTIONS)
     if unknown:
         raise ValueError(f"unknown configuration option(s): {sorted(unknown)}")
     data = dict(data)
+    if "estimator" in data:
+        named = estimator_options(data["estimator"])
+        for key, value in named.items():
+            if key != "estimator" and data.get(key, value) != value:
+                raise ValueError(f"estimator {data['estimator']} means {key} = "
+                                 f"{OPTIONS[key].show(value)}, but {key} = "
+                                 f"{OPTIONS[key].show(data[key])} is given")
+        data.update(named)
     if isinstance(data.get("leader_start"), list):
         data["leader_start"] = tuple(data["leader_start"])
-    return RunConfig(**data)
+    return data
 
 
 def load_config(path: str | os.PathLike[str]) -> RunConfig:
@@ -370,6 +556,24 @@ def _toml_value(value: Any) -> str:
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
     raise ValueError(f"cannot write {type(value).__name__} to TOML")
+
+
+def _check_declared(declared: Option, value: Any) -> None:
+    """ValueError unless ``value`` is of the option's type and within its range or choices
+    (run id, surface, leader start and surface parameters have checks of their own)."""
+    name = declared.name
+    if declared.kind is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f"{name} must be true or false, got {_show(value)}")
+    elif declared.choices:
+        if name == "estimator" and isinstance(value, str) and PLUGIN_ESTIMATOR.match(value):
+            return
+        plugin = ("package.module:Name",) if name == "estimator" else ()
+        _check_choice(name, value, declared.choices + plugin)
+    elif declared.kind is int and declared.low is not None:
+        _check_int(name, value, declared.low, declared.high)
+    elif declared.kind is float and declared.low is not None:
+        _check_range(name, value, declared.low, declared.high, declared.low_open)
 
 
 def _check_choice(name: str, value: Any, allowed: tuple[str, ...]) -> None:

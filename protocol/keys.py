@@ -6,14 +6,16 @@ from __future__ import annotations
 
 import re
 
-_RUN_ID = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+from protocol.limits import MAX_RUN_ID
+
+_RUN_ID = re.compile(rf"^[A-Za-z0-9_.-]{{1,{MAX_RUN_ID}}}$")
 
 
 def check_run_id(run_id: str) -> str:
     """Return ``run_id`` if it is a valid key chunk, else raise ValueError."""
     if not isinstance(run_id, str) or not _RUN_ID.match(run_id):
         raise ValueError(
-            f"run_id must be 1-64 characters of [A-Za-z0-9_.-], got {run_id!r}"
+            f"run_id must be 1-{MAX_RUN_ID} characters of [A-Za-z0-9_.-], got {run_id!r}"
         )
     return run_id
 

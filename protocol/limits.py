@@ -33,11 +33,17 @@ MAX_STR_BYTES = 4 * MAX_TEXT
 """msgpack bound on one string, in UTF-8 bytes (the character bound is checked after)."""
 
 MAX_NAME = 64
-"""Longest name (an estimator's)."""
+"""Longest name (an estimator's, as its policy calls itself in every observation)."""
+
+MAX_RUN_ID = 64
+"""Longest run id (a chunk of every key expression, and a folder name)."""
 
 NAME_PATTERN = re.compile(r"[A-Za-z][A-Za-z0-9_.:+-]{0,%d}" % (MAX_NAME - 1))
 """A name starts with a letter and uses a small safe alphabet: it can never be read as a
 spreadsheet formula nor carry a separator, quote, space or control character."""
+
+NAME_RULE = f"1-{MAX_NAME} characters of [A-Za-z0-9_.:+-] starting with a letter"
+""":data:`NAME_PATTERN` in words, for error messages."""
 
 MAX_TICK = 10_000_000
 """Largest tick number (and count) a message may carry."""

@@ -31,7 +31,7 @@ import msgpack
 
 from protocol.limits import (
     MAX_DEPTH, MAX_NAME, MAX_PAYLOAD_BYTES, MAX_TEXT, MAX_TICK, MAX_VECTOR, MSGPACK_BOUNDS,
-    NAME_PATTERN,
+    NAME_PATTERN, NAME_RULE,
 )
 
 SCHEMA_VERSION = 1
@@ -102,8 +102,7 @@ def _name(name: str, value: Any) -> str:
     if not isinstance(value, str):
         raise ProtocolError(f"field {name!r} must be a string, got {type(value).__name__}")
     if not NAME_PATTERN.fullmatch(value):
-        raise ProtocolError(f"field {name!r} must be 1-{MAX_NAME} characters of "
-                            f"[A-Za-z0-9_.:+-] starting with a letter, got {value[:MAX_NAME]!r}")
+        raise ProtocolError(f"field {name!r} must be {NAME_RULE}, got {value[:MAX_NAME]!r}")
     return value
 
 

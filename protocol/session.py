@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import socket
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -139,6 +140,30 @@ def zenoh_config(
     return conf
 
 
+def open_session(conf: zenoh.Config) -> zenoh.Session:
+    """``zenoh.open(conf)``, waited for in a way Ctrl-C and SIGTERM interrupt: a session whose
+    router is not up yet retries inside Zenoh until its connect timeout, where no Python
+    signal handler runs, so it is opened in a helper thread. Interrupted, the wait raises
+    ``KeyboardInterrupt`` at once (the process is ending; the helper is a daemon)."""
+    outcome: list = []
+
+    def open_it() -> None:
+        try:
+            outcome.append(zenoh.open(conf))
+        except zenoh.ZError as exc:
+            outcome.append(exc)
+
+    opener = threading.Thread(target=open_it, name="zenoh-open", daemon=True)
+    opener.start()
+    while opener.is_alive():
+        opener.join(0.1)
+    if not outcome:
+        raise RuntimeError("the Zenoh session could not be opened")
+    if isinstance(outcome[0], zenoh.ZError):
+        raise outcome[0]
+    return outcome[0]
+
+
 def token_live(session: zenoh.Session, key: str, timeout: float = 0.5) -> bool:
     """Whether a liveliness token on ``key`` is live now (a world or agent id in use)."""
     return any(reply.ok is not None for reply in session.liveliness().get(key, timeout=timeout))
@@ -156,9 +181,21 @@ def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
     return f"tcp/{host}:{free_port(host)}"
 
 
-def add_credential_flags(parser: argparse.ArgumentParser) -> None:
-    """``--user`` with ``--password`` or ``--password-file``; ``--tls-ca``, ``--tls-cert``,
-    ``--tls-key``; and ``--cfg KEY:VALUE``."""
+def add_connection_flags(parser: argparse.ArgumentParser, *,
+                         session_modes: tuple[str, ...] = ("client", "peer"),
+                         default_mode: str = "client", connect_required: bool = False) -> None:
+    """Every command's Zenoh connection flags (:func:`connection_config` reads them):
+    ``--connect``, ``--listen``, ``--session-mode`` (one of ``session_modes``), ``--user``
+    with ``--password`` or ``--password-file``, ``--tls-ca``/``--tls-cert``/``--tls-key``
+    and ``--cfg KEY:VALUE``."""
+    parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                        required=connect_required,
+                        help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 "
+                             "(repeatable)")
+    parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                        help="Zenoh endpoint to listen on (repeatable)")
+    parser.add_argument("--session-mode", choices=session_modes, default=None,
+                        help=f"Zenoh session mode (default {default_mode})")
     parser.add_argument("--user", help="Zenoh user name (router with authentication)")
     secret = parser.add_mutually_exclusive_group()
     secret.add_argument("--password", help="Zenoh password (visible in process listings)")
@@ -172,8 +209,21 @@ def add_credential_flags(parser: argparse.ArgumentParser) -> None:
                         help="extra Zenoh configuration, inserted as JSON5")
 
 
+def connection_config(args: argparse.Namespace, default_mode: str = "client",
+                      connect_timeout: float = 30.0,
+                      default_listen: Sequence[str] = ()) -> zenoh.Config:
+    """The session configuration the flags of :func:`add_connection_flags` ask for (mode
+    ``default_mode`` unless ``--session-mode`` is given, listening on ``default_listen``
+    unless ``--listen`` is). ValueError names a bad flag."""
+    user, password = credentials(args)
+    return zenoh_config(args.session_mode or default_mode, connect=args.connect,
+                        listen=args.listen or default_listen, user=user, password=password,
+                        connect_timeout=connect_timeout, extra=args.cfg, **tls_options(args))
+
+
 def credentials(args: argparse.Namespace) -> tuple[str | None, str | None]:
-    """(user, password) from the flags of :func:`add_credential_flags` (ValueError if unreadable)."""
+    """(user, password) from the flags of :func:`add_connection_flags` (ValueError if
+    unreadable)."""
     password = args.password
     if args.password_file:
         try:
@@ -185,7 +235,7 @@ def credentials(args: argparse.Namespace) -> tuple[str | None, str | None]:
 
 def tls_options(args: argparse.Namespace) -> dict[str, str | None]:
     """``tls_ca``, ``tls_cert``, ``tls_key`` for :func:`zenoh_config` from the flags of
-    :func:`add_credential_flags` (ValueError unless all three or none are given, or if a file
+    :func:`add_connection_flags` (ValueError unless all three or none are given, or if a file
     is missing)."""
     files = {"tls_ca": args.tls_ca, "tls_cert": args.tls_cert, "tls_key": args.tls_key}
     given = [name for name, path in files.items() if path is not None]

@@ -7,92 +7,95 @@ import sys
 from pathlib import Path
 
 from protocol.cli import (
-    EXPECTED_FAILURES, add_log_level_flag, bounded_interrupt, check_out_dir, describe,
-    setup_logging,
+    EXPECTED_FAILURES, FAILED, INTERRUPTED, REFUSED, add_log_level_flag, check_out_dir, describe,
+    ends_with, fail, refuse, run_command, setup_logging,
 )
-from protocol.config import (DICTIONARIES, ESTIMATORS, MODES, SIDES, VELOCITY_VARIANTS, RunConfig,
-                             config_from_dict, config_from_file, read_toml)
-from protocol.distribution import DISTRIBUTION, MissingExtra, version
-from protocol.session import add_credential_flags
+from protocol.config import (OPTIONS, Option, RunConfig, applies_to, config_from_dict,
+                             config_from_file, flag_of, read_toml)
+from protocol.distribution import DISTRIBUTION, version
+from protocol.session import add_connection_flags, connection_config
 
-EXIT_NOTHING_ESTIMATED = 3
-"""``swarm run``'s status for a run that completed but in which a follower missed every tick
-or estimated none."""
 
-# CLI flag -> (config field, argparse kwargs). Flags left unset do not override the file.
-RUN_FLAGS: dict[str, tuple[str, dict]] = {
-    "--surface": ("surface", {"help": "preset (elliptic, hyperbolic, wavy, plane, gaussian-hill, "
-                                      "ripple, hemisphere), dem:PATH (a DEM raster) or "
-                                      "package.module:name"}),
-    "--followers": ("followers", {"type": int}),
-    "--comm-period": ("comm_period", {"type": float, "help": "T_c, time between messages"}),
-    "--spacing": ("spacing", {"type": float, "help": "rod length d (Riemannian)"}),
-    "--ticks": ("ticks", {"type": int}),
-    "--init-ticks": ("init_ticks", {"type": int}),
-    "--estimator": ("estimator", {"help": ", ".join(ESTIMATORS) + ", or your own "
-                                          "package.module:Name (SPEC §6)"}),
-    "--dictionary": ("dictionary", {"choices": DICTIONARIES}),
-    "--velocity": ("velocity", {"choices": VELOCITY_VARIANTS}),
-    "--online": ("online", {"action": "store_const", "const": True}),
-    "--delays": ("delays", {"type": int}),
-    "--affine": ("affine", {"action": "store_const", "const": True}),
-    "--forget": ("forget", {"type": float}),
-    "--window": ("window", {"type": int, "help": "sliding window of pairs (0 = all)"}),
-    "--ridge": ("ridge", {"type": float}),
-    "--arx-order": ("arx_order", {"type": int, "help": "arx: past (x, u) pairs per regressor"}),
-    "--arx-window": ("arx_window", {"type": int, "help": "arx: pairs fitted (0 = all)"}),
-    "--gp-samples": ("gp_samples", {"type": int, "help": "gp: relative positions fitted"}),
-    "--kalman-accel": ("kalman_accel", {"type": float,
-                                        "help": "kalman: process noise (length²/tick⁴)"}),
-    "--gps": ("gps", {"action": "store_const", "const": True}),
-    "--noise-range": ("noise_range", {"type": float}),
-    "--noise-bearing": ("noise_bearing", {"type": float}),
-    "--noise-velocity": ("noise_velocity", {"type": float}),
-    "--noise-move": ("noise_move", {"type": float}),
-    "--noise-gps": ("noise_gps", {"type": float, "help": "GPS noise σ per coordinate (m)"}),
-    "--side": ("side", {"choices": tuple(SIDES)}),
-    "--leader-start": ("leader_start", {"metavar": "X,Y,VX,VY"}),
-    "--seed": ("seed", {"type": int}),
-    "--sensing-range": ("sensing_range", {"type": float, "help": "R_s (inf = unlimited)"}),
-    "--mode": ("mode", {"choices": MODES}),
-    "--unpipelined": ("pipelined", {"action": "store_const", "const": False,
-                                    "help": "lockstep one agent at a time (for comparison; "
-                                            "default: pipelined, SPEC §4)"}),
-    "--time-scale": ("time_scale", {"type": float}),
-    "--agent-timeout": ("agent_timeout", {"type": float}),
-    "--run-id": ("run_id", {}),
-}
+def option_help(declared: Option) -> str:
+    """``--help`` of a run option: its meaning, where it applies, and (for a value) its
+    default and unit, e.g. ``rod length d (Riemannian) [default 3.57 m]``."""
+    where = applies_to(declared)
+    text = f"{declared.meaning}; {where}" if where else declared.meaning
+    if declared.kind is bool:
+        return text
+    unit = {"": "", "1": ", dimensionless"}.get(declared.unit, f" {declared.unit}")
+    if declared.name in CLI_DEFAULTS:
+        default, unit = CLI_DEFAULTS[declared.name], unit and f"; in{unit.lstrip(',')}"
+    else:
+        default = declared.show(declared.default)
+    return f"{text} [default {default}{unit}]".replace("%", "%%")
+
+
+CLI_DEFAULTS = {"run_id": "a new one from the clock", "leader_start": "the surface's"}
+"""What ``swarm run`` takes for an option it is not given, where that is not the option's
+declared default."""
 
 
 def add_run_flags(p: argparse.ArgumentParser) -> None:
-    for flag, (dest, kwargs) in RUN_FLAGS.items():
-        p.add_argument(flag, dest=dest, default=None, **kwargs)
+    """One flag per declared run option (:data:`protocol.config.OPTIONS`), unset by default
+    so that only the flags given override the ``--config`` file; ``--smoothing``, and
+    ``--config``."""
+    for declared in OPTIONS.values():
+        flag = flag_of(declared)
+        if flag is None:
+            continue
+        if declared.kind is bool:  # a switch sets the opposite of the default
+            kind = {"action": "store_const", "const": not declared.default}
+        elif declared.choices and declared.name != "estimator":
+            kind = {"choices": declared.choices}
+        else:
+            kind = {"type": declared.kind} if declared.kind in (int, float) else {}
+        p.add_argument(flag, dest=declared.name, default=None, help=option_help(declared),
+                       metavar=declared.metavar, **kind)
     p.add_argument("--smoothing", type=float, default=None,
                    help="DEM surfaces: scipy's spline smoothing s (0 = interpolate; TOML: "
-                        "surface_params.smoothing)")
-    p.add_argument("--config", help="TOML file with any of the options; flags override it")
+                        "surface_params.smoothing) (default 0 m²)")
+    p.add_argument("--config", metavar="FILE",
+                   help="TOML file with any of the options; flags override it")
 
 
-def config_from_args(args: argparse.Namespace) -> RunConfig:
-    """Defaults, then the ``--config`` file, then the flags given (ValueError on bad input)."""
-    from swarm.launch import new_run_id
-
-    # the file is read once, under the input limits; a run id is made unless it names one
-    file_data = read_toml(Path(args.config), "config file") if args.config else {}
-    base = (config_from_file(file_data, args.config) if args.config
-            else RunConfig(run_id=new_run_id()))
-    data = base.to_dict()
-    for dest, _ in RUN_FLAGS.values():
-        value = getattr(args, dest)
+def options_from_args(args: argparse.Namespace) -> dict:
+    """The run options the user gave: the ``--config`` file's, then the flags given
+    (ValueError on bad input). A value equal to its default counts as not given."""
+    data = file_options(args)
+    for name in OPTIONS:
+        value = getattr(args, name, None)
         if value is not None:
-            data[dest] = value
+            data[name] = value
     if isinstance(data.get("leader_start"), str):
         data["leader_start"] = parse_leader_start(data["leader_start"])
     if args.smoothing is not None:
         data["surface_params"] = {**data.get("surface_params", {}), "smoothing": args.smoothing}
-    if args.config and args.run_id is None and "run_id" not in file_data:
-        data["run_id"] = new_run_id()
-    return config_from_dict(data)
+    return data
+
+
+def config_from_args(args: argparse.Namespace) -> RunConfig:
+    """Defaults, then the ``--config`` file, then the flags given (ValueError on bad input);
+    a new run id unless one is given."""
+    from swarm.launch import new_run_id
+
+    data = options_from_args(args)
+    data.setdefault("run_id", new_run_id())
+    try:
+        return config_from_dict(data)
+    except ValueError:
+        if args.config:  # the file alone is at fault: say so, naming it
+            config_from_file(file_options(args), args.config)
+        raise
+
+
+def file_options(args: argparse.Namespace) -> dict:
+    """The options of the ``--config`` file (none without), read under the input limits
+    (ValueError naming the file)."""
+    if not args.config:
+        return {}
+    data = read_toml(Path(args.config), "config file")
+    return {k: v for k, v in data.items() if k != "meta"}
 
 
 def comma_numbers(text: str, count: int) -> tuple[float, ...] | None:
@@ -166,38 +169,24 @@ def empty_followers(summary: dict, init_ticks: int) -> list[str]:
 
 def cmd_run(args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
-    try:
-        config = config_from_args(args)
-    except ValueError as exc:
-        print(f"error: {describe(exc)}", file=sys.stderr)
-        return 2
     live = endpoint = None
-    if args.live:  # its arguments are checked before anything is written
-        from protocol.session import free_tcp_endpoint
-        from swarm.live.observer import LiveView
-
-        try:
-            live = LiveView(port=args.live_port, run_id=config.run_id)
-        except (ValueError, RuntimeError) as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 1
-        endpoint = free_tcp_endpoint()
-    try:
+    with ends_with(REFUSED, ValueError, RuntimeError):
+        config = config_from_args(args)
         out = Path(args.out) if args.out else Path("runs") / config.run_id
-        if (out / "summary.json").exists():
-            raise ValueError(f"{out} already holds a run's results; choose another --out "
-                             "(nothing was overwritten)")
+        if (out / "summary.json").exists() and not args.force:
+            raise ValueError(f"{out} already holds a run's results; choose another --out or "
+                             "replace them with --force (nothing was overwritten)")
+        if args.live:  # its arguments are checked before anything is written
+            from protocol.session import free_tcp_endpoint
+            from swarm.live.observer import LiveView
+
+            live = LiveView(port=args.live_port, run_id=config.run_id)
+            endpoint = free_tcp_endpoint()
         check_out_dir(out)
-    except ValueError as exc:
-        print(f"error: {describe(exc)}", file=sys.stderr)
-        return 2
     try:
         if live is not None:
-            try:
+            with ends_with(REFUSED, RuntimeError):
                 print(f"live view: {live.start()}", flush=True)
-            except RuntimeError as exc:
-                print(f"error: {exc}", file=sys.stderr)
-                return 1
         return _run_and_report(args, config, out, live, endpoint)
     finally:
         if live is not None:
@@ -220,21 +209,17 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
                disable=None)
     try:
         summary = launch(config, out, in_process=args.in_process, on_tick=lambda j: bar.update(1),
-                         endpoint=endpoint,
+                         endpoint=endpoint, force=args.force,
                          before_agents=None if live is None else observe)
     except OSError as exc:  # the results disk failed during the run (read-only, full)
-        bar.close()
-        print(f"error: cannot write the results in {out}: {describe(exc)}", file=sys.stderr)
-        return 1
+        fail(f"cannot write the results in {out}: {describe(exc)}")
     except EXPECTED_FAILURES as exc:
-        bar.close()
-        print(f"error: {describe(exc)}", file=sys.stderr)
-        return 1
+        fail(describe(exc))
     except KeyboardInterrupt:
-        bar.close()
         print(f"interrupted: partial result in {out}", file=sys.stderr)
-        return 130
-    bar.close()
+        return INTERRUPTED
+    finally:
+        bar.close()
     print(format_summary(summary))
     print(f"results: {out}", flush=True)
     if args.plot:
@@ -248,24 +233,18 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
     if live is not None:
         print(f"live view still at {live.server.url} (Ctrl-C to quit)", flush=True)
         live.serve_until_interrupted()
-    if not summary["complete"]:
-        return 1
-    return EXIT_NOTHING_ESTIMATED if empty else 0
+    return FAILED if empty or not summary["complete"] else 0
 
 
 def cmd_watch(args: argparse.Namespace) -> int:
-    """``watch``: the live view of a run assembled elsewhere, as a read-only observer."""
-    from protocol.session import credentials, zenoh_config
+    """``watch``: the live view of a run assembled elsewhere, as a read-only observer. It
+    connects first (retrying up to Zenoh's connect timeout while the router is not up yet),
+    so no page is announced without a router behind it."""
     from swarm.live.observer import LiveView
 
-    try:
-        user, password = credentials(args)
-        conf = zenoh_config(args.mode, connect=args.connect, user=user, password=password,
-                            extra=args.cfg)
+    with ends_with(REFUSED, ValueError):
+        conf = connection_config(args)
         live = LiveView(port=args.live_port, run_id=args.run_id)
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
     return _serve(live, conf)
 
 
@@ -274,27 +253,27 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from swarm.live.observer import LiveView
     from swarm.live.store import load_run
 
-    try:
+    with ends_with(REFUSED, ValueError):
         live = LiveView(port=args.live_port, store=load_run(args.run_dir), replay=True)
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
     return _serve(live, None)
 
 
 def _serve(live, conf) -> int:
-    """Serve ``live`` (connected with ``conf`` unless None) until Ctrl-C."""
+    """Serve ``live`` (connected with ``conf`` first unless None) until Ctrl-C."""
     try:
-        print(f"live view: {live.start()} (Ctrl-C to quit)", flush=True)
-        if conf is not None:  # the page waits for the world meanwhile
-            live.connect(conf)
+        with ends_with(FAILED, RuntimeError):
+            if conf is not None:
+                live.connect(conf)
+            print(f"live view: {live.start()} (Ctrl-C to quit)", flush=True)
         live.serve_until_interrupted()
-    except RuntimeError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
     finally:
         live.close()
     return 0
+
+
+TERRAIN_ONLY = ("dem", "leader_start", "spacing", "followers", "ticks", "smoothing",
+                "estimators", "comm_periods")
+"""The flags of ``experiment terrain`` that ``experiment paper`` refuses."""
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
@@ -302,22 +281,17 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     ``experiment terrain --dem PATH``: the terrain study (:mod:`swarm.terrain`)."""
     from swarm.experiment import FULL, QUICK, run_paper_experiment
 
-    try:
+    with ends_with(REFUSED, ValueError):
         _check_workers(args.workers)
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
     if args.name == "terrain":
         return cmd_terrain(args)
-    if args.dem is not None:
-        print("error: --dem applies only to `experiment terrain`", file=sys.stderr)
-        return 2
+    for name in TERRAIN_ONLY:
+        if getattr(args, name) is not None:
+            refuse(f"--{name.replace('_', '-')} applies only to `experiment terrain`")
     args.out = args.out or "runs/experiment-paper"
-    result, status = _run_grid(lambda: run_paper_experiment(
+    result = _run_grid(lambda: run_paper_experiment(
         args.out, QUICK if args.quick else FULL, workers=args.workers, scheduler=args.scheduler),
         args.out)
-    if result is None:
-        return status
     timing = result["timing"]
     return _print_experiment(result, f"wall time {timing['total']:.1f} s (runs "
                                      f"{timing['runs']:.1f} s, figures {timing['figures']:.1f} s)")
@@ -337,39 +311,32 @@ def _print_experiment(result: dict, wall_line: str) -> int:
     return status
 
 
-def _run_grid(run, out) -> tuple[dict | None, int]:
-    """``run()``'s result and 0; or None and the status that ends the command: 2 after a
-    one-line error (an output folder that cannot hold results is one, found before any run),
-    130 on Ctrl-C (naming where the finished runs are kept)."""
-    try:
+def _run_grid(run, out) -> dict:
+    """``run()``'s result. An output folder that cannot hold results, or a grid that cannot
+    start (an unreachable scheduler), is refused; Ctrl-C ends the command, naming where the
+    finished runs are kept."""
+    with ends_with(REFUSED, ValueError):
         check_out_dir(out)
-    except ValueError as exc:
-        print(f"error: {describe(exc)}", file=sys.stderr)
-        return None, 2
     try:
-        return run(), 0
-    except RuntimeError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return None, 2
+        with ends_with(REFUSED, RuntimeError):
+            return run()
     except KeyboardInterrupt:
         print(f"interrupted: finished runs are in {Path(out) / 'runs'}", file=sys.stderr)
-        return None, 130
+        raise
 
 
 def _print_failed(failed) -> int:
     """One ``FAILED`` line per failed run; the command's status (1 if any failed)."""
     for outcome in failed:
         print(f"FAILED {outcome.run.folder}: {outcome.error}", file=sys.stderr)
-    return 1 if failed else 0
+    return FAILED if failed else 0
 
 
 def _run_sweep_and_print(name, base, axes, out, follower, workers, scheduler=None) -> int:
     from swarm.sweep import format_means, run_sweep
 
-    result, status = _run_grid(lambda: run_sweep(name, base, axes, out, follower=follower,
-                                                 workers=workers, scheduler=scheduler), out)
-    if result is None:
-        return status
+    result = _run_grid(lambda: run_sweep(name, base, axes, out, follower=follower,
+                                         workers=workers, scheduler=scheduler), out)
     print(format_means(result["means"], result["keys"]))
     for path in result["tables"].values():
         print(f"table: {path}")
@@ -382,26 +349,32 @@ def _check_workers(workers: int | None) -> None:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    """``compare``: one setup (``run``'s flags), several estimators and seeds, one table."""
+    """``compare``: one setup (``run``'s flags), several estimators and seeds, one table.
+    Each estimator runs with the options of the setup that it uses (the others keep their
+    defaults in its runs); an option no estimator uses is refused."""
+    from swarm.grid import expand
+    from swarm.launch import new_run_id
     from swarm.sweep import compare_axes
 
-    try:
+    if args.estimator is not None:
+        refuse("compare takes --estimators (comma-separated), not --estimator")
+    with ends_with(REFUSED, ValueError):
         _check_workers(args.workers)
-        base = config_from_args(args)
-        try:
-            seeds = [int(x) for x in args.seeds.split(",")] if args.seeds else [base.seed]
-        except ValueError:
-            raise ValueError(f"--seeds must be comma-separated integers, got {args.seeds!r}") from None
+        base = options_from_args(args)
+        if args.seeds:
+            try:
+                seeds = [int(x) for x in args.seeds.split(",")]
+            except ValueError:
+                raise ValueError(f"--seeds must be comma-separated integers, got "
+                                 f"{args.seeds!r}") from None
+        else:
+            seeds = [base.pop("seed", OPTIONS["seed"].default)]
         axes = compare_axes([e for e in args.estimators.split(",") if e], seeds)
-        if not 1 <= args.follower <= base.followers:
-            raise ValueError(f"--follower must be in 1..{base.followers}, got {args.follower}")
-        from swarm.grid import expand
-
-        expand("compare", base, axes)  # every combination must be valid before anything runs
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    out = Path(args.out) if args.out else Path("runs") / f"compare-{base.run_id}"
+        runs = expand("compare", base, axes)  # every combination is valid before anything runs
+        followers = runs[0].config.followers
+        if not 1 <= args.follower <= followers:
+            raise ValueError(f"--follower must be in 1..{followers}, got {args.follower}")
+    out = Path(args.out or Path("runs") / f"compare-{base.get('run_id') or new_run_id()}")
     return _run_sweep_and_print("compare", base, axes, out, args.follower, args.workers,
                                 args.scheduler)
 
@@ -410,26 +383,23 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     """``sweep GRID.toml``: any grid of options, one table (``experiment paper`` is one)."""
     from swarm.sweep import load_grid
 
-    try:
+    with ends_with(REFUSED, ValueError):
         _check_workers(args.workers)
         name, base, axes, follower = load_grid(args.grid)
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
     out = Path(args.out) if args.out else Path("runs") / f"sweep-{name}"
     return _run_sweep_and_print(name, base, axes, out, follower, args.workers, args.scheduler)
+
+
 def cmd_terrain(args: argparse.Namespace) -> int:
     """``experiment terrain --dem PATH --leader-start X,Y,VX,VY [--leader-start ...]``."""
     from swarm.terrain import TerrainSpec, quick, run_terrain_experiment
 
     if args.dem is None:
-        print("error: experiment terrain needs --dem PATH", file=sys.stderr)
-        return 2
+        refuse("experiment terrain needs --dem PATH")
     if not args.leader_start:
-        print("error: experiment terrain needs --leader-start X,Y,VX,VY (repeat it for several "
-              "starts): a DEM has no preset leader start", file=sys.stderr)
-        return 2
-    try:
+        refuse("experiment terrain needs --leader-start X,Y,VX,VY (repeat it for several "
+               "starts): a DEM has no preset leader start")
+    with ends_with(REFUSED, ValueError):  # the options, the DEM or a leader start
         options = {"leader_starts": tuple(parse_leader_start(s) for s in args.leader_start)}
         for name in ("spacing", "followers", "ticks", "smoothing"):
             if getattr(args, name) is not None:
@@ -444,13 +414,8 @@ def cmd_terrain(args: argparse.Namespace) -> int:
         spec = TerrainSpec(**options)
         spec = quick(spec) if args.quick else spec
         out = args.out or "runs/experiment-terrain"
-        result, status = _run_grid(lambda: run_terrain_experiment(args.dem, out, spec,
-                                                                  workers=args.workers), out)
-    except ValueError as exc:  # the options, the DEM or a leader start
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    if result is None:
-        return status
+        result = _run_grid(lambda: run_terrain_experiment(args.dem, out, spec,
+                                                          workers=args.workers), out)
     return _print_experiment(result, f"wall time {result['wall_time']:.1f} s (runs)")
 
 
@@ -459,11 +424,8 @@ def cmd_dem_crop(args: argparse.Namespace) -> int:
     at every node."""
     from swarm.terrain import crop_dem
 
-    try:
+    with ends_with(REFUSED, ValueError, OSError):
         crop = crop_dem(args.source, args.out, args.bounds, force=args.force)
-    except (ValueError, OSError) as exc:
-        print(f"error: {describe(exc)}", file=sys.stderr)
-        return 2
     (i0, i1), (j0, j1) = crop.columns, crop.rows
     print(f"dem: {crop.path}: {i1 - i0 + 1} × {j1 - j0 + 1} nodes (columns {i0}–{i1}, rows "
           f"{j0}–{j1} from the south of {args.source}; {crop.dropped} no-data node(s) left out)")
@@ -483,27 +445,22 @@ def _bounds(text: str) -> tuple[float, float, float, float]:
 
 
 def cmd_dem_from_npz(args: argparse.Namespace) -> int:
-    """``dem-from-npz OUT.tif [--npz PATH]``: matplotlib's Jacksboro DEM as a GeoTIFF."""
+    """``dem-from-npz OUT.tif [--npz PATH] [--force]``: matplotlib's Jacksboro DEM as a
+    GeoTIFF."""
     from swarm.terrain import dem_from_npz
 
-    try:
-        path = dem_from_npz(args.out, args.npz)
-    except (ValueError, OSError, KeyError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+    with ends_with(REFUSED, ValueError), ends_with(FAILED, OSError):
+        path = dem_from_npz(args.out, args.npz, force=args.force)
     print(f"dem: {path}")
     return 0
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    """``plot RUN_DIR``: draw one run's figures into RUN_DIR/figures."""
+    """``plot RUN_DIR [--force]``: draw one run's figures into RUN_DIR/figures."""
     from swarm.plots import plot_run
 
-    try:
-        paths = plot_run(args.run_dir)
-    except (ValueError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+    with ends_with(REFUSED, ValueError), ends_with(FAILED, OSError):
+        paths = plot_run(args.run_dir, force=args.force)
     for path in paths:
         print(f"figure: {path}")
     return 0
@@ -514,13 +471,10 @@ def cmd_deploy(args: argparse.Namespace) -> int:
     from swarm.deploy import write_deployment
     from swarm.launch import new_run_id
 
-    try:
+    with ends_with(REFUSED, ValueError), ends_with(FAILED, OSError):
         config = RunConfig(run_id=args.run_id or new_run_id(), followers=args.followers,
                            start_timeout=args.start_timeout, agent_timeout=args.agent_timeout)
         written = write_deployment(args.out, config, force=args.force)
-    except (ValueError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
     print(f"deployment of run {config.run_id} ({config.followers} followers): "
           f"{len(written)} files in {args.out}; secrets in {Path(args.out) / 'secrets'} "
           "(keep them out of version control)")
@@ -541,6 +495,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="agents as sessions in this process")
     run.add_argument("--out", help="results folder (default runs/<run_id>)")
     run.add_argument("--plot", action="store_true", help="draw the run's figures at the end")
+    run.add_argument("--force", action="store_true",
+                     help="replace the results already in --out (default: refuse)")
     run.add_argument("--live", action="store_true",
                      help="serve a live view of the run on localhost (kept up until Ctrl-C)")
     add_live_port(run)
@@ -586,6 +542,7 @@ def build_parser() -> argparse.ArgumentParser:
                                               "USGS, public domain) as a GeoTIFF")
     dem.add_argument("out", metavar="OUT.tif")
     dem.add_argument("--npz", help="another .npz in the same layout (default: the sample)")
+    dem.add_argument("--force", action="store_true", help="replace OUT if it exists")
     dem.set_defaults(func=cmd_dem_from_npz)
     crop = sub.add_parser("dem-crop", help="keep a rectangle of a DEM without no-data nodes "
                                            "(by default the largest) as a GeoTIFF")
@@ -598,6 +555,7 @@ def build_parser() -> argparse.ArgumentParser:
     crop.set_defaults(func=cmd_dem_crop)
     plot = sub.add_parser("plot", help="draw one run's figures into RUN_DIR/figures")
     plot.add_argument("run_dir", metavar="RUN_DIR", help="a results folder of `swarm run`")
+    plot.add_argument("--force", action="store_true", help="draw the figures anew if they exist")
     plot.set_defaults(func=cmd_plot)
     deploy = sub.add_parser("deploy", help="write a locked-down docker-compose deployment "
                                            "(router rules, credentials, TLS, compose, run.toml)")
@@ -611,11 +569,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="replace the passwords and keys already in OUT/secrets")
     deploy.set_defaults(func=cmd_deploy)
     watch = sub.add_parser("watch", help="live view of a running run, as a read-only observer")
-    watch.add_argument("--connect", action="append", required=True, metavar="ENDPOINT",
-                       help="Zenoh router (or peer) to connect to, e.g. tcp/127.0.0.1:7447")
     watch.add_argument("--run-id", required=True, help="the run to watch")
-    watch.add_argument("--mode", choices=("client", "peer"), default="client")
-    add_credential_flags(watch)
+    add_connection_flags(watch, connect_required=True)
     add_live_port(watch)
     watch.set_defaults(func=cmd_watch)
     replay = sub.add_parser("replay", help="the live view of a finished run, with a tick slider")
@@ -645,9 +600,4 @@ def add_live_port(parser: argparse.ArgumentParser) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        with bounded_interrupt():
-            return args.func(args)
-    except MissingExtra as exc:  # a feature whose extra is not installed
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    return run_command(lambda: args.func(args))

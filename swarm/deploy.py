@@ -315,14 +315,14 @@ def compose(config: RunConfig) -> dict:
                                    f"{RESULTS_IN_CONTAINER}/{config.run_id}",
                                    *_client_flags("world")],
                          [f"results:{RESULTS_IN_CONTAINER}"]),
-        "leader": service("leader", ["python", "-m", "agents.leader", *base, "--mode", "client",
-                                     *_client_flags("leader")], []),
+        "leader": service("leader", ["python", "-m", "agents.leader", *base,
+                                     "--session-mode", "client", *_client_flags("leader")], []),
     }
     volumes = {"results": {}}
     for k in range(1, config.followers + 1):
         user = agent_user(k)
         services[user] = service(user, [
-            "python", "-m", "agents.follower", "--id", str(k), *base, "--mode", "client",
+            "python", "-m", "agents.follower", "--id", str(k), *base, "--session-mode", "client",
             "--state-dir", STATE_IN_CONTAINER, *_client_flags(user)],
             [f"state-{k}:{STATE_IN_CONTAINER}"])
         volumes[f"state-{k}"] = {}

@@ -26,7 +26,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from protocol.config import GPS_DICTIONARIES, RunConfig
+from protocol.config import GPS_DICTIONARIES
 from swarm.grid import (RUN_ATTEMPTS, Axis, GridRun, RunOutcome, execute, expand,
                         follower_rows, is_nan, mean_over, read_table, run_grid, summary_row,
                         write_table, write_tables)
@@ -86,14 +86,14 @@ def paper_grid(spec: GridSpec = FULL) -> dict[str, list[GridRun]]:
     reproducible. Dictionary, practical and comm-period runs have one follower; the
     sensing-range runs have three.
     """
-    base = RunConfig(ticks=spec.ticks)
+    base = {"ticks": spec.ticks}
     surface = Axis.of_field("surface", spec.surfaces)
     estimator = Axis("estimator", tuple(ESTIMATORS.items()))
     return {
-        "sensing_range": expand("sensing_range", base.replace(followers=3), [surface, estimator]),
+        "sensing_range": expand("sensing_range", {**base, "followers": 3}, [surface, estimator]),
         "dictionaries": expand("dictionaries", base, [surface, Axis(
             "dictionary", tuple({**DICTIONARIES, **BASELINES}.items()))]),
-        "practical": expand("practical", base.replace(noise_move=spec.noise_move), [
+        "practical": expand("practical", {**base, "noise_move": spec.noise_move}, [
             surface, Axis("variant", tuple(PRACTICAL_VARIANTS.items())),
             Axis.of_field("noise_velocity", spec.noise_velocities, "nv{:g}"),
             Axis.of_field("seed", spec.seeds, "s{}")], {"noise_move": spec.noise_move}),

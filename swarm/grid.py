@@ -26,10 +26,13 @@ from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from collections.abc import Iterable, Mapping
+from typing import Any
 
-from protocol.config import DICTIONARIES, GPS_DICTIONARIES, RunConfig, load_config, write_atomic
+from protocol.config import (DEFAULTS, OPTIONS, RunConfig, estimator_options, given_options,
+                             idle_reason, load_config, write_atomic)
 from protocol.distribution import needs, require
+from protocol.limits import MAX_RUN_ID
 
 RUN_ATTEMPTS = 2
 
@@ -363,16 +366,21 @@ class Axis:
         return cls(name, tuple((v, {name: v}) for v in values), fragment)
 
 
-def expand(table: str, base: RunConfig, axes: list[Axis],
+def expand(table: str, base: Mapping[str, Any], axes: list[Axis],
            labels: dict[str, Any] | None = None) -> list[GridRun]:
     """Every combination of the axes' values, in order (the last axis varies fastest).
 
-    Each run is ``base`` with the options of its values applied, ``run_id`` ``<table>-<name>``,
-    where ``name`` joins the axes' fragments with ``-``; its labels are ``labels`` plus one per
-    axis. Raises ValueError (naming the option) for an invalid combination, and for a value
-    listed twice or two combinations sharing a folder name (each run is run once and counted
-    once in a mean).
+    Each run is the options ``base`` (any run option; a ``RunConfig``'s ``to_dict()`` too)
+    with the options of its values applied, ``run_id`` ``<table>-<name>``, where ``name``
+    joins the axes' fragments with ``-``; its labels are ``labels`` plus one per axis. An
+    option ``base`` sets that does nothing in a run (:func:`protocol.config.idle_reason`, e.g.
+    a dictionary in a persist run of a ``compare``) keeps its default there. Raises
+    ValueError (naming the option) for an invalid combination, for a ``base`` option that
+    does nothing in any run or that an axis sets in every run, and for a value listed twice
+    or two combinations sharing a folder name (each run is run once and counted once in a
+    mean).
     """
+    given = {k: v for k, v in base.items() if k != "run_id" and DEFAULTS.get(k, v) != v}
     combos: list[tuple[list[str], dict[str, Any], dict[str, Any]]] = [([], dict(labels or {}), {})]
     for axis in axes:
         if not axis.values:
@@ -382,10 +390,15 @@ def expand(table: str, base: RunConfig, axes: list[Axis],
             if label in seen:
                 raise ValueError(f"axis {axis.name!r} lists {label!r} more than once")
             seen.append(label)
+        for key in set(given).intersection(*(options for _, options in axis.values)):
+            raise ValueError(f"{key} = {OPTIONS[key].show(given[key])} does nothing: axis "
+                             f"{axis.name!r} sets it in every run")
         combos = [(parts + [axis.fragment.format(label)], {**lab, axis.name: label},
                    {**opts, **options})
                   for parts, lab, opts in combos for label, options in axis.values]
     runs: dict[str, GridRun] = {}  # by folder name
+    used: set[str] = set()  # the base options that do something in some run
+    idle_why: dict[str, str] = {}  # why a base option does nothing in a run
     for parts, lab, opts in combos:
         name = re.sub(r"[^A-Za-z0-9_.-]", "_", "-".join(parts))
         if name in runs:
@@ -393,24 +406,25 @@ def expand(table: str, base: RunConfig, axes: list[Axis],
                              f"'{table}/{name}': make the labels differ in letters, digits, "
                              "'_', '.' or '-'")
         run_id = f"{table}-{name}"
-        if len(run_id) > 64:  # run ids are at most 64 characters: keep them unique
-            run_id = f"{run_id[:51]}-{hashlib.sha1(run_id.encode()).hexdigest()[:12]}"
-        runs[name] = GridRun(table, name, base.replace(run_id=run_id, **opts), lab)
+        if len(run_id) > MAX_RUN_ID:  # keep the run ids unique within their limit
+            run_id = f"{run_id[:MAX_RUN_ID - 13]}-{hashlib.sha1(run_id.encode()).hexdigest()[:12]}"
+        options = given_options({**base, **opts, "run_id": run_id})
+        values = {**DEFAULTS, **options}
+        idle = {k: why for k in given.keys() - opts.keys()
+                if k in OPTIONS and (why := idle_reason(k, values)) is not None}
+        idle_why.update(idle)
+        used |= given.keys() - idle.keys()
+        config = RunConfig(**{k: v for k, v in options.items() if k not in idle})
+        runs[name] = GridRun(table, name, config, lab)
+    for key in given.keys() - used:
+        raise ValueError(f"{key} = {OPTIONS[key].show(given[key])} does nothing in any run "
+                         f"{idle_why[key]}: leave it out")
     return list(runs.values())
 
 
-def estimator_options(label: str) -> dict[str, Any]:
-    """Run options of an estimator label: ``edmd-<letter>`` is EDMD on that dictionary (with
-    GPS for d-g), any other label is an ``estimator`` value (a built-in name or
-    ``package.module:Name``)."""
-    if label.startswith("edmd-") and label[5:] in DICTIONARIES:
-        options = {"estimator": "edmd", "dictionary": label[5:]}
-        return {**options, "gps": True} if label[5:] in GPS_DICTIONARIES else options
-    return {"estimator": label}
-
-
 def estimator_axis(labels) -> Axis:
-    """The ``estimator`` axis over estimator labels (:func:`estimator_options`)."""
+    """The ``estimator`` axis over estimator labels
+    (:func:`protocol.config.estimator_options`)."""
     return Axis("estimator", tuple((label, estimator_options(label)) for label in labels))
 
 

@@ -221,7 +221,8 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
            on_tick: Callable[[int], None] | None = None, endpoint: str | None = None,
            credentials_dir: str | Path | None = None,
            credentials: RunCredentials | None = None,
-           before_agents: Callable[[RunCredentials], None] | None = None) -> dict:
+           before_agents: Callable[[RunCredentials], None] | None = None,
+           force: bool = False) -> dict:
     """Run ``config`` end to end; return the summary (also in ``out_dir/summary.json``).
 
     The world listens on ``endpoint`` (default: a free loopback port) as a router that admits
@@ -230,7 +231,8 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
     (created, mode 0700; it must not exist), by default to a temporary folder removed at the
     end; or ``credentials`` made beforehand with :meth:`RunCredentials.create` are used.
     ``before_agents`` is called with them once the world is up, before the agents start
-    (the live view connects there, as the ``observer`` user).
+    (the live view connects there, as the ``observer`` user). A folder that holds results
+    is refused unless ``force`` (which replaces them).
 
     Raises RuntimeError if the agents do not come up. Ctrl-C stops every agent and leaves a
     partial result marked incomplete.
@@ -239,21 +241,22 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
     endpoint = endpoint or free_tcp_endpoint()
     if credentials is not None:
         return _launch(config, out_dir, in_process, on_tick, endpoint, credentials,
-                       before_agents)
+                       before_agents, force)
     if credentials_dir is not None:
         return _launch(config, out_dir, in_process, on_tick, endpoint,
                        RunCredentials.create(Path(credentials_dir), config.followers),
-                       before_agents)
+                       before_agents, force)
     with tempfile.TemporaryDirectory(prefix="swarm-credentials-") as scratch:
         return _launch(config, out_dir, in_process, on_tick, endpoint,
                        RunCredentials.create(Path(scratch) / "run", config.followers),
-                       before_agents)
+                       before_agents, force)
 
 
 def _launch(config: RunConfig, out_dir: Path, in_process: bool,
             on_tick: Callable[[int], None] | None, endpoint: str,
             credentials: RunCredentials,
-            before_agents: Callable[[RunCredentials], None] | None = None) -> dict:
+            before_agents: Callable[[RunCredentials], None] | None = None,
+            force: bool = False) -> dict:
     agents = (_ThreadAgents(config, endpoint, credentials) if in_process
               else _ProcessAgents(config, out_dir, endpoint, credentials))
     log.info("run %s: credentials in %s (observer: %s)", config.run_id, credentials.folder,
@@ -266,7 +269,7 @@ def _launch(config: RunConfig, out_dir: Path, in_process: bool,
 
     try:
         summary = run_world(config, embedded_router_config(config, endpoint, credentials),
-                            out_dir, on_tick=on_tick, on_ready=ready)
+                            out_dir, on_tick=on_tick, on_ready=ready, force=force)
     except BaseException:  # Ctrl-C or a failure: end every agent now
         agents.stop(timeout=1.0)
         raise

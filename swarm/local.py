@@ -2,9 +2,10 @@
 
 Every number comes from the same code as a Zenoh run (``WorldSim`` for the world,
 ``agents.follower.follower_tick`` and the policies for the followers); only the transport is
-replaced by function calls, with the messages still passed through the codec. A test checks
-that this layout gives numbers identical to the Zenoh layouts. Used for fast estimator studies
-and for the benchmark tables; ``swarm experiment`` itself runs over Zenoh.
+replaced by function calls, with every message still passed through the codec, and the ticks
+follow the service's order (:mod:`world.schedule`). A test checks that this layout gives
+numbers identical to the Zenoh layouts. Used for fast estimator studies and for the benchmark
+tables; ``swarm experiment`` itself runs over Zenoh.
 """
 from __future__ import annotations
 
@@ -14,27 +15,32 @@ from pathlib import Path
 from agents.follower import follower_tick
 from agents.policies import Policy, make_policy
 from protocol.config import AgentSettings, RunConfig
-from protocol.messages import ActSensing, Message, Move, Observation, Sensing, Snap, decode, encode
+from protocol.messages import (ActResult, ActSensing, Drive, Message, Move, Observation,
+                               SenseRequest, Sensing, Snap, decode, encode)
 from world.main import resolve_with_surface
 from world.results import RunRecorder
+from world.schedule import may_open, predecessor_through
 from world.sim import RunEnded, WorldSim
 
 
 class LocalLink:
-    """The ``sense``/``act`` half of ``agents.link.AgentLink``, answered by a ``WorldSim``."""
+    """The ``sense``/``act`` half of ``agents.link.AgentLink``, answered by a ``WorldSim``;
+    every message goes through the codec both ways, as on the wire."""
 
     def __init__(self, sim: WorldSim, agent: int) -> None:
         self.sim, self.agent = sim, agent
 
     @staticmethod
-    def _wire(msg: Message) -> Message:
+    def wire(msg: Message) -> Message:
+        """``msg`` encoded and decoded again (validated as the receiving side does)."""
         return decode(encode(msg), type(msg))
 
     def sense(self, tick: int, phase: str) -> Sensing:
-        return self._wire(self.sim.sense(self.agent, tick, phase))
+        request = self.wire(SenseRequest(tick=tick, phase=phase))
+        return self.wire(self.sim.sense(self.agent, request.tick, request.phase))
 
-    def act(self, request: Move | Snap) -> ActSensing:
-        return self._wire(self.sim.act(self.agent, self._wire(request)))
+    def act(self, request: Drive | Move | Snap) -> ActResult | ActSensing:
+        return self.wire(self.sim.act(self.agent, self.wire(request)))
 
 
 def run_local(config: RunConfig, out_dir: str | Path | None = None,
@@ -42,6 +48,10 @@ def run_local(config: RunConfig, out_dir: str | Path | None = None,
               ) -> tuple[dict, list[dict]]:
     """Run ``config`` in this thread; return (summary, ticks rows). Writes results if ``out_dir``.
 
+    The ticks follow the lockstep order of the Zenoh service (:mod:`world.schedule`): in
+    each step every tick that every agent is through completes, the next tick opens if it
+    may, and then every agent that may begin its next tick does it (pipelined, agent ``k``
+    does tick ``s - k`` in step ``s``; unpipelined, one agent at a time).
     ``policy_factory`` builds each follower's policy (default: the one the config names);
     estimator studies pass their own.
     """
@@ -49,55 +59,45 @@ def run_local(config: RunConfig, out_dir: str | Path | None = None,
     sim = WorldSim(config, surface)
     settings = AgentSettings.from_config(config)
     policies = [policy_factory(settings) for _ in range(config.followers)]
-    links = [LocalLink(sim, k) for k in range(1, config.followers + 1)]
+    links = [LocalLink(sim, k) for k in range(config.followers + 1)]
     recorder = RunRecorder(out_dir, config)
     if out_dir is not None:
         recorder.open()
     rows: list[dict] = []
+    observations: dict[int, list[tuple[int, Observation]]] = {}  # per open tick
 
-    def follower(k: int, tick: int) -> tuple[int, Observation]:
-        return k, follower_tick(links[k - 1], policies[k - 1], settings, tick).observation
-
-    def finish(tick: int, observations: list[tuple[int, Observation]]) -> None:
-        tick_rows = sim.finish_tick(tick)
-        rows.extend(tick_rows)
-        recorder.add_tick(tick_rows, observations)
-
-    def act(action: Callable, *args):
-        """``action(*args)``, or None if it met a condition that ends the run (the world
-        keeps the earliest such tick, ``sim.end_tick``, as in a Zenoh run)."""
-        try:
-            return action(*args)
-        except RunEnded:
-            return None
+    def agent_tick(k: int, tick: int) -> None:
+        if k == 0:
+            links[0].act(Drive(tick=tick, t=sim.time_of(tick)))
+            return
+        outcome = follower_tick(links[k], policies[k - 1], settings, tick)
+        observations.setdefault(tick, []).append((k, LocalLink.wire(outcome.observation)))
 
     def ends_before(tick: int) -> bool:
         return sim.end_tick is not None and tick >= sim.end_tick
 
-    n, ticks = config.followers, config.ticks
-    if config.pipelined:  # a wavefront: at step s, agent k does tick s - k (SPEC §4)
-        pending: dict[int, list] = {}
-        for step in range(ticks + n):
-            if step < ticks and not ends_before(step):
-                sim.open_tick(step)
-                act(sim.drive, 0, step, sim.time_of(step))
-            for k in range(1, n + 1):
-                if 0 <= step - k < ticks and not ends_before(step - k):
-                    done = act(follower, k, step - k)
-                    if done is not None:
-                        pending.setdefault(step - k, []).append(done)
-            if step - n >= 0 and not ends_before(step - n):
-                finish(step - n, pending.pop(step - n))
-    else:  # one agent at a time
-        for tick in range(ticks):
-            if ends_before(tick):
-                break
-            sim.start_tick(tick)
-            act(sim.drive, 0, tick, sim.time_of(tick))
-            observations = [act(follower, k, tick) for k in range(1, n + 1)
-                            if not ends_before(tick)]
-            if not ends_before(tick):
-                finish(tick, observations)
+    # the service's tick order (world.schedule); an action that meets a condition ending the
+    # run leaves its agent where it was, and the world keeps the earliest such tick
+    through, last = [-1] * sim.n_agents, config.ticks - 1
+    while sim.complete < last and not sim.over:
+        while sim.complete < last and min(through) > sim.complete:
+            tick = sim.complete + 1
+            tick_rows = sim.finish_tick(tick)
+            rows.extend(tick_rows)
+            recorder.add_tick(tick_rows, observations.pop(tick, []))
+        if may_open(through, sim.tick, last, config.pipelined) and not ends_before(sim.tick + 1):
+            sim.open_tick(sim.tick + 1)
+        ready = [k for k in range(sim.n_agents)
+                 if through[k] < sim.tick and not ends_before(through[k] + 1)
+                 and predecessor_through(through, k, through[k] + 1)]
+        if not ready and not sim.over and sim.complete < last and min(through) <= sim.complete:
+            raise RuntimeError(f"no agent can go on at tick {sim.complete + 1}")
+        for k in ready:
+            try:
+                agent_tick(k, through[k] + 1)
+            except RunEnded:
+                continue
+            through[k] += 1
     complete, reason = sim.end_tick is None, sim.end_reason
     if out_dir is not None:
         recorder.write_summary(complete=complete, reason=reason)

@@ -306,18 +306,22 @@ def plot_required_range(run_dir: str | Path, path: str | Path) -> Path:
     return _save(fig, path)
 
 
-def plot_run(run_dir: str | Path) -> list[Path]:
+def plot_run(run_dir: str | Path, force: bool = False) -> list[Path]:
     """Draw one run's figures into ``run_dir/figures``; return their paths.
 
-    Raises ValueError if ``run_dir`` is not a results folder.
+    Raises ValueError if ``run_dir`` is not a results folder, or holds the figures already
+    (unless ``force``: draw them anew).
     """
     run_dir = Path(run_dir)
     missing = [n for n in ("config.toml", "ticks.csv", "summary.json") if not (run_dir / n).is_file()]
     if missing:
         raise ValueError(f"run_dir {run_dir} is not a results folder (missing {', '.join(missing)})")
-    out = run_dir / "figures"
-    return [plot_effectiveness(run_dir, out / "effectiveness.png"),
-            plot_required_range(run_dir, out / "required_range.png")]
+    effectiveness, required = (run_dir / "figures" / f"{name}.png"
+                               for name in ("effectiveness", "required_range"))
+    if not force and (effectiveness.exists() or required.exists()):
+        raise ValueError(f"{run_dir / 'figures'} holds the run's figures already; draw them "
+                         "anew with --force")
+    return [plot_effectiveness(run_dir, effectiveness), plot_required_range(run_dir, required)]
 
 
 def _estimator_label(config) -> str:

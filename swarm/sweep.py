@@ -30,7 +30,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from protocol.config import MAX_CONFIG_DEPTH, RunConfig, config_from_dict, read_toml
+from protocol.config import MAX_CONFIG_DEPTH, read_toml
 from swarm.grid import (SUMMARY_COLUMNS, Axis, RunOutcome, estimator_axis, expand, mean_over,
                         run_grid, summary_row, table_number, write_run_index, write_table)
 
@@ -54,8 +54,9 @@ def axis_from_toml(name: str, value: Any) -> Axis:
     return Axis.of_field(name, value, fragment)
 
 
-def load_grid(path: str | Path) -> tuple[str, RunConfig, list[Axis], int]:
-    """Read a grid file: (table name, base config, axes, follower). ValueError names problems."""
+def load_grid(path: str | Path) -> tuple[str, dict[str, Any], list[Axis], int]:
+    """Read a grid file: (table name, base options, axes, follower). ValueError names
+    problems."""
     path = Path(path)
     data = read_toml(path, "grid file", GRID_DEPTH)
     unknown = set(data) - {"name", "follower", "base", "axes"}
@@ -66,14 +67,17 @@ def load_grid(path: str | Path) -> tuple[str, RunConfig, list[Axis], int]:
     axes_data = data.get("axes")
     if not isinstance(axes_data, dict) or not axes_data:
         raise ValueError(f"grid file {path}: [axes] must name at least one axis")
+    base = data.get("base", {})
     try:
-        base = config_from_dict({"run_id": "sweep", **data.get("base", {})})
+        if not isinstance(base, dict):
+            raise ValueError("[base] must be a table of options")
         axes = [axis_from_toml(k, v) for k, v in axes_data.items()]
-        expand(name, base, axes)  # every combination must be a valid configuration
+        runs = expand(name, base, axes)  # every combination must be a valid configuration
     except (TypeError, ValueError) as exc:
         raise ValueError(f"grid file {path}: {exc}") from None
-    if not isinstance(follower, int) or not 1 <= follower <= base.followers:
-        raise ValueError(f"grid file {path}: follower must be in 1..{base.followers}")
+    followers = min(run.config.followers for run in runs)
+    if not isinstance(follower, int) or not 1 <= follower <= followers:
+        raise ValueError(f"grid file {path}: follower must be in 1..{followers}")
     return name, base, axes, follower
 
 
@@ -85,7 +89,7 @@ def compare_axes(estimators: list[str], seeds: list[int]) -> list[Axis]:
             Axis.of_field("seed", seeds, "s{}")]
 
 
-def run_sweep(name: str, base: RunConfig, axes: list[Axis], out_dir: str | Path,
+def run_sweep(name: str, base: dict[str, Any], axes: list[Axis], out_dir: str | Path,
               follower: int = 1, workers: int | None = None, progress: bool = True,
               scheduler: str | None = None) -> dict:
     """Run the grid (on the dask scheduler at ``scheduler`` if given; runs already finished

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import time
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,7 +32,7 @@ from typing import Any
 import numba
 import numpy as np
 
-from protocol.config import AUTO, CLASSICAL, OWN_MOTION, RunConfig, write_atomic
+from protocol.config import AUTO, CLASSICAL, OWN_MOTION, write_atomic
 from protocol.distribution import needs
 from swarm.experiment import draw_jobs
 from swarm.grid import (Axis, GridRun, RunOutcome, estimator_axis, expand, follower_rows, is_nan,
@@ -104,9 +105,9 @@ def terrain_grid(dem: str | Path, spec: TerrainSpec) -> list[GridRun]:
     ``spec.position_periods`` gives the position table (follower ``k`` depends only on the
     agents ahead of it, so one run serves both).
     """
-    base = RunConfig(surface=f"dem:{Path(dem).resolve()}", followers=spec.followers,
-                     spacing=spec.spacing, ticks=spec.ticks,
-                     surface_params={"smoothing": spec.smoothing} if spec.smoothing else {})
+    base = {"surface": f"dem:{Path(dem).resolve()}", "followers": spec.followers,
+            "spacing": spec.spacing, "ticks": spec.ticks,
+            "surface_params": {"smoothing": spec.smoothing} if spec.smoothing else {}}
     starts = Axis("start", tuple((i, {"leader_start": s}) for i, s in enumerate(spec.leader_starts)),
                   "start{}")
     return expand("terrain", base, [starts, Axis.of_field("comm_period", spec.comm_periods,
@@ -350,19 +351,42 @@ def write_geotiff(path: str | Path, heights: np.ndarray, *, west: float, south: 
     return path
 
 
-def dem_from_npz(out: str | Path, npz: str | Path | None = None) -> Path:
+def check_tif_out(out: Path, force: bool) -> None:
+    """ValueError unless ``out`` is a GeoTIFF path (``.tif``) that does not exist yet, or
+    ``force`` (replace it)."""
+    if out.exists() and not force:
+        raise ValueError(f"out {str(out)!r} exists; choose another path or replace it (--force)")
+    if out.suffix.lower() not in (".tif", ".tiff"):
+        raise ValueError(f"out {str(out)!r} must be a GeoTIFF path (.tif)")
+
+
+NPZ_KEYS = ("elevation", "xmin", "xmax", "ymin", "ymax", "dx", "dy")
+
+
+def dem_from_npz(out: str | Path, npz: str | Path | None = None, force: bool = False) -> Path:
     """Write matplotlib's Jacksboro sample DEM (or ``npz`` in the same layout) as a GeoTIFF.
 
     The archive holds ``elevation`` (rows, cols; north row first; metres) and the grid's outer
     edges in degrees (``xmin``, ``xmax``; ``ymin`` is its **northern** edge, ``ymax`` the
-    southern one) with cell sizes ``dx``, ``dy``; the GeoTIFF is EPSG:4326.
+    southern one) with cell sizes ``dx``, ``dy``; the GeoTIFF is EPSG:4326. ValueError (one
+    line) if ``out`` exists (unless ``force``) or is not a ``.tif``, or ``npz`` is not such an
+    archive.
     """
     import matplotlib.cbook
 
-    data = (np.load(npz) if npz is not None
-            else matplotlib.cbook.get_sample_data(JACKSBORO))
-    elevation = np.asarray(data["elevation"])
+    check_tif_out(Path(out), force)
+    try:
+        archive = (np.load(npz, allow_pickle=False) if npz is not None
+                   else matplotlib.cbook.get_sample_data(JACKSBORO))
+        data = {key: np.asarray(archive[key], dtype=float) for key in NPZ_KEYS}
+    except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile) as exc:
+        problem = exc.strerror if isinstance(exc, OSError) and exc.strerror else \
+            "not an .npz of numbers " + ", ".join(NPZ_KEYS)
+        raise ValueError(f"npz {str(npz)!r}: {problem}") from None
+    elevation = data["elevation"]
     north, south = max(data["ymin"], data["ymax"]), min(data["ymin"], data["ymax"])
+    if elevation.ndim != 2 or not all(data[k].ndim == 0 for k in NPZ_KEYS[1:]):
+        raise ValueError(f"npz {str(npz)!r}: elevation must be a 2-D grid and its edges numbers")
     rows, cols = elevation.shape
     if not (math.isclose(north - south, rows * data["dy"], rel_tol=1e-6)
             and math.isclose(data["xmax"] - data["xmin"], cols * data["dx"], rel_tol=1e-6)):
@@ -416,10 +440,7 @@ def crop_dem(source: str | Path, out: str | Path,
     source, out = Path(source), Path(out)
     if out.resolve() == source.resolve():  # what can be refused before reading the raster
         raise ValueError(f"out {str(out)!r} is the source DEM; write the crop elsewhere")
-    if out.exists() and not force:
-        raise ValueError(f"out {str(out)!r} exists; choose another path or replace it (--force)")
-    if out.suffix.lower() not in (".tif", ".tiff"):
-        raise ValueError(f"out {str(out)!r} must be a GeoTIFF path (.tif)")
+    check_tif_out(out, force)
     if bounds is not None and not (bounds[0] < bounds[2] and bounds[1] < bounds[3]):
         raise ValueError(f"bounds must be xmin,ymin,xmax,ymax with xmin < xmax and "
                          f"ymin < ymax, got {bounds}")

@@ -7,6 +7,7 @@ import signal
 import numpy as np
 
 from agents.policies import NotReady, Proposal, relative
+from protocol.limits import MAX_NAME
 
 
 class MeanStep:
@@ -39,9 +40,15 @@ def not_a_policy(settings):
 
 
 class LongName(MeanStep):
-    """A policy whose name is too long to travel in an observation."""
+    """A policy whose name is one character too long to travel in an observation."""
 
-    name = "x" * 200
+    name = "x" * (MAX_NAME + 1)
+
+
+class LongestName(MeanStep):
+    """A policy whose name is as long as an observation carries."""
+
+    name = "n" * MAX_NAME
 
 
 class KillsItsProcess(MeanStep):

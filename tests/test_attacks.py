@@ -105,7 +105,7 @@ def test_world_refuses_a_finished_runs_folder(tmp_path):
     again = subprocess.run([sys.executable, "-m", "world", "--config", str(tmp_path / "config.toml"),
                             "--listen", free_tcp_endpoint(), "--out", str(tmp_path / "run")],
                            cwd=ROOT, capture_output=True, text=True, timeout=60)
-    assert again.returncode == 1
+    assert again.returncode == 2  # refused before anything ran
     assert "already holds results of run 'done-once'" in again.stderr
     assert (tmp_path / "run" / "ticks.csv").read_bytes() == before
 

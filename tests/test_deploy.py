@@ -138,7 +138,7 @@ def test_compose_matches_router_and_credentials(deployment):
         assert deployment.option(f"follower-{k}", "--id") == str(k)
     assert "--state-dir" not in services["leader"]["command"]
     for agent in AGENTS:
-        assert deployment.option(agent, "--mode") == "client"
+        assert deployment.option(agent, "--session-mode") == "client"
     image_version = services["zenoh"]["image"].rpartition(":")[2]
     assert image_version.split(".")[:2] == version("eclipse-zenoh").split(".")[:2]
 
@@ -195,7 +195,7 @@ def _reveals(reply: Sensing, pose: tuple[float, float, float]) -> bool:
 
 def test_sensing_never_reveals_absolute_positions_without_gps(monkeypatch):
     log = _sensing_log(monkeypatch, RunConfig(run_id="privacy", followers=2, ticks=8,
-                                              velocity="oracle"))
+                                              dictionary="c", velocity="oracle"))
     assert len(log) >= 2 * 8 * 2  # every follower senses at least twice a tick
     for _, reply, poses in log:
         assert reply.gps is None and reply.leader_gps is None
@@ -217,17 +217,18 @@ def test_sensing_reveals_positions_when_the_run_enables_gps(monkeypatch):
 def test_every_session_config_bounds_message_size_and_takes_tls_flags(deployment):
     import argparse
 
-    from protocol.session import add_credential_flags, tls_options, zenoh_config
+    from protocol.session import add_connection_flags, connection_config, tls_options, zenoh_config
 
     for mode, kwargs in (("peer", {}), ("client", {"connect": ["tcp/127.0.0.1:7447"]}),
                          ("router", {"listen": ["tcp/127.0.0.1:0"]})):
         conf = zenoh_config(mode, **kwargs)
         assert json.loads(conf.get_json("transport/link/rx/max_message_size")) == MAX_MESSAGE_SIZE
     parser = argparse.ArgumentParser()
-    add_credential_flags(parser)
+    add_connection_flags(parser)
     files = [str(deployment.secret("leader", name)) for name in ("ca.pem", "cert.pem", "key.pem")]
-    args = parser.parse_args(["--tls-ca", files[0], "--tls-cert", files[1], "--tls-key", files[2]])
-    conf = zenoh_config("client", connect=["tls/localhost:7447"], **tls_options(args))
+    args = parser.parse_args(["--connect", "tls/localhost:7447", "--tls-ca", files[0],
+                              "--tls-cert", files[1], "--tls-key", files[2]])
+    conf = connection_config(args)  # the one helper of every command (world, agents, watch)
     assert json.loads(conf.get_json("transport/link/tls/connect_certificate")) == files[1]
     assert json.loads(conf.get_json("transport/link/tls/enable_mtls")) is True
     assert tls_options(parser.parse_args([])) == dict.fromkeys(("tls_ca", "tls_cert", "tls_key"))

@@ -153,7 +153,7 @@ def test_agent_without_world_exits(tmp_path):
 
     dump_config(RunConfig(run_id="orphan", start_timeout=1.0), tmp_path / "c.toml")
     proc = subprocess.run([sys.executable, "-m", "agents.leader", "--config",
-                           str(tmp_path / "c.toml"), "--mode", "peer"],
+                           str(tmp_path / "c.toml"), "--session-mode", "peer"],
                           cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1
     assert "is the world running?" in proc.stderr

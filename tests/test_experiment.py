@@ -180,7 +180,7 @@ def test_plot_command_on_a_run(quick_experiment, capsys):
     for name in ("effectiveness.png", "required_range.png"):
         assert_png(run_dir / "figures" / name)
         assert name in printed
-    assert main(["plot", str(out / "tables")]) == 1
+    assert main(["plot", str(out / "tables")]) == 2  # refused: not a results folder
 
 
 def test_every_run_failed_still_gives_tables_and_report(tmp_path):

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import pytest
 
-from protocol.config import RunConfig
 from swarm.grid import Axis, estimator_axis, expand, run_grid
 from swarm.local import run_local
 from tests.waiting import children, running, signalled, wait_for
@@ -58,7 +57,7 @@ def scratch(tmp_path, monkeypatch) -> Path:
 def test_a_worker_killed_mid_run_costs_nothing(tmp_path, scratch):
     print(f"FAULT_SEED={SEED} (rerun with this environment variable to replay)")
     delay = random.Random(SEED).uniform(0.0, 0.5)
-    base = RunConfig(run_id="g", ticks=300)
+    base = {"ticks": 300}
     runs = expand("killed", base, [estimator_axis(["persist", "kalman"]),
                                    Axis.of_field("seed", [0, 1], "s{}")])
     result: dict = {}
@@ -90,7 +89,7 @@ def test_a_worker_killed_mid_run_costs_nothing(tmp_path, scratch):
 
 @pytest.mark.timeout(300)
 def test_a_run_that_kills_its_worker_is_reported_and_the_others_finish(tmp_path, scratch):
-    base = RunConfig(run_id="g", ticks=8)
+    base = {"ticks": 8}
     runs = expand("dies", base, [estimator_axis(["persist", KILLS, "kalman"])])
     outcomes = run_grid(runs, tmp_path, workers=2, progress=False)
     assert [o.run for o in outcomes] == runs

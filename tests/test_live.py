@@ -19,6 +19,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -571,28 +572,43 @@ def test_cli_refuses_bad_live_arguments(tmp_path, capsys):
     assert "run_id must be" in capsys.readouterr().err
     assert main(["replay", str(tmp_path)]) == 2
     assert "cannot replay" in capsys.readouterr().err
-    assert main(["run", "--live", "--live-port", "70000", "--out", str(tmp_path / "r")]) == 1
+    assert main(["run", "--live", "--live-port", "70000", "--out", str(tmp_path / "r")]) == 2
     assert "port must be" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()  # nothing ran
 
 
 def test_watch_without_a_router_names_replay(capsys):
-    """A watcher pointed at a router that is gone (a `swarm run` that ended) says so."""
+    """A watcher pointed at a router that is gone (a `swarm run` that ended) says so in one
+    line, and announces no page first."""
     from swarm.cli import main
 
     assert main(["watch", "--connect", free_tcp_endpoint(), "--run-id", "gone", "--live-port",
                  "0", "--cfg", "connect/timeout_ms:500"]) == 1
-    err = capsys.readouterr().err
-    assert "the live view cannot connect to Zenoh" in err and "swarm replay RUN_DIR" in err
-    assert ".rs:" not in err
+    out, err = capsys.readouterr()
+    assert "live view" not in out
+    assert err.startswith("error: the live view cannot connect to Zenoh")
+    assert "swarm replay RUN_DIR" in err and ".rs:" not in err and len(err.splitlines()) == 1
+
+
+def test_watch_refuses_incomplete_tls_flags(capsys, tmp_path):
+    """``watch`` takes the connection flags of every command; its TLS files are used, so a
+    partial set is refused before anything starts."""
+    from swarm.cli import main
+
+    (tmp_path / "ca.pem").write_text("not a certificate")
+    assert main(["watch", "--connect", "tls/127.0.0.1:7447", "--run-id", "r", "--tls-ca",
+                 str(tmp_path / "ca.pem")]) == 2
+    assert capsys.readouterr().err == ("error: --tls-ca, --tls-cert and --tls-key must be "
+                                       "given together\n")
 
 
 def test_watch_page_of_a_run_assembled_elsewhere(browser, tmp_path):
-    """``swarm watch`` started before the world exists: the page waits for it, then follows the
-    run (world and agents as processes on their own router) to its last tick and end. The run
-    is paced (realtime, about 5 s): a lockstep run of 20 ticks can end in half a second, before
-    the watcher's connection retry (every 0.5 s at most) has reached the world's router, and
-    then the watcher has nothing to show (seen once in CI)."""
+    """``swarm watch`` started before the world (its router) exists: it keeps trying to
+    connect, announces its page once connected, and the page follows the run (world and
+    agents as processes on their own router) to its last tick and end. The run is paced
+    (realtime, about 5 s): a lockstep run of 20 ticks can end in half a second, before the
+    watcher's connection retry (every 0.5 s at most) has reached the world's router, and then
+    the watcher has nothing to show (seen once in CI)."""
     endpoint, port = free_tcp_endpoint(), free_port()
     config = RunConfig(run_id="watched", followers=3, ticks=20, mode="realtime", time_scale=0.2)
     credentials = RunCredentials.create(tmp_path / "credentials", config.followers)
@@ -611,11 +627,11 @@ def test_watch_page_of_a_run_assembled_elsewhere(browser, tmp_path):
 
     world = threading.Thread(target=run, daemon=True)
     try:
+        time.sleep(1.0)  # the watcher is up, retrying: no page without a router behind it
+        assert "live view: " not in (tmp_path / "watch.log").read_text()
+        world.start()
         assert _until(lambda: "live view: " in (tmp_path / "watch.log").read_text(), 30.0)
         page = _open(browser, f"http://127.0.0.1:{port}/", [])
-        page.get_by_text("waiting for the world").wait_for(timeout=WAIT_S * 1000)
-        page.get_by_text("python -m swarm replay RUN_DIR").wait_for(timeout=WAIT_S * 1000)
-        world.start()
         last = page.get_by_text("tick 19 of 19")
         assert _until(lambda: last.is_visible() or "error" in result, RUN_TIMEOUT_S), (
             _page_says(page), result, (tmp_path / "watch.log").read_text()[-2000:])

@@ -17,7 +17,7 @@ RESULTS = ("ticks.csv", "observations.csv")
 
 def _config(followers: int, pipelined: bool) -> RunConfig:
     return RunConfig(run_id=f"pipe{followers}", surface="wavy", followers=followers, ticks=16,
-                     estimator="auto", velocity="estimated", noise_range=0.01,
+                     estimator="auto", noise_range=0.01,
                      noise_bearing=0.005, noise_velocity=0.02, noise_move=0.01, seed=5,
                      agent_timeout=30.0, pipelined=pipelined)
 

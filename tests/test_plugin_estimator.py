@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import sys
 
 import pytest
 
 from agents.policies import load_estimator, make_policy
 from protocol.config import AgentSettings, RunConfig
+from protocol.limits import MAX_NAME, NAME_RULE
 from swarm.launch import launch
 from swarm.local import run_local
 
@@ -39,6 +41,19 @@ def test_plugin_runs_over_zenoh_as_processes(tmp_path):
     assert on_disk["followers"]["1"]["mean_required_range"] < on_disk["followers"]["1"]["mean_persist_range"]
 
 
+def test_a_plugin_name_at_the_limit_runs_over_zenoh(tmp_path):
+    """The name limit has one owner (protocol.limits.MAX_NAME) that the follower's loader and
+    the world's codec both use: a name of MAX_NAME characters travels in every observation
+    (it used to be allowed up to 128 at load and killed the follower at tick 0)."""
+    spec = "tests.example_estimator:LongestName"
+    summary = launch(RunConfig(run_id="long-name", ticks=6, estimator=spec), tmp_path,
+                     in_process=True)
+    assert summary["complete"], summary["reason"]
+    assert summary["ticks_completed"] == 6
+    with open(tmp_path / "observations.csv", newline="") as fh:
+        assert {r["estimator"] for r in csv.DictReader(fh)} == {"n" * MAX_NAME}
+
+
 def test_plugin_errors_name_the_problem():
     settings = AgentSettings.from_config(RunConfig())
     with pytest.raises(ValueError, match="cannot import 'tests.nowhere'"):
@@ -47,7 +62,7 @@ def test_plugin_errors_name_the_problem():
         load_estimator("tests.example_estimator:Missing", settings)
     with pytest.raises(ValueError, match="does not implement propose, record, skip"):
         load_estimator("tests.example_estimator:not_a_policy", settings)
-    with pytest.raises(ValueError, match="name must be at most 128 characters"):
+    with pytest.raises(ValueError, match=re.escape(f"name must be {NAME_RULE}")):
         load_estimator("tests.example_estimator:LongName", settings)
     with pytest.raises(ValueError, match="estimator must be one of"):
         RunConfig(estimator="no colon")

@@ -178,10 +178,10 @@ def test_config_round_trip_and_errors(tmp_path):
 def test_credentials_from_flags_or_file(tmp_path):
     import argparse
 
-    from protocol.session import add_credential_flags, credentials
+    from protocol.session import add_connection_flags, credentials
 
     p = argparse.ArgumentParser()
-    add_credential_flags(p)
+    add_connection_flags(p)
     assert credentials(p.parse_args(["--user", "u", "--password", "pw"])) == ("u", "pw")
     (tmp_path / "secret").write_text("s3cret  \nignored\n")
     args = p.parse_args(["--user", "u", "--password-file", str(tmp_path / "secret")])

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.checkpoint import Entry, StateError, StateLog, replay, state_path
+from agents.checkpoint import Entry, StateLog, StateLogError, replay, state_path
 from agents.policies import make_policy
 from protocol.config import AgentSettings, RunConfig, dump_config
 from protocol.messages import Sensing
@@ -65,7 +65,7 @@ def test_a_torn_last_line_is_a_tick_never_reported(tmp_path):
 
 
 def _refusal(tmp_path: Path, start: str = START, run: str = RUN, agent: int = 1) -> str:
-    with pytest.raises(StateError) as err:
+    with pytest.raises(StateLogError) as err:
         StateLog.open(tmp_path, run, agent, start)
     message = str(err.value)
     assert "\n" not in message and str(state_path(tmp_path, agent)) in message

@@ -9,16 +9,19 @@ from pathlib import Path
 import zenoh
 
 from protocol.cli import (
-    EXPECTED_FAILURES, add_log_level_flag, bounded_interrupt, check_out_dir, describe,
-    setup_logging,
+    DONE, EXPECTED_FAILURES, REFUSED, add_log_level_flag, check_out_dir, describe, ends_with,
+    fail, refuse, run_command, setup_logging,
 )
 from protocol.config import RunConfig, dump_config, load_config
-from protocol.distribution import MissingExtra
-from protocol.session import add_credential_flags, credentials, tls_options, zenoh_config
+from protocol.session import add_connection_flags, connection_config
 from world import checkpoint
 from world.service import WorldService
 from world.sim import resolve_leader_start
 from world.surfaces import Surface, make_surface
+
+
+DEFAULT_LISTEN = ("tcp/127.0.0.1:7447",)
+"""Where the world listens as embedded router when given no ``--listen``."""
 
 
 def resolve_with_surface(config: RunConfig) -> tuple[RunConfig, Surface]:
@@ -69,54 +72,39 @@ def main(argv: list[str] | None = None) -> int:
     source.add_argument("--config", help="run configuration TOML")
     source.add_argument("--resume", metavar="RUN_DIR",
                         help="continue the run in RUN_DIR from its last complete tick")
-    group = p.add_mutually_exclusive_group()
-    group.add_argument("--listen", action="append", metavar="ENDPOINT",
-                       help="act as embedded Zenoh router listening here (default tcp/127.0.0.1:7447)")
-    group.add_argument("--connect", action="append", metavar="ENDPOINT",
-                       help="connect as a client to a Zenoh router (e.g. docker-compose's zenohd)")
     p.add_argument("--out", help="results folder (default runs/<run_id>)")
-    add_credential_flags(p)
+    add_connection_flags(p, session_modes=("router", "peer", "client"),
+                         default_mode="router, or client with --connect only")
     add_log_level_flag(p)
     p.add_argument("--force", action="store_true",
                    help="replace the results already in --out (default: refuse)")
     args = p.parse_args(argv)
     setup_logging(args.log_level)
-    with bounded_interrupt():
-        return _serve(args)
+    return run_command(lambda: _serve(args))
 
 
 def _serve(args: argparse.Namespace) -> int:
-    """The world process's run, from parsed arguments; its exit status."""
-    out = None
-    try:
+    """The world process's run, from parsed arguments; its exit status. As embedded router
+    (the default) it listens on ``DEFAULT_LISTEN`` unless given ``--listen``; given only
+    ``--connect`` it joins that router as a client (e.g. docker-compose's zenohd)."""
+    with ends_with(REFUSED, ValueError):
         config = load_config(Path(args.resume) / "config.toml" if args.resume else args.config)
-        user, password = credentials(args)
-        if args.connect:
-            conf = zenoh_config("client", connect=args.connect, user=user, password=password,
-                                extra=args.cfg, **tls_options(args))
-        else:
-            conf = zenoh_config("router", listen=args.listen or ["tcp/127.0.0.1:7447"],
-                                user=user, password=password, extra=args.cfg,
-                                **tls_options(args))
+        client = bool(args.connect) and not args.listen
+        conf = connection_config(args, "client" if client else "router",
+                                 default_listen=() if client else DEFAULT_LISTEN)
         out = check_out_dir(args.resume or args.out or default_out(config),
                             "--resume" if args.resume else "--out")
+    try:
         summary = run_world(config, conf, out, resume=bool(args.resume), force=args.force)
     except checkpoint.AlreadyComplete as exc:
         print(str(exc), file=sys.stderr)
-        return 0
+        return DONE
+    except checkpoint.StateError as exc:  # nothing to resume, or results it must not replace
+        refuse(describe(exc))
     except OSError as exc:  # the results disk failed during the run (read-only, full)
-        where = "" if out is None else f" in {out}"
-        print(f"error: cannot write the results{where}: {describe(exc)}", file=sys.stderr)
-        return 1
+        fail(f"cannot write the results in {out}: {describe(exc)}")
     except EXPECTED_FAILURES as exc:
-        print(f"error: {describe(exc)}", file=sys.stderr)
-        return 1
-    except MissingExtra as exc:  # e.g. a DEM surface without the [dem] extra
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
+        fail(describe(exc))
     if not summary["complete"]:
-        print(f"error: run incomplete: {summary['reason']}", file=sys.stderr)
-        return 1
-    return 0
+        fail(f"run incomplete: {summary['reason']}")
+    return DONE

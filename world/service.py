@@ -23,6 +23,7 @@ from protocol.messages import (
 from protocol.session import token_live, undeclare_all
 from world import checkpoint
 from world.results import RunRecorder
+from world.schedule import may_open, predecessor_through
 from world.sim import RequestError, RunEnded, TickMissed, WorldSim
 from world.surfaces import Surface
 from world.view import ViewPublisher
@@ -194,7 +195,7 @@ class WorldService:
         self.sim.check_not_ended(tick)
         if tick == self._through[agent] + 2 and self.sim.is_settled(agent, tick - 1):
             raise NotYet(f"agent {agent}'s report of tick {tick - 1} has not reached the world yet")
-        if agent > 0 and tick <= self.sim.tick and self._through[agent - 1] < tick:
+        if tick <= self.sim.tick and not predecessor_through(self._through, agent, tick):
             raise NotYet(f"agent {agent - 1} is not through tick {tick} yet")
 
     def _on_sense(self, query: zenoh.Query) -> None:
@@ -414,8 +415,7 @@ class WorldService:
                         self._complete_tick(tick)
                         opened = False
                         break
-                    gate = self._through[0] if self.config.pipelined else min(self._through)
-                    if self.sim.tick < last and gate >= self.sim.tick:
+                    if may_open(self._through, self.sim.tick, last, self.config.pipelined):
                         tick = self.sim.tick + 1
                         self.sim.open_tick(tick)
                         self._progress = time.monotonic()

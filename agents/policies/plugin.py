@@ -12,8 +12,7 @@ import importlib
 
 from agents.policies.base import Policy
 from protocol.config import PLUGIN_ESTIMATOR, AgentSettings
-
-MAX_NAME = 128
+from protocol.limits import MAX_NAME, NAME_PATTERN, NAME_RULE
 
 
 def load_estimator(spec: str, settings: AgentSettings) -> Policy:
@@ -40,6 +39,7 @@ def load_estimator(spec: str, settings: AgentSettings) -> Policy:
         raise ValueError(f"estimator {spec!r} does not implement {', '.join(missing)}")
     if not isinstance(getattr(policy, "name", None), str) or not policy.name:
         policy.name = spec
-    if len(policy.name) > MAX_NAME:  # it travels in every observation (4 KiB at most)
-        raise ValueError(f"estimator {spec!r}: name must be at most {MAX_NAME} characters")
+    if not NAME_PATTERN.fullmatch(policy.name):  # it travels in every observation
+        raise ValueError(f"estimator {spec!r}: name must be {NAME_RULE}, got "
+                         f"{policy.name[:MAX_NAME]!r}")
     return policy

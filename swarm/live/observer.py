@@ -10,6 +10,7 @@ import zenoh
 
 from protocol import keys
 from protocol.cli import describe
+from protocol.session import open_session
 from swarm.live.feed import ZenohFeed
 from swarm.live.server import PageServer
 from swarm.live.store import REPLAY_HINT, RunStore
@@ -36,7 +37,7 @@ class LiveView:
         if self.run_id is None:
             raise RuntimeError("a replay has no run to observe")
         try:
-            self._session = zenoh.open(conf)
+            self._session = open_session(conf)
         except zenoh.ZError as exc:
             raise RuntimeError(f"the live view cannot connect to Zenoh: {describe(exc)} (is the "
                                "run's router up? `swarm run` ends its router with the run; "

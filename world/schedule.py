@@ -1,0 +1,34 @@
+"""The lockstep tick order (SPEC §4), one owner for every layout.
+
+The Zenoh service (:mod:`world.service`) and the in-memory layout (:mod:`swarm.local`) ask
+these two functions when a tick may open and when an agent may begin a tick, so their orders
+cannot drift apart. ``through[k]`` is the last tick the world has agent ``k`` through (-1
+before tick 0); agent 0 is the leader.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+
+def may_open(through: Sequence[int], opened: int, last: int, pipelined: bool) -> bool:
+    """Whether tick ``opened + 1`` may open (``opened`` is the newest open tick, ``last`` the
+    run's last): pipelined, once the leader is through ``opened``, so the column moves as a
+    wavefront; unpipelined, once every agent is.
+
+    >>> may_open([3, 1, 0], opened=3, last=9, pipelined=True)
+    True
+    >>> may_open([3, 1, 0], opened=3, last=9, pipelined=False)
+    False
+    """
+    gate = through[0] if pipelined else min(through)
+    return opened < last and gate >= opened
+
+
+def predecessor_through(through: Sequence[int], agent: int, tick: int) -> bool:
+    """Whether ``agent``'s predecessor lets it act at ``tick``: the leader has none; a
+    follower acts once the agent ahead of it is through ``tick`` (its rod end is settled).
+
+    >>> predecessor_through([3, 1, 0], agent=2, tick=1), predecessor_through([3, 1, 0], 2, 2)
+    (True, False)
+    """
+    return agent == 0 or through[agent - 1] >= tick
