@@ -106,7 +106,6 @@ def test_oracle_velocity_is_sent_only_to_dictionary_c_oracle():
 
     assert oracles(dictionary="c", velocity="oracle")
     assert not oracles(dictionary="c", velocity="lagged")
-    assert not oracles(estimator="auto", velocity="oracle")
     assert not oracles(estimator="persist")
 
 
