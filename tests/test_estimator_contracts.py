@@ -214,8 +214,8 @@ def test_arx_fits_once_per_data_change_under_auto(monkeypatch):
         return pinv(*args, **kwargs)
 
     monkeypatch.setattr(np.linalg, "pinv", counting_pinv)
-    cfg = RunConfig(surface="elliptic", estimator="auto", ticks=30, sensing_range=0.05, seed=2,
-                    noise_range=0.005, noise_bearing=0.002)  # lost at ticks 4 and 24-29
+    cfg = RunConfig(surface="elliptic", estimator="auto", ticks=30, sensing_range=0.05, seed=0,
+                    noise_range=0.005, noise_bearing=0.002)  # lost at ticks 23-29
     runs = {}
     for refit in (False, True):
         arx = [CountedARX(fits, refit, order=2, window=10, affine=False, name="arx-o2-w10-lin"),

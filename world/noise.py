@@ -1,9 +1,15 @@
 """Sensor and actuation noise streams keyed by (seed, agent, tick, channel, phase) (SPEC §5).
 
-Each draw comes from its own ``numpy.random.Generator`` seeded by that key, so the numbers do
-not depend on the order in which processes ask: any process layout gives the same run.
+Every draw of one agent in one tick comes from one block of standard normals drawn by a
+``numpy.random.Generator`` seeded with ``(seed, agent, tick)``; each (channel, phase) pair
+owns a fixed slot of :data:`SLOT` values in it. So a draw depends only on its key, never on the
+order in which processes ask (any process layout gives the same run), and a tick's many
+readings cost one generator (seeding one is most of a draw's cost) — the block is remembered
+for the few ticks that still ask for it.
 """
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 
@@ -14,6 +20,8 @@ import numpy as np
 CHANNELS = {"range": 1, "bearing": 2, "velocity": 3, "move": 4, "rod-range": 5,
             "rod-bearing": 6, "snap": 7, "gps": 8, "leader-gps": 9, "oracle-velocity": 10}
 PHASES = {"pre": 0, "moved": 1, "settled": 2, "act": 3}
+SLOT = 3  # values per (channel, phase): GPS draws (x, y, z)
+BLOCK = (max(CHANNELS.values()) + 1) * len(PHASES) * SLOT
 
 
 def gaussian_scalar(seed: int, agent: int, tick: int, channel: str, phase: str,
@@ -40,7 +48,17 @@ def gaussian(
         raise ValueError(f"phase must be one of {sorted(PHASES)}, got {phase!r}")
     if sigma < 0:
         raise ValueError(f"sigma must be non-negative, got {sigma}")
+    if not 1 <= size <= SLOT:
+        raise ValueError(f"size must be in [1, {SLOT}], got {size}")
     if sigma == 0:
         return np.zeros(size)
-    rng = np.random.default_rng([seed, agent, tick, CHANNELS[channel], PHASES[phase]])
-    return rng.normal(0.0, sigma, size)
+    start = (CHANNELS[channel] * len(PHASES) + PHASES[phase]) * SLOT
+    return sigma * _block(seed, agent, tick)[start:start + size]
+
+
+@functools.lru_cache(maxsize=8192)
+def _block(seed: int, agent: int, tick: int) -> np.ndarray:
+    """The standard normals of ``agent`` at ``tick`` (read-only; remembered for a while)."""
+    block = np.random.default_rng([seed, agent, tick]).standard_normal(BLOCK)
+    block.flags.writeable = False
+    return block

@@ -24,7 +24,7 @@ import numpy as np
 
 from protocol.config import RunConfig
 from protocol.messages import ActResult, ActSensing, Drive, Message, Move, Sensing, Snap
-from protocol.sensing import reading_covariance
+from protocol.sensing import reading_precision
 from world import geometry
 from world.noise import gaussian, gaussian_scalar
 from world.surfaces import Surface, surface_leader_start
@@ -398,9 +398,8 @@ class WorldSim:
             offsets.append(rod)
         if not any(error.any() for error in errors):
             return np.zeros(2)
-        precisions = [np.linalg.inv(reading_covariance(_norm(o), math.atan2(o[1], o[0]),
-                                                       cfg.noise_range, cfg.noise_bearing)
-                                    + FLOOR_JITTER * np.eye(2)) for o in offsets]
+        precisions = [reading_precision(_norm(o), math.atan2(o[1], o[0]), cfg.noise_range,
+                                        cfg.noise_bearing, FLOOR_JITTER) for o in offsets]
         return np.linalg.solve(sum(precisions), sum(p @ e for p, e in zip(precisions, errors)))
 
     def sense(self, agent: int, tick: int, phase: str) -> Sensing:
