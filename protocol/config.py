@@ -45,6 +45,7 @@ INT_RANGES = {
     "arx_window": (0, 1_000_000),
     "gp_samples": (3, 1000),
     "seed": (0, 2**63 - 1),
+    "ros_domain": (0, 232),  # ROS 2 domain ids (protocol.ros2.DOMAIN_RANGE)
 }
 FLOAT_RANGES = {  # name: (low, high, low end exclusive)
     "comm_period": (0.0, 1e4, True),
@@ -110,6 +111,8 @@ class RunConfig:
     time_scale: float = 1.0
     agent_timeout: float = 10.0
     start_timeout: float = 30.0
+    ros2: bool = False  # the world also publishes the run's ROS 2 topics (SPEC §10)
+    ros_domain: int = 0
 
     def __post_init__(self) -> None:
         check_run_id(self.run_id)
@@ -132,7 +135,7 @@ class RunConfig:
                              f"({self.ticks}): raise ticks or lower init_ticks")
         for name, bounds in FLOAT_RANGES.items():
             _check_range(name, getattr(self, name), *bounds)
-        for name in ("online", "affine", "gps", "pipelined"):
+        for name in ("online", "affine", "gps", "pipelined", "ros2"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
         if self.estimator == "edmd" and self.dictionary in GPS_DICTIONARIES and not self.gps:

@@ -12,6 +12,7 @@ from protocol.cli import (
 )
 from protocol.config import (DICTIONARIES, ESTIMATORS, MODES, SIDES, VELOCITY_VARIANTS, RunConfig,
                              config_from_dict, config_from_file, read_toml)
+from protocol.ros2 import RosExtraMissing, domain_from_env, require_ros
 from protocol.session import add_credential_flags
 
 EXIT_NOTHING_ESTIMATED = 3
@@ -60,6 +61,11 @@ RUN_FLAGS: dict[str, tuple[str, dict]] = {
     "--time-scale": ("time_scale", {"type": float}),
     "--agent-timeout": ("agent_timeout", {"type": float}),
     "--run-id": ("run_id", {}),
+    "--ros2": ("ros2", {"action": "store_const", "const": True,
+                        "help": "the world publishes the run's ROS 2 topics (rmw_zenoh layout; "
+                                "needs the [ros] extra)"}),
+    "--ros-domain": ("ros_domain", {"type": int, "help": "ROS 2 domain id, 0-232 (default: "
+                                                         "ROS_DOMAIN_ID, else 0)"}),
 }
 
 
@@ -91,6 +97,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
         data["surface_params"] = {**data.get("surface_params", {}), "smoothing": args.smoothing}
     if args.config and args.run_id is None and "run_id" not in file_data:
         data["run_id"] = new_run_id()
+    if args.ros_domain is None and "ros_domain" not in file_data:
+        data["ros_domain"] = domain_from_env()
     return config_from_dict(data)
 
 
@@ -167,7 +175,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
     try:
         config = config_from_args(args)
-    except ValueError as exc:
+        if config.ros2:
+            require_ros()  # the [ros] extra, before anything runs
+    except (ValueError, RosExtraMissing) as exc:
         print(f"error: {describe(exc)}", file=sys.stderr)
         return 2
     live = endpoint = None
@@ -526,6 +536,22 @@ def cmd_deploy(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    """``export RUN_DIR [--out BAG_DIR] [--force]``: a finished run as a rosbag2/MCAP bag."""
+    from swarm.ros2_export import export_run
+
+    try:
+        bag = export_run(args.run_dir, args.out, force=args.force)
+    except (ValueError, RosExtraMissing) as exc:
+        print(f"error: {describe(exc)}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"error: cannot write the bag: {describe(exc)}", file=sys.stderr)
+        return 1
+    print(f"bag: {bag}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m swarm",
                                 description="Column formation on an unknown surface over Zenoh.")
@@ -608,6 +634,12 @@ def build_parser() -> argparse.ArgumentParser:
     deploy.add_argument("--force", action="store_true",
                         help="replace the passwords and keys already in OUT/secrets")
     deploy.set_defaults(func=cmd_deploy)
+    export = sub.add_parser("export", help="a finished run as a rosbag2 bag (MCAP) for ROS 2 "
+                                           "tools (needs the [ros] extra)")
+    export.add_argument("run_dir", metavar="RUN_DIR", help="a complete results folder")
+    export.add_argument("--out", metavar="BAG_DIR", help="the bag folder (default RUN_DIR/bag)")
+    export.add_argument("--force", action="store_true", help="replace an existing bag folder")
+    export.set_defaults(func=cmd_export)
     watch = sub.add_parser("watch", help="live view of a running run, as a read-only observer")
     watch.add_argument("--connect", action="append", required=True, metavar="ENDPOINT",
                        help="Zenoh router (or peer) to connect to, e.g. tcp/127.0.0.1:7447")

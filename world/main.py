@@ -12,7 +12,8 @@ from protocol.cli import (
     EXPECTED_FAILURES, add_log_level_flag, bounded_interrupt, check_out_dir, describe,
     setup_logging,
 )
-from protocol.config import RunConfig, dump_config, load_config
+from protocol.config import RunConfig, dump_config, load_config, read_toml
+from protocol.ros2 import RosExtraMissing, domain_from_env, require_ros
 from protocol.session import add_credential_flags, credentials, tls_options, zenoh_config
 from world import checkpoint
 from world.service import WorldService
@@ -78,10 +79,31 @@ def main(argv: list[str] | None = None) -> int:
     add_log_level_flag(p)
     p.add_argument("--force", action="store_true",
                    help="replace the results already in --out (default: refuse)")
+    p.add_argument("--ros2", action="store_true", default=None,
+                   help="also publish the run's ROS 2 topics (rmw_zenoh layout; [ros] extra)")
+    p.add_argument("--ros-domain", type=int, help="ROS 2 domain id, 0-232 (default: the "
+                                                  "config's, else ROS_DOMAIN_ID, else 0)")
     args = p.parse_args(argv)
     setup_logging(args.log_level)
     with bounded_interrupt():
         return _serve(args)
+
+
+def ros_options(config: RunConfig, args: argparse.Namespace) -> RunConfig:
+    """``config`` with ``--ros2`` and ``--ros-domain`` applied; a config file that leaves the
+    domain out takes ``ROS_DOMAIN_ID``. Checks that the [ros] extra is there when needed."""
+    path = Path(args.resume) / "config.toml" if args.resume else Path(args.config)
+    changes: dict = {}
+    if args.ros2:
+        changes["ros2"] = True
+    if args.ros_domain is not None:
+        changes["ros_domain"] = args.ros_domain
+    elif "ros_domain" not in read_toml(path, "config file"):
+        changes["ros_domain"] = domain_from_env()
+    config = config.replace(**changes)
+    if config.ros2:
+        require_ros()
+    return config
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -89,6 +111,15 @@ def _serve(args: argparse.Namespace) -> int:
     out = None
     try:
         config = load_config(Path(args.resume) / "config.toml" if args.resume else args.config)
+    except ValueError as exc:
+        print(f"error: {describe(exc)}", file=sys.stderr)
+        return 1
+    try:
+        config = ros_options(config, args)
+    except (ValueError, RosExtraMissing) as exc:
+        print(f"error: {describe(exc)}", file=sys.stderr)
+        return 2
+    try:
         user, password = credentials(args)
         if args.connect:
             conf = zenoh_config("client", connect=args.connect, user=user, password=password,

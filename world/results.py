@@ -21,7 +21,7 @@ VERSION = "0.2.0"
 TICK_COLUMNS = (
     "tick", "t", "agent", "estimator", "ideal_x", "ideal_y", "est_x", "est_y", "pos_x", "pos_y",
     "required_range", "stay_range", "persist_range", "lost", "formation_error",
-    "persist_range_noise_free", "missed",
+    "persist_range_noise_free", "missed", "heading_x", "heading_y",
 )
 OBS_COLUMNS = ("tick", "agent", "estimator", "lost", "measurement", "prediction", "followed",
                "fallback")
