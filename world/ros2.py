@@ -29,15 +29,15 @@ from world import geometry
 from world.surfaces import Surface
 from world.view import grid_shape, height_grid, map_box
 
-ROD_SEGMENTS = 8
-"""Straight pieces per rod line strip (the rod's geodesic sampled at 9 points)."""
+EXPORT_ROD_PIECES, LIVE_ROD_PIECES = 8, 4
+"""Straight pieces per rod line strip (the rod's geodesic sampled at pieces + 1 points)."""
 EXPORT_TERRAIN_CELLS = 100 * 100
 LIVE_TERRAIN_CELLS = 48 * 48
 """Terrain mesh nodes: at most 100 × 100 in a bag; 48 × 48 live (a 0.5 MB sample, well under
 the 1 MiB a router accepts)."""
-LIVE_PATH_POSES = 64
-"""Live ``/path`` samples carry the last this many settled poses (a bag carries them all):
-one sample per agent and tick stays small and cheap however long the run."""
+LIVE_PATH_POSES = 16
+"""Live ``/path`` samples carry the last this many settled poses (a trail; a bag carries them
+all): one sample per agent and tick stays small and cheap however long the run."""
 TERRAIN_EVERY_S = 5.0
 """Live: the terrain marker is sent again at most this often, so a late rviz gets it."""
 _TERRAIN_COLORS = np.array([[0.16, 0.42, 0.20], [0.62, 0.52, 0.34], [0.93, 0.93, 0.90]])
@@ -62,34 +62,36 @@ def stamp_ns(t: float) -> int:
     return sec * 1_000_000_000 + nanosec
 
 
-def surface_frame(gradient: Sequence[float], heading: Sequence[float]) -> np.ndarray:
-    """Rotation matrix (columns x, y, z) of an agent's frame: x the heading in the tangent
-    plane, z the upward surface normal (see the module docstring)."""
-    fx, fy = (float(v) for v in gradient)
-    hx, hy = (float(v) for v in heading)
-    x_axis = np.array([hx, hy, fx * hx + fy * hy])
-    norm = float(np.linalg.norm(x_axis))
+def surface_quaternion(gradient: Sequence[float], heading: Sequence[float]
+                       ) -> tuple[float, float, float, float]:
+    """``(x, y, z, w)`` (w >= 0) of an agent's frame: x the heading lifted into the tangent
+    plane, z the upward surface normal, y = z × x (see the module docstring)."""
+    fx, fy = float(gradient[0]), float(gradient[1])
+    hx, hy = float(heading[0]), float(heading[1])
+    hz = fx * hx + fy * hy
+    norm = math.sqrt(hx * hx + hy * hy + hz * hz)
     if not (norm > 0 and math.isfinite(norm)):
         raise ValueError(f"heading must be a nonzero finite vector, got {(hx, hy)}")
-    x_axis /= norm
-    z_axis = np.array([-fx, -fy, 1.0]) / math.sqrt(1.0 + fx * fx + fy * fy)
-    return np.column_stack([x_axis, np.cross(z_axis, x_axis), z_axis])
+    x = (hx / norm, hy / norm, hz / norm)
+    scale = 1.0 / math.sqrt(1.0 + fx * fx + fy * fy)
+    z = (-fx * scale, -fy * scale, scale)
+    y = (z[1] * x[2] - z[2] * x[1], z[2] * x[0] - z[0] * x[2], z[0] * x[1] - z[1] * x[0])
+    return quaternion(((x[0], y[0], z[0]), (x[1], y[1], z[1]), (x[2], y[2], z[2])))
 
 
-def quaternion(rotation: np.ndarray) -> tuple[float, float, float, float]:
-    """``(x, y, z, w)`` of a rotation matrix (w >= 0)."""
-    m = np.asarray(rotation, dtype=float)
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
+def quaternion(m: Sequence[Sequence[float]]) -> tuple[float, float, float, float]:
+    """``(x, y, z, w)`` (w >= 0) of a rotation matrix ``m`` (rows)."""
+    trace = m[0][0] + m[1][1] + m[2][2]
     if trace > 0:
         s = 2.0 * math.sqrt(1.0 + trace)
-        q = ((m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4)
+        q = ((m[2][1] - m[1][2]) / s, (m[0][2] - m[2][0]) / s, (m[1][0] - m[0][1]) / s, s / 4)
     else:
-        i = int(np.argmax(np.diag(m)))
+        i = max(range(3), key=lambda k: m[k][k])
         j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
+        s = 2.0 * math.sqrt(1.0 + m[i][i] - m[j][j] - m[k][k])
         v = [0.0, 0.0, 0.0]
-        v[i], v[j], v[k] = s / 4, (m[j, i] + m[i, j]) / s, (m[k, i] + m[i, k]) / s
-        q = (*v, (m[k, j] - m[j, k]) / s)
+        v[i], v[j], v[k] = s / 4, (m[j][i] + m[i][j]) / s, (m[k][i] + m[i][k]) / s
+        q = (*v, (m[k][j] - m[j][k]) / s)
     sign = -1.0 if q[3] < 0 else 1.0
     return tuple(sign * c for c in q)  # type: ignore[return-value]
 
@@ -147,15 +149,18 @@ class RosScene:
     surface : Surface
     path_window : int, optional
         ``/path`` carries the last ``path_window`` poses (None: every pose so far).
+    rod_pieces : int
+        Straight pieces of each rod's line strip.
     """
 
-    def __init__(self, config, surface: Surface, path_window: int | None = None) -> None:
+    def __init__(self, config, surface: Surface, path_window: int | None = None,
+                 rod_pieces: int = EXPORT_ROD_PIECES) -> None:
         store = ros2.typestore()
         self.types = store.types
         self.serialize = store.serialize_cdr
         self.config, self.surface = config, surface
         self.n_agents = config.followers + 1
-        self.path_window = path_window
+        self.path_window, self.rod_pieces = path_window, rod_pieces
         self._paths: list[list] = [[] for _ in range(self.n_agents)]
         self._colors = [self._color(*agent_color(k, self.n_agents)) for k in range(self.n_agents)]
 
@@ -185,8 +190,9 @@ class RosScene:
         """Position and orientation quaternion of an agent's row."""
         x, y = row["pos_x"], row["pos_y"]
         p = np.array([x, y])
-        rotation = surface_frame(self.surface.gradient(p), (row["heading_x"], row["heading_y"]))
-        return (float(x), float(y), float(self.surface.height(p))), quaternion(rotation)
+        orientation = surface_quaternion(self.surface.gradient(p),
+                                         (row["heading_x"], row["heading_y"]))
+        return (float(x), float(y), float(self.surface.height(p))), orientation
 
     # --- messages ------------------------------------------------------------------------------
 
@@ -257,20 +263,18 @@ class RosScene:
                  mesh_use_embedded_materials=False)
 
     def rod_points(self, holder: dict) -> list:
-        """The rod ``holder`` (a row) holds, sampled along its geodesic (ROD_SEGMENTS pieces);
-        empty if the geodesic cannot be followed (it leaves the surface's domain)."""
-        d = self.config.spacing
+        """The rod ``holder`` (a row) holds, sampled along its geodesic; empty if the geodesic
+        cannot be followed (it leaves the surface's domain)."""
         p = np.array([holder["pos_x"], holder["pos_y"]])
         try:
             v = geometry.rod_normal(self.surface, p, (holder["heading_x"], holder["heading_y"]),
                                     self.config.side_sign)
-            samples = [p]
-            for _ in range(ROD_SEGMENTS):
-                p, v = geometry.integrate_geodesic(self.surface, p, v, d / ROD_SEGMENTS)
-                samples.append(p)
+            samples = geometry.geodesic_points(self.surface, p, v, self.config.spacing,
+                                               self.rod_pieces)
         except geometry.SurfaceDomainError:
             return []
-        return [self.point(x, y, self.surface.height(np.array([x, y]))) for x, y in samples]
+        return [self.point(x, y, self.surface.height(xy)) for xy, (x, y) in
+                zip(samples, samples.tolist(), strict=True)]
 
     def _markers(self, rows: Sequence[dict], header, poses: list):
         M = self.types["visualization_msgs/msg/Marker"]
@@ -314,7 +318,8 @@ class Ros2Publisher:
 
     def __init__(self, session: zenoh.Session, config, surface: Surface,
                  ideal: np.ndarray) -> None:
-        self.scene = RosScene(config, surface, path_window=LIVE_PATH_POSES)
+        self.scene = RosScene(config, surface, path_window=LIVE_PATH_POSES,
+                              rod_pieces=LIVE_ROD_PIECES)
         domain, followers = config.ros_domain, config.followers
         node, *tokens = ros2.world_tokens(domain, followers, str(session.zid()))
         self._publishers: dict[str, tuple] = {}
