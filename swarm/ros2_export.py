@@ -86,12 +86,13 @@ def export_run(run_dir: str | Path, out: str | Path | None = None, *,
     from world.main import resolve_with_surface
     from world.ros2 import EXPORT_TERRAIN_CELLS, RosScene, stamp_ns
 
+    store = ros2.typestore()  # RosExtraMissing before anything else
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
     run_dir = Path(run_dir)
     out = Path(out) if out is not None else run_dir / "bag"
     check_run_dir(run_dir)
     _check_out(out, run_dir, force)
-    store = ros2.typestore()  # RosExtraMissing before anything is read
-    from rosbags.rosbag2 import StoragePlugin, Writer
 
     config, surface = resolve_with_surface(load_config(run_dir / "config.toml"))
     ticks = _tick_rows(read_ticks(run_dir / TICKS_FILE), config.followers + 1)
