@@ -330,18 +330,29 @@ def run_topics(followers: int) -> list[tuple[str, str]]:
     return topics
 
 
-def world_keys(domain: int, followers: int) -> list[str]:
-    """The data keys the world publishes on (one per topic of :func:`run_topics`)."""
-    return [topic_key(domain, topic, msgtype, type_hash(msgtype))
+def any_hash(msgtype: str) -> str:
+    """``*``: a key expression chunk matching any type hash (for access-control rules, which
+    are written without rosbags)."""
+    _split_type(msgtype)
+    return "*"
+
+
+def world_keys(domain: int, followers: int, digest=None) -> list[str]:
+    """The data keys the world publishes on (one per topic of :func:`run_topics`), with the
+    type hashes ``digest(msgtype)`` (default :func:`type_hash`; :func:`any_hash` for rules)."""
+    digest = digest or type_hash
+    return [topic_key(domain, topic, msgtype, digest(msgtype))
             for topic, msgtype in run_topics(followers)]
 
 
-def world_tokens(domain: int, followers: int, zid: str = "*") -> list[str]:
+def world_tokens(domain: int, followers: int, zid: str = "*", digest=None) -> list[str]:
     """The world's liveliness tokens: its node's, then one per publisher (entity ids 1, 2, …
-    in the order of :func:`run_topics`); ``zid`` ``*`` gives the key expressions that match
-    them whatever the world's session id (a router's access-control rules)."""
+    in the order of :func:`run_topics`). ``zid`` ``*`` and ``digest`` :func:`any_hash` give
+    the key expressions that match them whatever the session id and the hashes (a router's
+    access-control rules)."""
+    digest = digest or type_hash
     return [node_token(domain, zid, 0)] + [
-        publisher_token(domain, zid, 0, entity, topic, msgtype, type_hash(msgtype))
+        publisher_token(domain, zid, 0, entity, topic, msgtype, digest(msgtype))
         for entity, (topic, msgtype) in enumerate(run_topics(followers), start=1)]
 
 

@@ -525,7 +525,9 @@ def cmd_deploy(args: argparse.Namespace) -> int:
 
     try:
         config = RunConfig(run_id=args.run_id or new_run_id(), followers=args.followers,
-                           start_timeout=args.start_timeout, agent_timeout=args.agent_timeout)
+                           start_timeout=args.start_timeout, agent_timeout=args.agent_timeout,
+                           ros_domain=domain_from_env() if args.ros_domain is None
+                           else args.ros_domain)
         written = write_deployment(args.out, config, force=args.force)
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -631,6 +633,9 @@ def build_parser() -> argparse.ArgumentParser:
     deploy.add_argument("--start-timeout", type=float, default=60.0,
                         help="seconds the world waits for the agents (containers start slowly)")
     deploy.add_argument("--agent-timeout", type=float, default=30.0)
+    deploy.add_argument("--ros-domain", type=int, help="the ROS 2 domain of the world's "
+                                                       "--ros2 topics, 0-232 (default: "
+                                                       "ROS_DOMAIN_ID, else 0)")
     deploy.add_argument("--force", action="store_true",
                         help="replace the passwords and keys already in OUT/secrets")
     deploy.set_defaults(func=cmd_deploy)

@@ -88,8 +88,9 @@ def access_control(run_id: str, followers: int, *, cert_names: bool = False,
     name (mutual TLS deployments); without it the password alone identifies the user.
     ``ros_domain``: the ROS 2 domain the world publishes the run's topics on (``--ros2``):
     the world may put on exactly its topics' keys and hold exactly its node's and publishers'
-    liveliness tokens (:func:`protocol.ros2.world_keys`, :func:`protocol.ros2.world_tokens`);
-    the observer (or a ROS 2 router joining as it) may watch the domain's data and graph.
+    liveliness tokens (:func:`protocol.ros2.world_keys`, :func:`protocol.ros2.world_tokens`;
+    any session id and type hash, so that no rule needs rosbags); the observer (or a ROS 2
+    router joining as it) may watch the domain's data and graph.
 
     At the router, ``ingress`` is what a client sends and ``egress`` what the router forwards
     to it; a message passes only if the sender's ingress rule and the receiver's egress rule
@@ -129,9 +130,10 @@ def access_control(run_id: str, followers: int, *, cert_names: bool = False,
     ros_data, ros_graph = ros2.graph_keys(ros_domain)
     rules += [
         # --- ROS 2 (SPEC §10): the world's topics and graph entities, as rmw_zenoh names them
-        _rule("world-ros2-publish", "ingress", ["put"], ros2.world_keys(ros_domain, followers)),
+        _rule("world-ros2-publish", "ingress", ["put"],
+              ros2.world_keys(ros_domain, followers, ros2.any_hash)),
         _rule("world-ros2-tokens", "ingress", ["liveliness_token"],
-              ros2.world_tokens(ros_domain, followers)),
+              ros2.world_tokens(ros_domain, followers, digest=ros2.any_hash)),
         _rule("world-ros2-subscribers", "egress", ["declare_subscriber"], [ros_data]),
         _rule("observer-ros2-subscribe", "ingress", ["declare_subscriber"], [ros_data]),
         _rule("observer-ros2-receive", "egress", ["put"], [ros_data]),
@@ -371,6 +373,9 @@ def _run_toml(config: RunConfig) -> str:
         "# Containers start in any order and the world compiles its numba kernels on first use.\n"
         f"start_timeout = {config.start_timeout!r}\n"
         f"agent_timeout = {config.agent_timeout!r}\n"
+        "# The ROS 2 domain the router's ROS 2 rules are written for; add `ros2 = true` to have\n"
+        "# the world publish the run's ROS 2 topics there (docs/ros2.md).\n"
+        f"ros_domain = {config.ros_domain}\n"
     )
 
 
