@@ -8,6 +8,7 @@ import ctypes
 import ctypes.util
 import math
 import random
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +18,8 @@ from protocol import ros2
 from protocol.config import RunConfig
 from protocol.xxh3 import xxh3_128_halves
 from world.ros2 import quaternion, stamp_ns, stamp_parts, surface_quaternion
+
+ROOT = Path(__file__).resolve().parents[1]
 
 # Literal examples of docs/design.md in ros2/rmw_zenoh (jazzy branch)
 STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
@@ -244,3 +247,22 @@ def test_stamps():
     for bad in (-1.0, math.nan, math.inf):
         with pytest.raises(ValueError):
             stamp_parts(bad)
+
+
+def test_shipped_rviz_config_shows_run_topics():
+    """deploy/rviz/swarm.rviz: fixed frame map, and every topic it shows is one the world
+    publishes, with a display for its type."""
+    import yaml
+
+    config = yaml.safe_load((ROOT / "deploy" / "rviz" / "swarm.rviz").read_text())
+    manager = config["Visualization Manager"]
+    assert manager["Global Options"]["Fixed Frame"] == ros2.FRAME
+    topics = dict(ros2.run_topics(3))
+    display_for = {"visualization_msgs/msg/MarkerArray": "rviz_default_plugins/MarkerArray",
+                   "nav_msgs/msg/Path": "rviz_default_plugins/Path",
+                   "geometry_msgs/msg/PoseStamped": "rviz_default_plugins/Pose"}
+    shown = {d["Topic"]["Value"]: d["Class"] for d in manager["Displays"] if "Topic" in d}
+    assert set(shown) == {"/swarm/markers", "/swarm/agent_1/pose",
+                          *(f"/swarm/agent_{k}/path" for k in range(4))}
+    assert all(display_for[topics[topic]] == kind for topic, kind in shown.items())
+    assert "rviz_default_plugins/TF" in {d["Class"] for d in manager["Displays"]}
