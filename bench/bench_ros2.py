@@ -7,7 +7,8 @@
 2. Live: the same 10-follower lockstep run with follower processes, with and without ``--ros2``,
    side by side (alternating, ``--pairs`` pairs); prints each run's wall time per tick (first
    to last completed tick, so process start-up is left out) and whole wall time, their
-   medians and the ratio with/without. Target: at most 1.2×.
+   medians and the ratio with/without (target: at most 1.2×), and the CPU time the world's
+   thread spends completing a tick with and without (a figure machine load disturbs less).
 """
 from __future__ import annotations
 
@@ -25,15 +26,32 @@ sys.path.insert(0, str(ROOT))
 from protocol.config import RunConfig  # noqa: E402
 from swarm.launch import launch  # noqa: E402
 from swarm.ros2_export import export_run  # noqa: E402
+from world.service import WorldService  # noqa: E402
 
 
-def timed_run(config: RunConfig, out: Path, in_process: bool) -> tuple[float, float]:
-    """``(seconds per tick, whole wall seconds)`` of one run."""
+def timed_run(config: RunConfig, out: Path, in_process: bool,
+              cpu: list[float] | None = None) -> tuple[float, float]:
+    """``(seconds per tick, whole wall seconds)`` of one run; with ``cpu``, the CPU seconds
+    the world's thread spends completing each tick (``WorldService._complete_tick``: rows,
+    files, checkpoint, view and, with --ros2, the ROS 2 messages) are appended to it."""
     stamps: list[float] = []
-    start = time.perf_counter()
-    summary = launch(config, out, in_process=in_process,
-                     on_tick=lambda j: stamps.append(time.perf_counter()))
-    wall = time.perf_counter() - start
+    original = WorldService._complete_tick
+
+    def complete_tick(service, tick):
+        start = time.thread_time()
+        rows = original(service, tick)
+        if cpu is not None:
+            cpu.append(time.thread_time() - start)
+        return rows
+
+    WorldService._complete_tick = complete_tick  # measured from outside, restored below
+    try:
+        start = time.perf_counter()
+        summary = launch(config, out, in_process=in_process,
+                         on_tick=lambda j: stamps.append(time.perf_counter()))
+        wall = time.perf_counter() - start
+    finally:
+        WorldService._complete_tick = original
     if not summary["complete"]:
         raise RuntimeError(f"the run did not complete: {summary['reason']}")
     return (stamps[-1] - stamps[0]) / (len(stamps) - 1), wall
@@ -56,11 +74,12 @@ def export_figures(tmp: Path, followers: int, ticks: int) -> None:
 
 def live_figures(tmp: Path, followers: int, ticks: int, pairs: int) -> None:
     results: dict[bool, list[tuple[float, float]]] = {False: [], True: []}
+    cpu: dict[bool, list[float]] = {False: [], True: []}
     for i in range(pairs):
         for ros in (False, True) if i % 2 == 0 else (True, False):
             config = RunConfig(run_id=f"bench-live-{i}-{int(ros)}", followers=followers,
                                ticks=ticks, ros2=ros)
-            per_tick, wall = timed_run(config, tmp / config.run_id, False)
+            per_tick, wall = timed_run(config, tmp / config.run_id, False, cpu[ros])
             results[ros].append((per_tick, wall))
             print(f"  {'with' if ros else 'without'} --ros2: {per_tick * 1e3:.1f} ms per tick, "
                   f"{wall:.2f} s wall")
@@ -70,6 +89,9 @@ def live_figures(tmp: Path, followers: int, ticks: int, pairs: int) -> None:
           f"{tick[False] * 1e3:.1f} -> {tick[True] * 1e3:.1f} ms per tick (ratio "
           f"{tick[True] / tick[False]:.2f}x), wall {wall[False]:.2f} -> {wall[True]:.2f} s "
           f"(ratio {wall[True] / wall[False]:.2f}x; target <= 1.2x)")
+    print(f"world thread CPU per completed tick: {statistics.mean(cpu[False]) * 1e3:.2f} -> "
+          f"{statistics.mean(cpu[True]) * 1e3:.2f} ms (the ROS 2 messages: "
+          f"{(statistics.mean(cpu[True]) - statistics.mean(cpu[False])) * 1e3:.2f} ms a tick)")
 
 
 def main() -> None:
