@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import argparse
+import resource
 import statistics
 import subprocess
 import sys
@@ -60,16 +61,20 @@ def timed_run(config: RunConfig, out: Path, in_process: bool,
 def export_figures(tmp: Path, followers: int, ticks: int) -> None:
     run = tmp / "export-run"
     timed_run(RunConfig(run_id="bench-export", followers=followers, ticks=ticks), run, True)
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     bag = export_run(run, tmp / "bag-a")
-    inside = time.perf_counter() - start
+    inside, inside_cpu = time.perf_counter() - start, time.process_time() - cpu
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     subprocess.run([sys.executable, "-m", "swarm", "export", str(run), "--out",
                     str(tmp / "bag-b")], cwd=ROOT, check=True, capture_output=True, timeout=300)
     command = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    command_cpu = (after.ru_utime + after.ru_stime) - (children.ru_utime + children.ru_stime)
     size = sum(p.stat().st_size for p in bag.iterdir()) / 1e6
-    print(f"export of {followers} followers x {ticks} ticks: export_run {inside:.2f} s, "
-          f"`python -m swarm export` {command:.2f} s end to end (target < 5 s); bag {size:.1f} MB")
+    print(f"export of {followers} followers x {ticks} ticks (bag {size:.1f} MB): export_run "
+          f"{inside:.2f} s ({inside_cpu:.2f} s CPU); `python -m swarm export` end to end "
+          f"{command:.2f} s ({command_cpu:.2f} s CPU); target < 5 s")
 
 
 def live_figures(tmp: Path, followers: int, ticks: int, pairs: int) -> None:
