@@ -266,3 +266,23 @@ def test_shipped_rviz_config_shows_run_topics():
                           *(f"/swarm/agent_{k}/path" for k in range(4))}
     assert all(display_for[topics[topic]] == kind for topic, kind in shown.items())
     assert "rviz_default_plugins/TF" in {d["Class"] for d in manager["Displays"]}
+
+
+def test_geodesic_points_follow_one_geodesic():
+    """The rods' samples (world.geometry.geodesic_points): piece by piece, the same geodesic
+    as one integration over the whole length, and refused arguments."""
+    from world import geometry
+    from world.surfaces import make_surface
+
+    surface = make_surface("wavy")
+    p, v = np.array([30.0, 5.0]), np.array([0.3, 0.9])
+    points = geometry.geodesic_points(surface, p, v, 3.57, 8)
+    assert points.shape == (9, 2) and (points[0] == p).all()
+    end, _ = geometry.integrate_geodesic(surface, p, v, 3.57)
+    np.testing.assert_allclose(points[-1], end, atol=1e-9)
+    middle, _ = geometry.integrate_geodesic(surface, p, v, 3.57 * 3 / 8)
+    np.testing.assert_allclose(points[3], middle, atol=1e-9)
+    for bad in ({"t": -1.0}, {"pieces": 0}):
+        args = {"t": 1.0, "pieces": 2, **bad}
+        with pytest.raises(ValueError):
+            geometry.geodesic_points(surface, p, v, args["t"], args["pieces"])
