@@ -59,9 +59,10 @@ def draw(bag: Path, out: Path) -> Path:
 
     vertices, colors, poses, rods = read_bag(bag)
     fig = plt.figure(figsize=(13, 5.6))
-    ax3 = fig.add_subplot(1, 2, 1, projection="3d")
+    # drawn in this order (matplotlib's depth sorting would hide trails behind the mesh)
+    ax3 = fig.add_subplot(1, 2, 1, projection="3d", computed_zorder=False)
     ax3.add_collection3d(Poly3DCollection(vertices, facecolors=colors, edgecolors="none",
-                                          alpha=0.55))
+                                          alpha=0.8, zorder=1))
     top = fig.add_subplot(1, 2, 2)
     top.tripcolor(vertices[:, :, 0].ravel(), vertices[:, :, 1].ravel(),
                   np.arange(vertices.shape[0] * 3).reshape(-1, 3),
@@ -70,13 +71,13 @@ def draw(bag: Path, out: Path) -> Path:
     for k, path in poses.items():
         color = agent_color(k, len(poses))
         label = "leader" if k == 0 else f"follower {k}"
-        ax3.plot(*path.T, color=color, lw=2 if k == 0 else 1.3, label=label)
+        ax3.plot(*path.T, color=color, lw=2 if k == 0 else 1.3, label=label, zorder=3)
         top.plot(path[:, 0], path[:, 1], color=color, lw=2 if k == 0 else 1.3, label=label)
     for j, strips in rods:
         if j % ROD_EVERY and j != len(rods) - 1:
             continue
         for strip in strips:
-            ax3.plot(*strip.T, color="crimson", lw=1.6)
+            ax3.plot(*strip.T, color="crimson", lw=1.6, zorder=4)
             top.plot(strip[:, 0], strip[:, 1], color="crimson", lw=1.6)
     lo, hi = vertices.reshape(-1, 3).min(axis=0), vertices.reshape(-1, 3).max(axis=0)
     ax3.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), zlim=(lo[2], hi[2] + 0.5),
