@@ -212,6 +212,10 @@ class RunConfig:
     start_timeout: float = option(30.0, "how long the world waits for every agent to start",
                                   unit="s", low=0.0, high=MAX_TIMEOUT, low_open=True,
                                   agents=True)
+    ros2: bool = option(False, "the world also publishes the run's ROS 2 topics (design §10)")
+    ros_domain: int = option(0, "ROS 2 domain id of those topics (swarm run: ROS_DOMAIN_ID "
+                             "when --ros2 is given without it)", low=0, high=232,
+                             needs=("ros2", True))
 
     def __post_init__(self) -> None:
         check_run_id(self.run_id)

@@ -12,7 +12,8 @@ from protocol.cli import (
 )
 from protocol.config import (OPTIONS, Option, RunConfig, applies_to, config_from_dict,
                              config_from_file, flag_of, read_toml)
-from protocol.distribution import DISTRIBUTION, version
+from protocol.distribution import DISTRIBUTION, require, version
+from protocol.ros2 import domain_from_env
 from protocol.session import add_connection_flags, connection_config
 
 
@@ -81,6 +82,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
 
     data = options_from_args(args)
     data.setdefault("run_id", new_run_id())
+    if data.get("ros2") and "ros_domain" not in data:
+        data["ros_domain"] = domain_from_env()
     try:
         return config_from_dict(data)
     except ValueError:
@@ -172,6 +175,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     live = endpoint = None
     with ends_with(REFUSED, ValueError, RuntimeError):
         config = config_from_args(args)
+        if config.ros2:
+            require("ros")  # the [ros] extra, before anything runs
         out = Path(args.out) if args.out else Path("runs") / config.run_id
         if (out / "summary.json").exists() and not args.force:
             raise ValueError(f"{out} already holds a run's results; choose another --out or "
@@ -472,12 +477,24 @@ def cmd_deploy(args: argparse.Namespace) -> int:
     from swarm.launch import new_run_id
 
     with ends_with(REFUSED, ValueError), ends_with(FAILED, OSError):
+        ros = {} if args.ros_domain is None else {"ros2": True, "ros_domain": args.ros_domain}
         config = RunConfig(run_id=args.run_id or new_run_id(), followers=args.followers,
-                           start_timeout=args.start_timeout, agent_timeout=args.agent_timeout)
+                           start_timeout=args.start_timeout, agent_timeout=args.agent_timeout,
+                           **ros)
         written = write_deployment(args.out, config, force=args.force)
     print(f"deployment of run {config.run_id} ({config.followers} followers): "
           f"{len(written)} files in {args.out}; secrets in {Path(args.out) / 'secrets'} "
           "(keep them out of version control)")
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    """``export RUN_DIR [--out BAG_DIR] [--force]``: a finished run as a rosbag2/MCAP bag."""
+    from swarm.ros2_export import export_run
+
+    with ends_with(REFUSED, ValueError), ends_with(FAILED, OSError):
+        bag = export_run(args.run_dir, args.out, force=args.force)
+    print(f"bag: {bag}")
     return 0
 
 
@@ -565,9 +582,18 @@ def build_parser() -> argparse.ArgumentParser:
     deploy.add_argument("--start-timeout", type=float, default=60.0,
                         help="seconds the world waits for the agents (containers start slowly)")
     deploy.add_argument("--agent-timeout", type=float, default=30.0)
+    deploy.add_argument("--ros-domain", type=int, help="the world publishes the run's ROS 2 "
+                                                       "topics on this domain, 0-232 (default: "
+                                                       "no ROS 2; the rules admit domain 0)")
     deploy.add_argument("--force", action="store_true",
                         help="replace the passwords and keys already in OUT/secrets")
     deploy.set_defaults(func=cmd_deploy)
+    export = sub.add_parser("export", help="a finished run as a rosbag2 bag (MCAP) for ROS 2 "
+                                           "tools (needs the [ros] extra)")
+    export.add_argument("run_dir", metavar="RUN_DIR", help="a complete results folder")
+    export.add_argument("--out", metavar="BAG_DIR", help="the bag folder (default RUN_DIR/bag)")
+    export.add_argument("--force", action="store_true", help="replace an existing bag folder")
+    export.set_defaults(func=cmd_export)
     watch = sub.add_parser("watch", help="live view of a running run, as a read-only observer")
     watch.add_argument("--run-id", required=True, help="the run to watch")
     add_connection_flags(watch, connect_required=True)

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from protocol import keys
+from protocol import keys, ros2
 from protocol.config import RunConfig
 from protocol.session import MAX_MESSAGE_SIZE, scouting_settings, tls_settings
 
@@ -82,11 +82,17 @@ def _agent_needs(run_id: str, agent: int) -> list[str]:
             keys.done(run_id)]
 
 
-def access_control(run_id: str, followers: int, *, cert_names: bool = False) -> dict:
+def access_control(run_id: str, followers: int, *, cert_names: bool = False,
+                   ros_domain: int = 0) -> dict:
     """The ``access_control`` section: deny by default, allow each user what its role needs.
 
     ``cert_names``: a user must also present a TLS certificate whose common name is its user
     name (mutual TLS deployments); without it the password alone identifies the user.
+    ``ros_domain``: the ROS 2 domain the world publishes the run's topics on (``--ros2``):
+    the world may put on exactly its topics' keys and hold exactly its node's and publishers'
+    liveliness tokens (:func:`protocol.ros2.world_keys`, :func:`protocol.ros2.world_tokens`;
+    any session id and type hash, so that no rule needs rosbags); the observer (or a ROS 2
+    router joining as it) may watch the domain's data and graph.
 
     At the router, ``ingress`` is what a client sends and ``egress`` what the router forwards
     to it; a message passes only if the sender's ingress rule and the receiver's egress rule
@@ -123,12 +129,29 @@ def access_control(run_id: str, followers: int, *, cert_names: bool = False) -> 
               [keys.alive(run_id, "*")]),
         _rule("observer-see", "egress", ["liveliness_token"], [keys.alive(run_id, "*")]),
     ]
+    ros_data, ros_graph = ros2.graph_keys(ros_domain)
+    rules += [
+        # --- ROS 2 (SPEC §10): the world's topics and graph entities, as rmw_zenoh names them
+        _rule("world-ros2-publish", "ingress", ["put"],
+              ros2.world_keys(ros_domain, followers, ros2.any_hash)),
+        _rule("world-ros2-tokens", "ingress", ["liveliness_token"],
+              ros2.world_tokens(ros_domain, followers, digest=ros2.any_hash)),
+        _rule("world-ros2-subscribers", "egress", ["declare_subscriber"], [ros_data]),
+        _rule("observer-ros2-subscribe", "ingress", ["declare_subscriber"], [ros_data]),
+        _rule("observer-ros2-receive", "egress", ["put"], [ros_data]),
+        _rule("observer-ros2-graph", "ingress",
+              ["declare_liveliness_subscriber", "liveliness_query"], [ros_graph]),
+        _rule("observer-ros2-see", "egress", ["liveliness_token"], [ros_graph]),
+    ]
     policies = [
         {"id": "world", "subjects": ["world"],
          "rules": ["see-subscribers", "world-serve", "world-get-queries", "world-publish",
-                   "world-subscribe", "world-receive", "world-token", "world-watch", "world-see"]},
+                   "world-subscribe", "world-receive", "world-token", "world-watch", "world-see",
+                   "world-ros2-publish", "world-ros2-tokens", "world-ros2-subscribers"]},
         {"id": OBSERVER, "subjects": [OBSERVER],
-         "rules": ["observer-subscribe", "observer-receive", "observer-watch", "observer-see"]},
+         "rules": ["observer-subscribe", "observer-receive", "observer-watch", "observer-see",
+                   "observer-ros2-subscribe", "observer-ros2-receive", "observer-ros2-graph",
+                   "observer-ros2-see"]},
     ]
     for k in range(followers + 1):
         own_ops = [keys.sense(run_id, k), keys.act(run_id, k)]
@@ -173,7 +196,7 @@ class TlsFiles:
 
 
 def router_config(run_id: str, followers: int, *, listen: list[str], dictionary_file: str,
-                  tls: TlsFiles | None = None) -> dict:
+                  tls: TlsFiles | None = None, ros_domain: int = 0) -> dict:
     """The router's configuration as a dict (``zenoh.Config.from_json5(json.dumps(...))``).
 
     With ``tls``, the router accepts ``tls/`` links only, each from a client holding a
@@ -188,7 +211,8 @@ def router_config(run_id: str, followers: int, *, listen: list[str], dictionary_
         "listen": {"endpoints": list(listen)},
         "scouting": scouting_settings(),
         "transport": {"auth": {"usrpwd": {"dictionary_file": dictionary_file}}, "link": link},
-        "access_control": access_control(run_id, followers, cert_names=tls is not None),
+        "access_control": access_control(run_id, followers, cert_names=tls is not None,
+                                         ros_domain=ros_domain),
     }
 
 
@@ -283,6 +307,11 @@ def _run_toml(config: RunConfig) -> str:
         "# Containers start in any order and the world compiles its numba kernels on first use.\n"
         f"start_timeout = {config.start_timeout!r}\n"
         f"agent_timeout = {config.agent_timeout!r}\n"
+        + (f"# The world publishes the run's ROS 2 topics on domain {config.ros_domain} "
+           "(docs/ros2.md);\n# the router's ROS 2 rules are written for it.\nros2 = true\n"
+           f"ros_domain = {config.ros_domain}\n" if config.ros2 else
+           "# The router's ROS 2 rules are written for domain 0: add `ros2 = true` to have the\n"
+           "# world publish the run's ROS 2 topics there (docs/ros2.md).\n")
     )
 
 
@@ -347,7 +376,7 @@ def generated_files(config: RunConfig) -> dict[str, str]:
     secrets_dir = f"{ROUTER_DIR_IN_CONTAINER}/{SECRETS}"
     router = router_config(
         config.run_id, config.followers, listen=[f"tls/[::]:{ROUTER_PORT}"],
-        dictionary_file=f"{secrets_dir}/credentials.txt",
+        dictionary_file=f"{secrets_dir}/credentials.txt", ros_domain=config.ros_domain,
         tls=TlsFiles(f"{secrets_dir}/ca.pem", f"{secrets_dir}/cert.pem",
                      f"{secrets_dir}/key.pem"))
     header = (f"zenohd configuration of run {config.run_id!r} with {config.followers} followers,\n"

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from protocol import keys
+from protocol import keys, ros2
 from protocol.config import RunConfig, load_config
 from protocol.session import free_tcp_endpoint, undeclare_all, zenoh_config
 from swarm.deploy import agent_user
@@ -243,6 +243,65 @@ def test_observer_subscribes_but_cannot_query_publish_or_declare(deployment, rou
         assert not world_tokens.wait_for((keys.alive(RUN, 0), b""), ABSENT_S)
         assert until(lambda: replies(leader, keys.sense(RUN, 0)) == [(True, b"world")])
         assert replies(leader, keys.sense(RUN, 0)) == [(True, b"world")]
+        undeclare_all(handles)
+
+
+def _ros_pose_key(domain: int, agent: int) -> str:
+    msgtype = "geometry_msgs/msg/PoseStamped"
+    return ros2.topic_key(domain, ros2.agent_topic(agent, "pose"), msgtype,
+                          ros2.type_hash(msgtype))
+
+
+def test_world_publishes_its_ros2_keys_an_agent_cannot_and_the_observer_subscribes(
+        deployment, router):
+    """SPEC §10: the world may put on exactly its topics' keys; an agent may not (not even on
+    the world's keys); the observer, subscribed as a ROS 2 subscriber would (the domain's
+    wildcard), receives the world's samples."""
+    domain = load_config(deployment.folder / "run.toml").ros_domain
+    own = _ros_pose_key(domain, 1)
+    not_its_topic = f"{domain}/cmd_vel/geometry_msgs::msg::dds_::Twist_/RIHS01_00"
+    beyond = _ros_pose_key(domain, N + 1)  # an agent this run does not have
+    with (deployment.client(router, "world") as world,
+          deployment.client(router, "observer") as observer,
+          deployment.client(router, "follower-3") as agent):
+        seen = Inbox()
+        handles = [observer.declare_subscriber(ros2.graph_keys(domain)[0], seen)]
+        assert delivered(lambda: world.put(own, b"world"), seen, (own, b"world"))
+        agent.put(own, b"forged")
+        agent.put(_ros_pose_key(domain, 3), b"forged")
+        world.put(not_its_topic, b"not its topic")
+        world.put(beyond, b"not its topic")
+        world.put(own, b"after")
+        assert seen.wait_for((own, b"after"), WAIT_S)
+        assert not seen.wait_for((own, b"forged"), ABSENT_S)
+        assert seen.keys() == {own}
+        assert {payload for _, payload in seen.items} == {b"world", b"after"}
+        undeclare_all(handles)
+
+
+def test_only_the_world_holds_its_ros2_graph_tokens(deployment, router):
+    """The world's node and publisher tokens reach the observer's view of the ROS 2 graph (a
+    liveliness query, as rmw_zenoh makes); the same tokens declared by an agent, and a token
+    the world has no business holding, do not."""
+    domain = load_config(deployment.folder / "run.toml").ros_domain
+    with (deployment.client(router, "world") as world,
+          deployment.client(router, "observer") as observer,
+          deployment.client(router, "follower-2") as agent):
+        digest = ros2.type_hash
+        node, first, *_ = ros2.world_tokens(domain, N, str(world.zid()), digest=digest)
+        forged = ros2.world_tokens(domain, N, str(agent.zid()), digest=digest)[:2]
+        subscription = first.replace("/MP/", "/MS/")
+        handles = [world.liveliness().declare_token(node),
+                   world.liveliness().declare_token(first),
+                   world.liveliness().declare_token(subscription),
+                   *(agent.liveliness().declare_token(token) for token in forged)]
+
+        def graph() -> set[str]:
+            return {str(r.ok.key_expr) for r in observer.liveliness().get(
+                ros2.graph_keys(domain)[1], timeout=1.0) if r.ok is not None}
+
+        assert until(lambda: graph() == {node, first})
+        assert not until(lambda: graph() != {node, first}, ABSENT_S)
         undeclare_all(handles)
 
 

@@ -48,14 +48,15 @@ def deployment(tmp_path_factory) -> Deployment:
 
 def test_committed_deploy_is_the_generated_one(deployment):
     """Every generated file but the secrets is committed byte for byte; nothing else is there
-    but the hand-written README, and no secret is tracked by git."""
+    but the hand-written README and rviz2 configuration, and no secret is tracked by git."""
     generated = generated_files(CONFIG)
     for rel, text in generated.items():
         assert (COMMITTED / rel).read_text() == text, f"deploy/{rel} is stale: regenerate it"
         assert (deployment.folder / rel).read_text() == text
     tracked = subprocess.run(["git", "ls-files", "deploy"], cwd=ROOT, capture_output=True,
                              text=True, check=True).stdout.split()
-    assert sorted(tracked) == sorted(["deploy/README.md", *(f"deploy/{rel}" for rel in generated)])
+    assert sorted(tracked) == sorted(["deploy/README.md", "deploy/rviz/swarm.rviz",
+                                      *(f"deploy/{rel}" for rel in generated)])
     assert f"{SECRETS}/" in generated[".gitignore"].splitlines()
 
 

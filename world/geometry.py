@@ -441,6 +441,30 @@ def integrate_geodesic(surface: Surface, p: ArrayLike, v: ArrayLike,
     return _flow(ctx, _vector(p, "p"), _vector(v, "v"), duration, "geodesic")
 
 
+def geodesic_points(surface: Surface, p: ArrayLike, v: ArrayLike, t: float,
+                    pieces: int) -> np.ndarray:
+    """Points of the geodesic from ``p`` with coordinate velocity ``v`` at parameters
+    ``0, t/pieces, …, t`` (the integration continues from each point to the next).
+
+    Returns
+    -------
+    ndarray, shape (pieces + 1, 2)
+
+    Raises
+    ------
+    SurfaceDomainError
+        If the geodesic leaves the surface's domain before ``t``.
+    """
+    ctx = _context(surface)
+    point, velocity = _vector(p, "p"), _vector(v, "v")
+    step = _real(t, "t", strictly_positive=False) / _count(pieces, "pieces", 1)
+    points = [point]
+    for _ in range(pieces):
+        point, velocity = _flow(ctx, point, velocity, step, "geodesic")
+        points.append(point)
+    return np.array(points)
+
+
 def rod_normal(surface: Surface, p: ArrayLike, heading: ArrayLike, side: int = 1) -> np.ndarray:
     """Unit (in g) rod direction at ``p`` for ``heading``, g-orthogonal to it.
 

@@ -12,7 +12,9 @@ from protocol.cli import (
     DONE, EXPECTED_FAILURES, REFUSED, add_log_level_flag, check_out_dir, describe, ends_with,
     fail, refuse, run_command, setup_logging,
 )
-from protocol.config import RunConfig, dump_config, load_config
+from protocol.config import RunConfig, dump_config, load_config, read_toml
+from protocol.distribution import require
+from protocol.ros2 import domain_from_env
 from protocol.session import add_connection_flags, connection_config
 from world import checkpoint
 from world.service import WorldService
@@ -78,9 +80,30 @@ def main(argv: list[str] | None = None) -> int:
     add_log_level_flag(p)
     p.add_argument("--force", action="store_true",
                    help="replace the results already in --out (default: refuse)")
+    p.add_argument("--ros2", action="store_true", default=None,
+                   help="also publish the run's ROS 2 topics (rmw_zenoh layout; [ros] extra)")
+    p.add_argument("--ros-domain", type=int, help="ROS 2 domain id, 0-232 (default: the "
+                                                  "config's, else ROS_DOMAIN_ID, else 0)")
     args = p.parse_args(argv)
     setup_logging(args.log_level)
     return run_command(lambda: _serve(args))
+
+
+def ros_options(config: RunConfig, args: argparse.Namespace) -> RunConfig:
+    """``config`` with ``--ros2`` and ``--ros-domain`` applied; a config file that leaves the
+    domain out takes ``ROS_DOMAIN_ID``. Checks that the [ros] extra is there when needed."""
+    path = Path(args.resume) / "config.toml" if args.resume else Path(args.config)
+    changes: dict = {}
+    if args.ros2:
+        changes["ros2"] = True
+    if args.ros_domain is not None:
+        changes["ros_domain"] = args.ros_domain
+    config = config.replace(**changes)  # refuses --ros-domain without --ros2
+    if config.ros2:
+        if args.ros_domain is None and "ros_domain" not in read_toml(path, "config file"):
+            config = config.replace(ros_domain=domain_from_env())
+        require("ros")
+    return config
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -89,6 +112,7 @@ def _serve(args: argparse.Namespace) -> int:
     ``--connect`` it joins that router as a client (e.g. docker-compose's zenohd)."""
     with ends_with(REFUSED, ValueError):
         config = load_config(Path(args.resume) / "config.toml" if args.resume else args.config)
+        config = ros_options(config, args)
         client = bool(args.connect) and not args.listen
         conf = connection_config(args, "client" if client else "router",
                                  default_listen=() if client else DEFAULT_LISTEN)

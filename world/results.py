@@ -21,7 +21,7 @@ from protocol.distribution import version
 TICK_COLUMNS = (
     "tick", "t", "agent", "estimator", "ideal_x", "ideal_y", "est_x", "est_y", "pos_x", "pos_y",
     "required_range", "stay_range", "persist_range", "lost", "formation_error",
-    "persist_range_noise_free", "missed", "floor_range",
+    "persist_range_noise_free", "missed", "floor_range", "heading_x", "heading_y",
 )
 OBS_COLUMNS = ("tick", "agent", "estimator", "lost", "measurement", "prediction", "followed",
                "fallback")

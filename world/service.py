@@ -114,7 +114,13 @@ class WorldService:
             self._save_state(0.0)  # a world killed before tick 0 completes resumes from here
         self.on_tick = on_tick
         self.view = ViewPublisher(session, config, surface, self.sim.ideal, out_dir)
+        self.ros2 = None  # the run's ROS 2 topics (SPEC §10), with --ros2
+        if config.ros2:
+            from world.ros2 import Ros2Publisher
+
+            self.ros2 = Ros2Publisher(session, config, surface, self.sim.ideal)
         self._declared = [
+            *([self.ros2] if self.ros2 is not None else []),
             self.view,
             session.declare_queryable(keys.sense(run), self._on_sense),
             session.declare_queryable(keys.act(run), self._on_act),
@@ -382,6 +388,8 @@ class WorldService:
         self._save_state(wall)
         self.recorder.write_summary(complete=False, reason="running", wall_time=wall)
         self.view.publish_tick(rows)
+        if self.ros2 is not None:
+            self.ros2.publish_tick(rows)
         return rows
 
     def _stalled(self) -> str:

@@ -208,7 +208,8 @@ class WorldSim:
                 raise RuntimeError(f"agent {k} has not settled at tick {j}")
             pos, record = state.settled[j], state.records[j]
             row = {"tick": j, "t": self.time_of(j), "agent": k, "pos_x": pos[0], "pos_y": pos[1],
-                   "missed": int(record.missed)}
+                   "missed": int(record.missed), "heading_x": state.headings[j][0],
+                   "heading_y": state.headings[j][1]}
             if k > 0:
                 ideal = self._leader_rod(k, j)[0]
                 prev = state.settled.get(j - 1, pos)

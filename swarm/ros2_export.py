@@ -1,0 +1,128 @@
+"""``python -m swarm export RUN_DIR [--out BAG_DIR] [--force]``: a finished run as a rosbag2
+bag in MCAP storage (SPEC §10), written with ``rosbags`` (types, CDR, RIHS01 hashes and the
+embedded message definitions all from its Jazzy type store).
+
+The bag holds the topics of :func:`protocol.ros2.run_topics`, one message per agent per tick
+on each per-agent topic (``estimate`` and ``required_range`` on estimated ticks only), each
+recorded and stamped at the tick's simulation time; the first ``/swarm/markers`` message is
+the terrain (at most :data:`world.ros2.EXPORT_TERRAIN_CELLS` nodes over the box the run
+covers). Messages come from :class:`world.ros2.RosScene`, the builder the live publisher uses,
+fed with ``ticks.csv`` read back (floats round-trip exactly). The bag is written in a scratch
+folder beside ``BAG_DIR`` and renamed into place when complete.
+"""
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from protocol import ros2
+from protocol.config import load_config
+from world.results import SUMMARY_FILE, TICKS_FILE, read_ticks
+
+BAG_VERSION = 9  # rosbag2's metadata version of Jazzy
+BAG_FILES = {"metadata.yaml"}
+
+
+def check_run_dir(run_dir: Path) -> None:
+    """Refuse (ValueError, one line) a folder that is no finished run of this tool."""
+    if not run_dir.is_dir():
+        raise ValueError(f"{run_dir} is not a folder")
+    if not (run_dir / "config.toml").is_file() or not (run_dir / TICKS_FILE).is_file():
+        raise ValueError(f"{run_dir} is not a run folder (no config.toml or ticks.csv)")
+    try:
+        summary = json.loads((run_dir / SUMMARY_FILE).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ValueError(f"{run_dir} is an unfinished run (no summary.json); only a complete "
+                         "run is exported") from None
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{run_dir / SUMMARY_FILE} is unreadable ({exc})") from None
+    if not isinstance(summary, dict) or summary.get("complete") is not True:
+        reason = summary.get("reason", "") if isinstance(summary, dict) else ""
+        raise ValueError(f"{run_dir} is an unfinished run (summary.json: complete is not true"
+                         + (f"; {reason}" if reason else "") + "); only a complete run is "
+                         "exported")
+
+
+def _check_out(out: Path, run_dir: Path, force: bool) -> None:
+    """Refuse an existing ``out`` unless ``force`` and it is a bag (never a run folder)."""
+    if not out.exists() and not out.is_symlink():
+        return
+    if not force:
+        raise ValueError(f"{out} already exists; choose another --out or pass --force to "
+                         "replace it")
+    if out.is_symlink() or not out.is_dir() or out.resolve() == run_dir.resolve():
+        raise ValueError(f"--force replaces only a bag folder; {out} is not one")
+    names = {p.name for p in out.iterdir()}
+    if not names <= BAG_FILES | {n for n in names if n.endswith(".mcap")}:
+        raise ValueError(f"--force replaces only a bag folder (metadata.yaml and .mcap files); "
+                         f"{out} holds other files")
+
+
+def _tick_rows(rows: list[dict], n_agents: int) -> list[list[dict]]:
+    """``ticks.csv``'s rows grouped by tick (each complete, agents in order)."""
+    ticks = [list(group) for _, group in itertools.groupby(rows, key=lambda r: r["tick"])]
+    for j, tick in enumerate(ticks):
+        if tick[0]["tick"] != j or [r["agent"] for r in tick] != list(range(n_agents)):
+            raise ValueError(f"ticks.csv: tick {tick[0]['tick']} does not hold one row per agent "
+                             "in order")
+        if any(r.get("heading_x") is None for r in tick):
+            raise ValueError("ticks.csv has no headings (heading_x, heading_y): the run was "
+                             "made by an older version; run it again to export it")
+    return ticks
+
+
+def export_run(run_dir: str | Path, out: str | Path | None = None, *,
+               force: bool = False) -> Path:
+    """Write the bag of the finished run in ``run_dir`` to ``out`` (default ``run_dir/bag``).
+
+    Raises ValueError (one line) for a folder that is no finished run, an existing ``out``
+    without ``force``, or a missing ``[ros]`` extra (:class:`protocol.distribution.MissingExtra`).
+    """
+    from world.main import resolve_with_surface
+    from world.ros2 import EXPORT_TERRAIN_CELLS, RosScene, stamp_ns
+
+    store = ros2.typestore()  # MissingExtra before anything else
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    run_dir = Path(run_dir)
+    out = Path(out) if out is not None else run_dir / "bag"
+    check_run_dir(run_dir)
+    _check_out(out, run_dir, force)
+
+    config, surface = resolve_with_surface(load_config(run_dir / "config.toml"))
+    ticks = _tick_rows(read_ticks(run_dir / TICKS_FILE), config.followers + 1)
+    if not ticks:
+        raise ValueError(f"{run_dir / TICKS_FILE} holds no tick")
+    scene = RosScene(config, surface)
+    points = np.array([[r[a], r[b]] for tick in ticks for r in tick
+                       for a, b in (("pos_x", "pos_y"), ("ideal_x", "ideal_y"))
+                       if r.get(a) is not None])
+    out.parent.mkdir(parents=True, exist_ok=True)
+    scratch = out.with_name(f".{out.name}.partial-{os.getpid()}")
+    shutil.rmtree(scratch, ignore_errors=True)
+    scratch.mkdir()
+    partial = scratch / out.name  # rosbags names the .mcap file after its folder
+    try:
+        with Writer(partial, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP) as writer:
+            connections = {
+                topic: writer.add_connection(topic, msgtype, typestore=store)
+                for topic, msgtype in ros2.run_topics(config.followers)}
+            first = ticks[0][0]["t"]
+            markers = ros2.MARKERS
+            writer.write(connections[markers[0]], stamp_ns(first), store.serialize_cdr(
+                scene.terrain(points, EXPORT_TERRAIN_CELLS, first), markers[1]))
+            for tick in ticks:
+                stamp = stamp_ns(tick[0]["t"])
+                for topic, msgtype, message in scene.tick_messages(tick):
+                    writer.write(connections[topic], stamp, store.serialize_cdr(message, msgtype))
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(partial, out)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    return out

@@ -1,0 +1,155 @@
+"""``--ros2``: the world publishes the run's topics on its own Zenoh session as rmw_zenoh would
+(SPEC §10). A plain Zenoh client, joining the run's router as its observer, listens the way a
+ROS 2 subscriber does and decodes every pose with rosbags; the graph is visible through a
+liveliness query; a run with ``--ros2`` records byte-identical results; ``ros2 topic echo``
+where ROS 2 is installed."""
+from __future__ import annotations
+
+import itertools
+import os
+import shutil
+import subprocess
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from protocol import ros2
+from protocol.config import RunConfig
+from protocol.session import free_tcp_endpoint, zenoh_config
+from swarm.deploy import OBSERVER
+from swarm.launch import launch
+from world.results import read_ticks
+from world.ros2 import stamp_parts
+from world.surfaces import make_surface
+
+DOMAIN, FOLLOWERS, TICKS = 17, 3, 12
+
+
+class Listener:
+    """What a ROS 2 subscriber would get: every sample's key, payload and attachment."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.samples: list[tuple[str, bytes, bytes | None]] = []
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        attachment = None if sample.attachment is None else sample.attachment.to_bytes()
+        with self.lock:
+            self.samples.append((str(sample.key_expr), sample.payload.to_bytes(), attachment))
+
+
+def _ros_run(out: Path, ros: bool, listen: bool) -> tuple[dict, Listener, list[str]]:
+    """A 3-follower wavy run (agents in-process); with ``listen``, an observer session
+    subscribed to the ROS 2 data of the domain and a liveliness query of its graph made
+    once the world is up."""
+    config = RunConfig(run_id=f"ros-live-{int(ros)}", surface="wavy", followers=FOLLOWERS,
+                       ticks=TICKS, ros2=ros, ros_domain=DOMAIN, noise_move=0.02, seed=9)
+    endpoint = free_tcp_endpoint()
+    listener, tokens, sessions = Listener(), [], []
+
+    def join(credentials) -> None:
+        session = zenoh.open(zenoh_config("client", connect=[endpoint], user=OBSERVER,
+                                          password=credentials.passwords[OBSERVER]))
+        sessions.append(session)
+        # as rmw_zenoh's subscriptions: one key per topic (here with wildcards over the
+        # agents and types), and the graph through a liveliness query on the domain
+        session.declare_subscriber(f"{DOMAIN}/swarm/*/pose/**", listener)
+        session.declare_subscriber(f"{DOMAIN}/swarm/*/required_range/**", listener)
+        tokens.extend(str(r.ok.key_expr) for r in session.liveliness().get(
+            ros2.graph_keys(DOMAIN)[1], timeout=10.0) if r.ok is not None)
+
+    try:
+        summary = launch(config, out, in_process=True, endpoint=endpoint,
+                         before_agents=join if listen else None)
+    finally:
+        for session in sessions:
+            session.close()
+    assert summary["complete"], summary["reason"]
+    return summary, listener, tokens
+
+
+def test_a_zenoh_client_listening_as_ros2_decodes_every_pose(tmp_path):
+    _, listener, tokens = _ros_run(tmp_path / "run", ros=True, listen=True)
+    # the graph: the world's node and one publisher per topic, as rmw_zenoh declares them
+    zids = {ros2.parse_token(t).zid for t in tokens}
+    assert len(zids) == 1
+    assert sorted(tokens) == sorted(ros2.world_tokens(DOMAIN, FOLLOWERS, zids.pop()))
+    gids = {}
+    for token in tokens:
+        entity = ros2.parse_token(token)
+        if entity.topic is not None:
+            gids[ros2.topic_key(DOMAIN, entity.topic, entity.msgtype, entity.type_hash)] = (
+                ros2.gid(token), entity.msgtype)
+    rows = read_ticks(tmp_path / "run" / "ticks.csv")
+    ticks = [list(g) for _, g in itertools.groupby(rows, key=lambda r: r["tick"])]
+    surface = make_surface("wavy")
+    store = ros2.typestore()
+    by_key: dict[str, list] = {}
+    for key, payload, attachment in listener.samples:
+        assert payload[:4] == b"\x00\x01\x00\x00"  # CDR, little endian
+        by_key.setdefault(key, []).append((payload, ros2.parse_attachment(attachment)))
+    for k in range(FOLLOWERS + 1):
+        key = ros2.topic_key(DOMAIN, ros2.agent_topic(k, "pose"),
+                             "geometry_msgs/msg/PoseStamped",
+                             ros2.type_hash("geometry_msgs/msg/PoseStamped"))
+        samples = by_key.pop(key)
+        assert len(samples) == TICKS  # every tick, in order, none lost
+        for j, (payload, (sequence, _, gid)) in enumerate(samples):
+            assert sequence == j + 1 and gid == gids[key][0]
+            pose = store.deserialize_cdr(payload, "geometry_msgs/msg/PoseStamped")
+            row = ticks[j][k]
+            assert (pose.header.stamp.sec, pose.header.stamp.nanosec) == stamp_parts(row["t"])
+            p = pose.pose.position
+            assert (p.x, p.y) == (row["pos_x"], row["pos_y"])
+            assert p.z == surface.height(np.array([p.x, p.y]))
+    for k in range(1, FOLLOWERS + 1):
+        key = ros2.topic_key(DOMAIN, ros2.agent_topic(k, "required_range"),
+                             "std_msgs/msg/Float64", ros2.type_hash("std_msgs/msg/Float64"))
+        values = [store.deserialize_cdr(payload, "std_msgs/msg/Float64").data
+                  for payload, _ in by_key.pop(key)]
+        assert values == [t[k]["required_range"] for t in ticks
+                          if t[k]["required_range"] is not None]
+    assert by_key == {}
+
+
+def test_a_run_with_ros2_records_byte_identical_results(tmp_path):
+    for ros in (False, True):
+        _ros_run(tmp_path / f"run-{ros}", ros=ros, listen=False)
+    for name in ("ticks.csv", "observations.csv"):
+        assert (tmp_path / "run-True" / name).read_bytes() == (
+            tmp_path / "run-False" / name).read_bytes()
+
+
+@pytest.mark.skipif(shutil.which("ros2") is None, reason="no ROS 2 installation (ros2 not on "
+                    "PATH)")
+def test_ros2_topic_echo_receives_a_pose(tmp_path):
+    """On a ROS 2 Jazzy machine with rmw_zenoh_cpp: ``ros2 topic echo`` as a client of the
+    run's router, logged in as its observer."""
+    config = RunConfig(run_id="ros-echo", surface="wavy", followers=1, ticks=400,
+                       ros2=True, ros_domain=DOMAIN, mode="realtime", time_scale=0.05)
+    endpoint = free_tcp_endpoint()
+    result: list[subprocess.CompletedProcess] = []
+    threads: list[threading.Thread] = []
+
+    def echo(credentials) -> None:
+        override = (f'mode="client";connect/endpoints=["{endpoint}"];'
+                    f'transport/auth/usrpwd/user="{OBSERVER}";'
+                    f'transport/auth/usrpwd/password="{credentials.passwords[OBSERVER]}"')
+        env = {**os.environ, "RMW_IMPLEMENTATION": "rmw_zenoh_cpp",
+               "ROS_DOMAIN_ID": str(DOMAIN), "ZENOH_CONFIG_OVERRIDE": override}
+
+        def run() -> None:
+            result.append(subprocess.run(
+                ["ros2", "topic", "echo", "--once", "/swarm/agent_1/pose",
+                 "geometry_msgs/msg/PoseStamped"], env=env, text=True, capture_output=True,
+                timeout=60))
+        threads.append(threading.Thread(target=run, daemon=True))
+        threads[0].start()
+
+    launch(config, tmp_path / "run", in_process=True, endpoint=endpoint, before_agents=echo)
+    threads[0].join(timeout=90)
+    assert result and result[0].returncode == 0, result
+    assert "frame_id: map" in result[0].stdout
