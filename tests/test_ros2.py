@@ -161,35 +161,41 @@ def test_domains():
     for bad in ("233", "-1", "x", "1.5"):
         with pytest.raises(ValueError, match="ROS_DOMAIN_ID"):
             ros2.domain_from_env({"ROS_DOMAIN_ID": bad})
-    assert RunConfig(ros_domain=232).ros_domain == 232
+    assert RunConfig(ros2=True, ros_domain=232).ros_domain == 232
     for bad in (233, -1, True, 1.0):
         with pytest.raises(ValueError, match="ros_domain"):
-            RunConfig(ros_domain=bad)
+            RunConfig(ros2=True, ros_domain=bad)
+    with pytest.raises(ValueError, match="ros_domain = 5 does nothing"):
+        RunConfig(ros_domain=5)  # a domain without ROS 2 publishing
     with pytest.raises(ValueError, match="ros2"):
         RunConfig(ros2="yes")
 
 
 def test_world_ros_options(tmp_path, monkeypatch):
-    """``python -m world``: flags override, a file without the domain takes ROS_DOMAIN_ID."""
+    """``python -m world``: flags override; with ROS 2 on, a file without the domain takes
+    ROS_DOMAIN_ID; without it the domain is not looked at."""
     from world.main import ros_options
 
     bare = tmp_path / "bare.toml"
     bare.write_text('run_id = "r"\n')
     pinned = tmp_path / "pinned.toml"
-    pinned.write_text('run_id = "r"\nros_domain = 9\n')
+    pinned.write_text('run_id = "r"\nros2 = true\nros_domain = 9\n')
 
     def args(path, ros2=None, domain=None):
         return argparse.Namespace(resume=None, config=str(path), ros2=ros2, ros_domain=domain)
 
     monkeypatch.setenv("ROS_DOMAIN_ID", "17")
     config = RunConfig(run_id="r")
-    assert ros_options(config, args(bare)).ros_domain == 17
-    assert not ros_options(config, args(bare)).ros2
-    assert ros_options(config.replace(ros_domain=9), args(pinned)).ros_domain == 9
+    assert ros_options(config, args(bare)) == config  # no ROS 2: the environment is not read
+    assert ros_options(config, args(bare, True)) == config.replace(ros2=True, ros_domain=17)
+    on = config.replace(ros2=True, ros_domain=9)
+    assert ros_options(on, args(pinned)).ros_domain == 9
     assert ros_options(config, args(bare, True, 3)) == config.replace(ros2=True, ros_domain=3)
+    with pytest.raises(ValueError, match="ros_domain = 3 does nothing"):
+        ros_options(config, args(bare, None, 3))
     monkeypatch.setenv("ROS_DOMAIN_ID", "300")
     with pytest.raises(ValueError, match="ROS_DOMAIN_ID"):
-        ros_options(config, args(bare))
+        ros_options(config, args(bare, True))
 
 
 def test_swarm_run_domain_defaults_to_the_environment(monkeypatch):
@@ -198,9 +204,11 @@ def test_swarm_run_domain_defaults_to_the_environment(monkeypatch):
     parser = build_parser()
     monkeypatch.setenv("ROS_DOMAIN_ID", "12")
     assert config_from_args(parser.parse_args(["run", "--ros2"])).ros_domain == 12
-    assert config_from_args(parser.parse_args(["run", "--ros-domain", "4"])).ros_domain == 4
-    monkeypatch.delenv("ROS_DOMAIN_ID")
-    assert config_from_args(parser.parse_args(["run"])).ros_domain == 0
+    assert config_from_args(parser.parse_args(["run", "--ros2", "--ros-domain", "4"])
+                            ).ros_domain == 4
+    assert config_from_args(parser.parse_args(["run"])).ros_domain == 0  # no ROS 2: not read
+    with pytest.raises(ValueError, match="ros_domain = 4 does nothing"):
+        config_from_args(parser.parse_args(["run", "--ros-domain", "4"]))
 
 
 def _rotation(q: tuple[float, float, float, float]) -> np.ndarray:

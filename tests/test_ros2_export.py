@@ -18,6 +18,7 @@ import yaml
 
 from protocol import ros2
 from protocol.config import RunConfig
+from protocol.distribution import missing_extra_message
 from swarm.cli import main as swarm_main
 from swarm.launch import launch
 from swarm.ros2_export import export_run

@@ -46,7 +46,8 @@ def _ros_run(out: Path, ros: bool, listen: bool) -> tuple[dict, Listener, list[s
     subscribed to the ROS 2 data of the domain and a liveliness query of its graph made
     once the world is up."""
     config = RunConfig(run_id=f"ros-live-{int(ros)}", surface="wavy", followers=FOLLOWERS,
-                       ticks=TICKS, ros2=ros, ros_domain=DOMAIN, noise_move=0.02, seed=9)
+                       ticks=TICKS, noise_move=0.02, seed=9,
+                       **({"ros2": True, "ros_domain": DOMAIN} if ros else {}))
     endpoint = free_tcp_endpoint()
     listener, tokens, sessions = Listener(), [], []
 
