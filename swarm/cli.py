@@ -12,6 +12,7 @@ from protocol.cli import (
 )
 from protocol.config import (DICTIONARIES, ESTIMATORS, MODES, SIDES, VELOCITY_VARIANTS, RunConfig,
                              config_from_dict, config_from_file, read_toml)
+from protocol.folder import FolderLock
 from protocol.session import add_credential_flags
 
 EXIT_NOTHING_ESTIMATED = 3
@@ -181,13 +182,16 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(f"error: {exc}", file=sys.stderr)
             return 1
         endpoint = free_tcp_endpoint()
-    try:
-        out = Path(args.out) if args.out else Path("runs") / config.run_id
+    out = Path(args.out) if args.out else Path("runs") / config.run_id
+    lock = FolderLock(out, config.run_id)
+    try:  # the folder is checked under its one-writer lock, held until the run ends
+        check_out_dir(out)
+        lock.acquire()
         if (out / "summary.json").exists():
             raise ValueError(f"{out} already holds a run's results; choose another --out "
                              "(nothing was overwritten)")
-        check_out_dir(out)
-    except ValueError as exc:
+    except (ValueError, OSError) as exc:
+        lock.release()
         print(f"error: {describe(exc)}", file=sys.stderr)
         return 2
     try:
@@ -197,13 +201,15 @@ def cmd_run(args: argparse.Namespace) -> int:
             except RuntimeError as exc:
                 print(f"error: {exc}", file=sys.stderr)
                 return 1
-        return _run_and_report(args, config, out, live, endpoint)
+        return _run_and_report(args, config, out, live, endpoint, lock)
     finally:
+        lock.release()
         if live is not None:
             live.close()
 
 
-def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live, endpoint) -> int:
+def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live, endpoint,
+                    lock: FolderLock) -> int:
     from tqdm import tqdm
 
     from swarm.launch import launch
@@ -219,7 +225,7 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
                disable=None)
     try:
         summary = launch(config, out, in_process=args.in_process, on_tick=lambda j: bar.update(1),
-                         endpoint=endpoint,
+                         endpoint=endpoint, lock=lock,
                          before_agents=None if live is None else observe)
     except OSError as exc:  # the results disk failed during the run (read-only, full)
         bar.close()

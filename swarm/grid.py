@@ -28,7 +28,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
 
-from protocol.config import DICTIONARIES, GPS_DICTIONARIES, RunConfig, load_config, write_atomic
+from protocol.config import DICTIONARIES, GPS_DICTIONARIES, RunConfig, load_config
+from protocol.folder import write_atomic
 
 RUN_ATTEMPTS = 2
 

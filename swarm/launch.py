@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import subprocess
 import sys
 import tempfile
@@ -22,8 +23,9 @@ import zenoh
 from agents.follower import run_follower
 from agents.leader import run_leader
 from agents.link import AgentAbort, RunFinished
-from protocol.config import AgentSettings, RunConfig
 from protocol.cli import describe
+from protocol.config import AgentSettings, RunConfig
+from protocol.folder import FolderLock, open_file
 from protocol.messages import safe_text
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.deploy import (OBSERVER, agent_user, private_dir, router_config, users,
@@ -122,12 +124,12 @@ class _ProcessAgents:
         self._stop = threading.Event()
 
     def start(self, service: WorldService) -> None:
-        logs = self.out_dir / "logs"
-        logs.mkdir(exist_ok=True)
         cmds = agent_commands(self.out_dir / "config.toml", self.endpoint, self.config.followers,
                               self.credentials)
         for k, cmd in enumerate(cmds):
-            with open(logs / f"agent-{k}.log", "wb") as log_file:
+            log_fd = open_file(self.out_dir / "logs" / f"agent-{k}.log",
+                               os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
+            with os.fdopen(log_fd, "wb") as log_file:
                 self.procs.append(subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT,
                                                    stdin=subprocess.DEVNULL))
         threading.Thread(target=self._watch, args=(service,), daemon=True).start()
@@ -221,7 +223,8 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
            on_tick: Callable[[int], None] | None = None, endpoint: str | None = None,
            credentials_dir: str | Path | None = None,
            credentials: RunCredentials | None = None,
-           before_agents: Callable[[RunCredentials], None] | None = None) -> dict:
+           before_agents: Callable[[RunCredentials], None] | None = None,
+           lock: FolderLock | None = None) -> dict:
     """Run ``config`` end to end; return the summary (also in ``out_dir/summary.json``).
 
     The world listens on ``endpoint`` (default: a free loopback port) as a router that admits
@@ -230,7 +233,8 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
     (created, mode 0700; it must not exist), by default to a temporary folder removed at the
     end; or ``credentials`` made beforehand with :meth:`RunCredentials.create` are used.
     ``before_agents`` is called with them once the world is up, before the agents start
-    (the live view connects there, as the ``observer`` user).
+    (the live view connects there, as the ``observer`` user). ``lock``: the folder's
+    one-writer lock, when the caller holds it already (see :func:`world.main.run_world`).
 
     Raises RuntimeError if the agents do not come up. Ctrl-C stops every agent and leaves a
     partial result marked incomplete.
@@ -239,21 +243,22 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
     endpoint = endpoint or free_tcp_endpoint()
     if credentials is not None:
         return _launch(config, out_dir, in_process, on_tick, endpoint, credentials,
-                       before_agents)
+                       before_agents, lock)
     if credentials_dir is not None:
         return _launch(config, out_dir, in_process, on_tick, endpoint,
                        RunCredentials.create(Path(credentials_dir), config.followers),
-                       before_agents)
+                       before_agents, lock)
     with tempfile.TemporaryDirectory(prefix="swarm-credentials-") as scratch:
         return _launch(config, out_dir, in_process, on_tick, endpoint,
                        RunCredentials.create(Path(scratch) / "run", config.followers),
-                       before_agents)
+                       before_agents, lock)
 
 
 def _launch(config: RunConfig, out_dir: Path, in_process: bool,
             on_tick: Callable[[int], None] | None, endpoint: str,
             credentials: RunCredentials,
-            before_agents: Callable[[RunCredentials], None] | None = None) -> dict:
+            before_agents: Callable[[RunCredentials], None] | None = None,
+            lock: FolderLock | None = None) -> dict:
     agents = (_ThreadAgents(config, endpoint, credentials) if in_process
               else _ProcessAgents(config, out_dir, endpoint, credentials))
     log.info("run %s: credentials in %s (observer: %s)", config.run_id, credentials.folder,
@@ -266,7 +271,7 @@ def _launch(config: RunConfig, out_dir: Path, in_process: bool,
 
     try:
         summary = run_world(config, embedded_router_config(config, endpoint, credentials),
-                            out_dir, on_tick=on_tick, on_ready=ready)
+                            out_dir, on_tick=on_tick, on_ready=ready, lock=lock)
     except BaseException:  # Ctrl-C or a failure: end every agent now
         agents.stop(timeout=1.0)
         raise

@@ -81,6 +81,6 @@ def run_local(config: RunConfig, out_dir: str | Path | None = None,
             sim.drive(0, tick, sim.time_of(tick))
             finish(tick, [follower(k, tick) for k in range(1, n + 1)])
     if out_dir is not None:
-        recorder.write_summary(complete=True)
+        recorder.write_summary(complete=True, final=True)
         recorder.close()
     return recorder.summary(complete=True), rows

@@ -31,7 +31,8 @@ from typing import Any
 import numba
 import numpy as np
 
-from protocol.config import AUTO, CLASSICAL, OWN_MOTION, RunConfig, write_atomic
+from protocol.config import AUTO, CLASSICAL, OWN_MOTION, RunConfig
+from protocol.folder import write_atomic
 from swarm.experiment import draw_jobs
 from swarm.grid import (Axis, GridRun, RunOutcome, estimator_axis, expand, follower_rows, is_nan,
                         mean_over, run_grid, write_tables)

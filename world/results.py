@@ -12,10 +12,13 @@ import csv
 import io
 import json
 import math
+import os
 import re
 from pathlib import Path
 
-from protocol.config import RunConfig, write_atomic
+from protocol.config import RunConfig
+from protocol.folder import AppendFile, write_atomic
+from protocol.limits import MAX_TEXT
 
 VERSION = "0.2.0"
 TICK_COLUMNS = (
@@ -25,7 +28,10 @@ TICK_COLUMNS = (
 )
 OBS_COLUMNS = ("tick", "agent", "estimator", "lost", "measurement", "prediction", "followed",
                "fallback")
+INT_TICK_COLUMNS = ("tick", "agent", "lost", "missed")
+MIN_COLUMNS = 3  # tick, and t or agent: a header this short is no results file
 TICKS_FILE, OBS_FILE, SUMMARY_FILE = "ticks.csv", "observations.csv", "summary.json"
+RESERVE_FILE = ".summary.reserve"
 RESULT_FILES = (TICKS_FILE, OBS_FILE, SUMMARY_FILE)
 
 
@@ -105,15 +111,24 @@ class _FollowerMetrics:
         }
 
 
+class DamagedRecord(ValueError):
+    """A results file that is not a whole, ordered record (a torn or malformed row, rows out of
+    order or repeated); the message names the file, the line and the defect."""
+
+
 class RunRecorder:
     """Records each complete tick: its ground-truth rows and the followers' observations.
 
     With a results folder, :meth:`open` it first; each :meth:`add_tick` then appends one tick to
-    ``ticks.csv`` and ``observations.csv`` and flushes them. :attr:`offsets` are the two files'
-    lengths after the last complete tick: the world's checkpoint stores them, and
-    ``open(resume_offsets=...)`` cuts off whatever a crash left past them (a half-written or
-    unconfirmed tick), then reads the kept rows back for the summary's totals. Without a folder
-    (``out_dir=None``) only the totals are kept.
+    ``ticks.csv`` and ``observations.csv``, whole or not at all (a failed write is cut back to
+    the previous tick in both files before the error, naming the file, is raised).
+    :attr:`offsets` are the two files' lengths after the last complete tick: the world's
+    checkpoint stores them, and ``open(resume_offsets=...)`` first checks that the files hold
+    whole, ordered rows up to them (nothing is changed otherwise), then cuts off whatever a
+    crash left past them (a half-written or unconfirmed tick). A spare file of
+    :meth:`reserve_bytes` is kept in the folder while the run goes, and given up just before the
+    last summary is written, so that even a full disk leaves a summary with the true reason.
+    Without a folder (``out_dir=None``) only the totals are kept.
     """
 
     def __init__(self, out_dir: str | Path | None, config: RunConfig) -> None:
@@ -121,34 +136,66 @@ class RunRecorder:
         self.config = config
         self.ticks_done = 0
         self._metrics = {k: _FollowerMetrics() for k in range(1, config.followers + 1)}
-        self._files: dict[str, io.TextIOBase] = {}
+        self._files: dict[str, AppendFile] = {}
 
-    def open(self, resume_offsets: dict[str, int] | None = None) -> None:
-        """Open the CSV files: fresh (headers written) or cut back to ``resume_offsets``."""
+    def open(self, resume_offsets: dict[str, int] | None = None,
+             resume_ticks: int | None = None) -> None:
+        """Open the CSV files: fresh (headers written) or, to resume, checked to hold whole rows
+        of ``resume_ticks`` complete ticks up to ``resume_offsets`` and then cut back to them.
+
+        Raises
+        ------
+        DamagedRecord
+            A file to resume is shorter than its offset, cut mid-row, or its kept rows are
+            damaged, or hold another number of ticks (no file was changed).
+        """
         if self.out_dir is None:
             raise RuntimeError("this recorder has no results folder")
-        self.out_dir.mkdir(parents=True, exist_ok=True)
-        for name, columns in ((TICKS_FILE, TICK_COLUMNS), (OBS_FILE, OBS_COLUMNS)):
-            path = self.out_dir / name
-            if resume_offsets is None:
-                fh = open(path, "w", encoding="utf-8", newline="")
-                fh.write(_header(columns))
-                fh.flush()
-            else:
-                size = path.stat().st_size if path.exists() else -1
-                keep = resume_offsets.get(name)
-                if not isinstance(keep, int) or isinstance(keep, bool) or not 0 < keep <= size:
-                    raise ValueError(f"{path} holds {max(size, 0)} bytes, the checkpoint expects "
-                                     f"at least {keep}: the files do not belong together")
-                with open(path, "r+b") as raw:
-                    raw.truncate(keep)
-                fh = open(path, "a", encoding="utf-8", newline="")
-            self._files[name] = fh
         if resume_offsets is not None:
-            for row in read_ticks(self.out_dir / TICKS_FILE):
+            ticks, observations = self._kept_rows(resume_offsets, resume_ticks)
+        for name, columns in ((TICKS_FILE, TICK_COLUMNS), (OBS_FILE, OBS_COLUMNS)):
+            fresh = resume_offsets is None
+            self._files[name] = AppendFile(self.out_dir / name, truncate=fresh)
+            if fresh:
+                self._files[name].append(_header(columns).encode())
+            else:
+                self._files[name].cut(resume_offsets[name])
+        if resume_offsets is not None:
+            for row in ticks:
                 self._count_row(row)
-            for row in read_observations(self.out_dir / OBS_FILE):
+            for row in observations:
                 self._count_observation(row)
+        write_atomic(self.out_dir / RESERVE_FILE, bytes(self.reserve_bytes()))
+
+    def _kept_rows(self, offsets: dict[str, int],
+                   ticks: int | None) -> tuple[list[dict], list[dict]]:
+        """The rows of ``ticks.csv`` and ``observations.csv`` up to ``offsets``, validated
+        (whole rows, in order, ``ticks`` complete ticks if given), reading only."""
+        kept = {}
+        for name in (TICKS_FILE, OBS_FILE):
+            path, keep = self.out_dir / name, offsets.get(name)
+            try:
+                with open(path, "rb") as fh:
+                    size = os.fstat(fh.fileno()).st_size
+                    raw = fh.read(keep) if _offset(keep) and keep <= size else b""
+            except FileNotFoundError:
+                size, raw = -1, b""
+            if not (_offset(keep) and 0 < keep <= size):
+                raise DamagedRecord(f"{path} holds {max(size, 0)} bytes, the checkpoint expects "
+                                    f"at least {keep}: the files do not belong together")
+            kept[name] = raw
+        rows = parse_ticks(kept[TICKS_FILE], self.out_dir / TICKS_FILE)
+        observations = parse_observations(kept[OBS_FILE], self.out_dir / OBS_FILE)
+        held = rows[-1]["tick"] + 1 if rows else 0
+        if ticks is not None and held != ticks:
+            raise DamagedRecord(f"{self.out_dir / TICKS_FILE} holds {held} ticks up to the "
+                                f"checkpoint's offset, the checkpoint {ticks}")
+        return rows, observations
+
+    def reserve_bytes(self) -> int:
+        """Size of the spare file: room for two summaries with the longest reason, in pages."""
+        longest = json.dumps(self.summary(complete=False, reason="x" * MAX_TEXT), indent=2)
+        return -(-2 * len(longest.encode()) // 4096) * 4096
 
     def close(self) -> None:
         for fh in self._files.values():
@@ -158,7 +205,7 @@ class RunRecorder:
     @property
     def offsets(self) -> dict[str, int]:
         """Byte length of each CSV file after the last complete tick."""
-        return {name: fh.tell() for name, fh in self._files.items()}
+        return {name: fh.size for name, fh in self._files.items()}
 
     def _count_row(self, row: dict) -> None:
         if row["agent"] in self._metrics:
@@ -172,19 +219,24 @@ class RunRecorder:
 
     def add_tick(self, rows: list[dict], observations: list[tuple[int, object]] = ()) -> None:
         """Record one complete tick: its rows (``WorldSim.finish_tick``) and the followers'
-        observations of that tick as ``(agent, Observation)`` pairs, in agent order."""
+        observations of that tick as ``(agent, Observation)`` pairs, in agent order. With a
+        folder the tick is written whole to both files before it counts, or not at all."""
         obs_rows = [observation_row(agent, msg) for agent, msg in observations]
+        if self.out_dir is not None:
+            before = self.offsets
+            try:
+                for name, columns, data in ((TICKS_FILE, TICK_COLUMNS, rows),
+                                            (OBS_FILE, OBS_COLUMNS, obs_rows)):
+                    text = "".join(_line(columns, row) for row in data)
+                    self._files[name].append(text.encode("utf-8"))
+            except OSError:
+                for name, size in before.items():
+                    self._files[name].cut(size)
+                raise
         for row in rows:
             self._count_row(row)
         for row in obs_rows:
             self._count_observation(row)
-        if self.out_dir is None:
-            return
-        ticks, obs = self._files[TICKS_FILE], self._files[OBS_FILE]
-        ticks.write("".join(_line(TICK_COLUMNS, row) for row in rows))
-        obs.write("".join(_line(OBS_COLUMNS, row) for row in obs_rows))
-        ticks.flush()
-        obs.flush()
 
     def summary(self, *, complete: bool, reason: str = "", wall_time: float = 0.0) -> dict:
         """The ``summary.json`` content (SPEC §7)."""
@@ -206,10 +258,14 @@ class RunRecorder:
             "wall_time": wall_time,
         }
 
-    def write_summary(self, *, complete: bool, reason: str = "", wall_time: float = 0.0) -> None:
-        """Write ``summary.json`` atomically."""
+    def write_summary(self, *, complete: bool, reason: str = "", wall_time: float = 0.0,
+                      final: bool = False) -> None:
+        """Write ``summary.json`` atomically; the ``final`` one (the run is over, complete or
+        not) first gives up the spare file, so that it finds room on a full disk."""
         if self.out_dir is None:
             raise RuntimeError("this recorder has no results folder")
+        if final:
+            (self.out_dir / RESERVE_FILE).unlink(missing_ok=True)
         summary = self.summary(complete=complete, reason=reason, wall_time=wall_time)
         write_atomic(self.out_dir / SUMMARY_FILE, json.dumps(summary, indent=2) + "\n")
 
@@ -259,27 +315,111 @@ def _shares(counts: dict[str, int]) -> dict[str, float]:
     return {name: n / total for name, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))}
 
 
+def _offset(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
 def read_observations(path: str | Path) -> list[dict]:
-    """Read an ``observations.csv`` back (tick, agent, lost, fallback as int)."""
-    with open(path, newline="", encoding="utf-8") as fh:
-        return [{**row, **{k: int(row[k]) for k in ("tick", "agent", "lost", "fallback")
-                           if row.get(k) not in (None, "")},
-                 "followed": row.get("followed") or None}
-                for row in csv.DictReader(fh)]
+    """Read an ``observations.csv`` back (tick, agent, lost, fallback as int), validated as
+    :func:`parse_observations` does (:class:`DamagedRecord` otherwise)."""
+    return parse_observations(_read(path), path)
 
 
 def read_ticks(path: str | Path) -> list[dict]:
-    """Read a ``ticks.csv`` back (numbers as float/int, empty cells as None)."""
-    with open(path, newline="", encoding="utf-8") as fh:
-        rows = []
-        for raw in csv.DictReader(fh):
-            row = {}
-            for key, value in raw.items():
-                if value == "" or key == "estimator":
-                    row[key] = value or None
-                elif key in ("tick", "agent", "lost", "missed"):
-                    row[key] = int(value)
-                else:
-                    row[key] = float(value)
-            rows.append(row)
+    """Read a ``ticks.csv`` back (numbers as float/int, empty cells as None), validated as
+    :func:`parse_ticks` does (:class:`DamagedRecord` otherwise)."""
+    return parse_ticks(_read(path), path)
+
+
+def _read(path: str | Path) -> bytes:
+    with open(path, "rb") as fh:
+        return fh.read()
+
+
+def parse_ticks(raw: bytes, source: str | Path) -> list[dict]:
+    """The rows of the ``ticks.csv`` text ``raw`` (read from ``source``), each whole: every line
+    ends with a newline and has the header's fields, numbers parse, and ``(tick, agent)``
+    increases strictly from row to row (no tick out of order, no agent twice in a tick).
+    Files of earlier versions, with fewer of :data:`TICK_COLUMNS`, are read too."""
+    rows = []
+    for raw_row, line in _records(raw, source, TICK_COLUMNS):
+        row = {}
+        for key, value in raw_row.items():
+            if value == "" or key == "estimator":
+                row[key] = value or None
+            elif key in INT_TICK_COLUMNS:
+                row[key] = _number(int, value, key, source, line)
+            else:
+                row[key] = _number(float, value, key, source, line)
+        rows.append(row)
+    _in_order(rows, source)
     return rows
+
+
+def parse_observations(raw: bytes, source: str | Path) -> list[dict]:
+    """The rows of the ``observations.csv`` text ``raw``, validated as :func:`parse_ticks`."""
+    rows = []
+    for raw_row, line in _records(raw, source, OBS_COLUMNS):
+        row = {**raw_row, "followed": raw_row.get("followed") or None}
+        for key in ("tick", "agent", "lost", "fallback"):
+            if raw_row.get(key) not in (None, ""):
+                row[key] = _number(int, raw_row[key], key, source, line)
+        rows.append(row)
+    _in_order(rows, source)
+    return rows
+
+
+def _damaged(source: str | Path, line: int, what: str) -> DamagedRecord:
+    return DamagedRecord(f"{source}, line {line}: {what}; the record is damaged (refusing it)")
+
+
+def _records(raw: bytes, source: str | Path,
+             columns: tuple[str, ...]) -> list[tuple[dict[str, str], int]]:
+    """``(row, line number)`` of every whole CSV row of ``raw`` under a header of ``columns``
+    (or a prefix of at least :data:`MIN_COLUMNS` of them, from an earlier version)."""
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise DamagedRecord(f"{source}: not UTF-8 text ({exc.reason} at byte {exc.start}); "
+                            "the record is damaged (refusing it)") from None
+    lines = text.split("\n")
+    if lines[-1]:  # the last line has no newline: an append was cut short
+        raise _damaged(source, len(lines), "a torn row (no end of line)")
+    reader = csv.reader(lines[:-1])
+    try:
+        header = tuple(next(reader))
+    except StopIteration:
+        raise DamagedRecord(f"{source}: empty (no header); the record is damaged "
+                            "(refusing it)") from None
+    if len(header) < MIN_COLUMNS or header != columns[:len(header)]:
+        raise _damaged(source, 1, f"the header is not {', '.join(columns)}")
+    records = []
+    try:
+        for fields in reader:
+            if len(fields) != len(header):
+                raise _damaged(source, reader.line_num, f"{len(fields)} fields, the header has "
+                                                        f"{len(header)}")
+            records.append((dict(zip(header, fields, strict=True)), reader.line_num))
+    except csv.Error as exc:
+        raise _damaged(source, reader.line_num, f"not CSV ({exc})") from None
+    return records
+
+
+def _number(kind: type, value: str, key: str, source: str | Path, line: int):
+    try:
+        return kind(value)
+    except ValueError:
+        raise _damaged(source, line, f"{key} is {value[:40]!r}, not a number") from None
+
+
+def _in_order(rows: list[dict], source: str | Path) -> None:
+    """Rows come tick by tick, in agent order, each (tick, agent) once."""
+    before = (-1, -1)
+    for number, row in enumerate(rows, start=2):
+        tick, agent = row.get("tick"), row.get("agent")
+        if not (isinstance(tick, int) and isinstance(agent, int) and tick >= 0 and agent >= 0):
+            raise _damaged(source, number, "no tick and agent")
+        if (tick, agent) <= before:
+            raise _damaged(source, number, f"tick {tick}, agent {agent} after tick {before[0]}, "
+                                           f"agent {before[1]} (out of order or repeated)")
+        before = (tick, agent)

@@ -22,7 +22,7 @@ from protocol.messages import (
 )
 from protocol.session import token_live, undeclare_all
 from world import checkpoint
-from world.results import RunRecorder
+from world.results import DamagedRecord, RunRecorder
 from world.sim import RequestError, RunEnded, TickMissed, WorldSim
 from world.surfaces import Surface
 from world.view import ViewPublisher
@@ -142,11 +142,10 @@ class WorldService:
         except (KeyError, TypeError, ValueError) as exc:
             raise checkpoint.StateError(f"checkpoint {self.out_dir / checkpoint.STATE_FILE}: bad simulation "
                                         f"state ({exc}); refusing it") from None
-        self.recorder.open(resume_offsets=state["offsets"])
-        if self.recorder.ticks_done != self.sim.tick + 1:
-            raise checkpoint.StateError(
-                f"cannot resume {self.out_dir}: ticks.csv holds {self.recorder.ticks_done} ticks, "
-                f"the checkpoint {self.sim.tick + 1}")
+        try:  # every file is checked before any is changed
+            self.recorder.open(resume_offsets=state["offsets"], resume_ticks=self.sim.tick + 1)
+        except DamagedRecord as exc:
+            raise checkpoint.StateError(f"cannot resume {self.out_dir}: {exc}") from None
         self.start, self._wall_before = state["start"], state["wall_time"]
         self._through = [self.sim.tick] * self.sim.n_agents
         log.warning("world: resuming run %s after tick %d", self.config.run_id, self.sim.tick)
@@ -494,10 +493,13 @@ class WorldService:
                         break
                     if self.on_tick is not None:
                         self.on_tick(tick)
+        except OSError as exc:  # the results disk failed (full, read-only): say which file
+            self._record_failure(exc)
+            raise
         except BaseException:
             with self._cond:
                 self.recorder.write_summary(complete=False, reason="interrupted",
-                                            wall_time=self._wall())
+                                            wall_time=self._wall(), final=True)
             raise
         complete = not reason
         if reason:
@@ -507,7 +509,8 @@ class WorldService:
             # the run completes) gets time to come back and see world/done
             self._wait_live(self.config.agent_timeout)
         with self._cond:
-            self.recorder.write_summary(complete=complete, reason=reason, wall_time=self._wall())
+            self.recorder.write_summary(complete=complete, reason=reason, wall_time=self._wall(),
+                                        final=True)
         done = encode(Done(tick=max(self.recorder.ticks_done - 1, 0), results=str(self.out_dir),
                            complete=complete, reason=safe_text(reason)))
         with self._cond:
@@ -517,6 +520,18 @@ class WorldService:
         if complete:  # a world killed before this resumes into the end phase again
             checkpoint.discard(self.out_dir)
         return self.recorder.summary(complete=complete, reason=reason, wall_time=self._wall())
+
+    def _record_failure(self, exc: OSError) -> None:
+        """Mark the run incomplete with the file that could not be written and why; if even
+        that summary cannot be written, the caller's error line is all there is."""
+        name = Path(exc.filename).name if exc.filename else "the results"
+        reason = f"cannot write {name}: {exc.strerror or exc}"
+        with self._cond:
+            try:
+                self.recorder.write_summary(complete=False, reason=reason, wall_time=self._wall(),
+                                            final=True)
+            except OSError as again:
+                log.error("world: cannot write the summary either: %s", again)
 
     def _wait_agents_gone(self, timeout: float) -> None:
         """Give agents time to see ``world/done`` and leave before the session closes."""
