@@ -247,9 +247,12 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
 
         for path in plot_run(out):
             print(f"figure: {path}")
-    empty = empty_followers(summary, config.init_ticks)
+    # a run that ended early says why in one line; its empty followers are no news then
+    empty = empty_followers(summary, config.init_ticks) if summary["complete"] else []
     for line in empty:
         print(f"warning: {line}", file=sys.stderr)
+    if not summary["complete"]:
+        print(f"error: run incomplete: {summary['reason']}", file=sys.stderr)
     if live is not None:
         print(f"live view still at {live.server.url} (Ctrl-C to quit)", flush=True)
         live.serve_until_interrupted()
