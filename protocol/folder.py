@@ -27,6 +27,8 @@ import stat
 import time
 from pathlib import Path
 
+from protocol.cli import Refused
+
 LOCK_FILE = ".swarm.lock"
 """The lock file in a results folder (kept between runs: deleting it would let two writers
 lock two different files)."""
@@ -44,11 +46,11 @@ class SymlinkRefused(OSError):
                                       "writes only inside its folder)", str(path))
 
 
-class FolderBusy(ValueError):
+class FolderBusy(Refused):
     """Another live process holds the folder's lock; the message names it."""
 
 
-class FolderRefused(ValueError):
+class FolderRefused(Refused):
     """A results folder a run must not write into (it holds a symbolic link)."""
 
 

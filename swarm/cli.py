@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from protocol.cli import (
-    EXPECTED_FAILURES, add_log_level_flag, bounded_interrupt, check_out_dir, describe,
+    EXPECTED_FAILURES, Refused, add_log_level_flag, bounded_interrupt, check_out_dir, describe,
     setup_logging,
 )
 from protocol.config import (DICTIONARIES, ESTIMATORS, MODES, SIDES, VELOCITY_VARIANTS, RunConfig,
@@ -227,6 +227,10 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
         summary = launch(config, out, in_process=args.in_process, on_tick=lambda j: bar.update(1),
                          endpoint=endpoint, lock=lock,
                          before_agents=None if live is None else observe)
+    except Refused as exc:  # e.g. a raster larger than the limit: nothing ran
+        bar.close()
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     except OSError as exc:  # the results disk failed during the run (read-only, full)
         bar.close()
         print(f"error: cannot write the results in {out}: {describe(exc)}", file=sys.stderr)
@@ -468,7 +472,8 @@ def cmd_dem_crop(args: argparse.Namespace) -> int:
     from swarm.terrain import crop_dem
 
     try:
-        crop = crop_dem(args.source, args.out, args.bounds, force=args.force)
+        crop = crop_dem(args.source, args.out, args.bounds, force=args.force,
+                        max_cells=args.max_cells)
     except (ValueError, OSError) as exc:
         print(f"error: {describe(exc)}", file=sys.stderr)
         return 2
@@ -602,6 +607,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="keep these nodes instead (m, in IN's frame: origin at its "
                            "south-west node)")
     crop.add_argument("--force", action="store_true", help="replace OUT if it exists")
+    crop.add_argument("--max-cells", type=int, default=None, metavar="N",
+                      help="refuse a raster of more cells than N (default: four times what a "
+                           "run loads; see docs/reliability.md)")
     crop.set_defaults(func=cmd_dem_crop)
     plot = sub.add_parser("plot", help="draw one run's figures into RUN_DIR/figures")
     plot.add_argument("run_dir", metavar="RUN_DIR", help="a results folder of `swarm run`")

@@ -384,11 +384,20 @@ class Crop:
     dropped: int  # no-data nodes of the source left out
 
 
+CROP_MAX_CELLS = 4 * 4096 * 4096
+"""Most cells of a raster ``dem-crop`` reads (``--max-cells`` raises it): it holds the whole
+raster's heights and no-data mask, about 22 bytes per cell at peak (bench/bench_dem_limit.py),
+so 1.4 GiB at this limit; four times what a run loads (:data:`world.dem.MAX_CELLS`), since
+cutting a large raster down is what it is for."""
+
+
 def crop_dem(source: str | Path, out: str | Path,
              bounds: tuple[float, float, float, float] | None = None,
-             force: bool = False) -> Crop:
+             force: bool = False, max_cells: int | None = None) -> Crop:
     """Write a rectangle of the DEM at ``source`` without any no-data node as the GeoTIFF
     ``out`` (same CRS, cell size, data type and no-data value; a geo-referenced window).
+    A raster over ``max_cells`` cells (default :data:`CROP_MAX_CELLS`) is refused
+    (:class:`world.dem.RasterTooLarge`) before its data is read.
 
     Parameters
     ----------
@@ -421,7 +430,10 @@ def crop_dem(source: str | Path, out: str | Path,
     if bounds is not None and not (bounds[0] < bounds[2] and bounds[1] < bounds[3]):
         raise ValueError(f"bounds must be xmin,ymin,xmax,ymax with xmin < xmax and "
                          f"ymin < ymax, got {bounds}")
-    x, y, z = read_grid(source)
+    max_cells = CROP_MAX_CELLS if max_cells is None else max_cells
+    if isinstance(max_cells, bool) or not isinstance(max_cells, int) or max_cells < 1:
+        raise ValueError(f"max_cells must be a whole number >= 1, got {max_cells!r}")
+    x, y, z = read_grid(source, max_cells, limit="dem-crop --max-cells")
     valid = np.isfinite(z)
     if bounds is None:
         j0, j1, i0, i1 = largest_rectangle(valid, MIN_NODES)

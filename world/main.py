@@ -10,11 +10,11 @@ from pathlib import Path
 import zenoh
 
 from protocol.cli import (
-    EXPECTED_FAILURES, add_log_level_flag, bounded_interrupt, check_out_dir, describe,
+    EXPECTED_FAILURES, Refused, add_log_level_flag, bounded_interrupt, check_out_dir, describe,
     setup_logging,
 )
 from protocol.config import RunConfig, dump_config, load_config
-from protocol.folder import FolderBusy, FolderLock, FolderRefused
+from protocol.folder import FolderLock
 from protocol.session import add_credential_flags, credentials, tls_options, zenoh_config
 from world import checkpoint
 from world.service import WorldService
@@ -113,7 +113,7 @@ def _serve(args: argparse.Namespace) -> int:
     except checkpoint.AlreadyComplete as exc:
         print(str(exc), file=sys.stderr)
         return 0
-    except (FolderBusy, FolderRefused) as exc:  # nothing was written
+    except Refused as exc:  # a folder in use, a raster too large: nothing was written
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # the results disk failed during the run (read-only, full)
