@@ -135,15 +135,25 @@ class _ProcessAgents:
         threading.Thread(target=self._watch, args=(service,), daemon=True).start()
 
     def _watch(self, service: WorldService) -> None:
+        """End the run when an agent fails; in realtime an agent killed by a signal is only
+        reported: the world records its ticks as missed and the run goes on (SPEC §4)."""
+        dead: set[int] = set()
         while not self._stop.wait(POLL_S):
             for k, proc in enumerate(self.procs):
                 code = proc.poll()
-                if code not in (None, 0):
-                    log = self.out_dir / "logs" / f"agent-{k}.log"
-                    said = last_error_line(log)
-                    service.abort(f"agent {k} exited with status {code}"
-                                  + (f": {said}" if said else "") + f" (see {log})")
-                    return
+                if code in (None, 0) or k in dead:
+                    continue
+                path = self.out_dir / "logs" / f"agent-{k}.log"
+                said = last_error_line(path)
+                why = (f"agent {k} exited with status {code}" + (f": {said}" if said else "")
+                       + f" (see {path})")
+                if self.config.mode == "realtime" and code < 0:
+                    dead.add(k)
+                    log.warning("%s; the run goes on without it, its ticks recorded as missed",
+                                why)
+                    continue
+                service.abort(why)
+                return
 
     def stop(self, timeout: float = 10.0) -> None:
         self._stop.set()

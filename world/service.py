@@ -225,7 +225,13 @@ class WorldService:
                 if isinstance(req, JoinRequest):
                     if self._finished is not None:  # an agent restarted after the end
                         self._done_pub.put(self._finished)
-                    return encode(self._joined(agent))
+                    joined = self._joined(agent)
+                    if self.config.mode == "lockstep":
+                        # it starts again from what the world has it through: whatever it did
+                        # since (before a stall cut its session, say) is void (in realtime
+                        # the tick it vanished in was marked missed)
+                        self._roll_back(agent)
+                    return encode(joined)
                 self._check_turn(agent, req.tick)
                 # the agent validates the reply on decode; its numbers are the world's own
                 return encode(self.sim.act(agent, req), check=False)
@@ -311,10 +317,17 @@ class WorldService:
                     else:  # lockstep: it redoes the tick when it is back (SPEC §4)
                         log.warning("world: agent %d vanished during tick %d; its tick is rolled "
                                     "back until it is back", agent, tick)
-                        self.sim.rollback(agent, tick)
-                        self._obs.get(tick, {}).pop(agent, None)
-                        self._rods.get(tick, set()).discard(agent)
+                        self._roll_back(agent)
             self._cond.notify_all()
+
+    def _roll_back(self, agent: int) -> None:
+        """(Lock held.) Undo what ``agent`` did in the tick after the last one the world has it
+        through (nothing if it has not begun it): it redoes that tick."""
+        tick = self._through[agent] + 1 if 0 <= agent < self.sim.n_agents else -1
+        if 0 <= tick <= self.sim.tick:
+            self.sim.rollback(agent, tick)
+            self._obs.get(tick, {}).pop(agent, None)
+            self._rods.get(tick, set()).discard(agent)
 
     # --- the run -------------------------------------------------------------------------------
 
@@ -436,10 +449,14 @@ class WorldService:
             # a dead agent misses at once: those behind it keep their time budget
             for agent in sorted(set(range(self.sim.n_agents)) - self._alive):
                 self._mark_missed(agent, "its process is not live")
+            share = self.period / self.sim.n_agents
             while self._ended is None and min(self._through) < tick:
                 waiting = min(k for k in range(self.sim.n_agents) if self._through[k] < tick)
-                # the clock restarts whenever some agent gets through the tick
-                deadline = min(self._progress + limit, self._tick_started + self.period)
+                # the clock restarts whenever some agent gets through the tick; the agent
+                # waited for has the rest of the period, and at least its share of a period
+                # after its predecessor: one stalled agent never eats its successors' time
+                deadline = min(self._progress + limit,
+                               max(self._tick_started + self.period, self._progress + share))
                 left = deadline - time.monotonic()
                 if left <= 0:
                     self._mark_missed(waiting, "did not settle in time")
