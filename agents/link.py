@@ -229,12 +229,6 @@ class AgentLink:
         raise Rejoin(f"agent {self.agent_id}: its session to the world was cut and is back "
                      "(a stall?): joining again")
 
-    @property
-    def cuts(self) -> int:
-        """How often the session to the world was cut so far."""
-        with self._cond:
-            return self._cuts
-
     def wait_step(self, after: int, timeout: float) -> int:
         """Block until a tick newer than ``after`` is announced; return the next one to do
         (``after + 1`` in lockstep, else the newest).

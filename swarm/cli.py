@@ -608,8 +608,8 @@ def build_parser() -> argparse.ArgumentParser:
                            "south-west node)")
     crop.add_argument("--force", action="store_true", help="replace OUT if it exists")
     crop.add_argument("--max-cells", type=int, default=None, metavar="N",
-                      help="refuse a raster of more cells than N (default: four times what a "
-                           "run loads; see docs/reliability.md)")
+                      help="refuse a raster of more cells than N (default: twice what a run "
+                           "loads; see docs/reliability.md)")
     crop.set_defaults(func=cmd_dem_crop)
     plot = sub.add_parser("plot", help="draw one run's figures into RUN_DIR/figures")
     plot.add_argument("run_dir", metavar="RUN_DIR", help="a results folder of `swarm run`")

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from protocol.config import DICTIONARIES, GPS_DICTIONARIES, RunConfig, load_config
-from protocol.folder import write_atomic
+from protocol.folder import FolderLock, write_atomic
 
 RUN_ATTEMPTS = 2
 
@@ -127,7 +127,8 @@ def _clear_unfinished(run: GridRun, folder: Path) -> None:
     if written != run.config.run_id:
         raise ValueError(f"{folder} holds something other than run {run.config.run_id}: "
                          "remove it or choose another output folder")
-    shutil.rmtree(folder)
+    with FolderLock(folder, run.config.run_id):  # never from under a live writer
+        shutil.rmtree(folder)
 
 
 def run_grid(runs: list[GridRun], runs_dir: Path, workers: int | None = None,

@@ -384,11 +384,11 @@ class Crop:
     dropped: int  # no-data nodes of the source left out
 
 
-CROP_MAX_CELLS = 4 * 4096 * 4096
+CROP_MAX_CELLS = 2 * 4096 * 4096
 """Most cells of a raster ``dem-crop`` reads (``--max-cells`` raises it): it holds the whole
-raster's heights and no-data mask, about 22 bytes per cell at peak (bench/bench_dem_limit.py),
-so 1.4 GiB at this limit; four times what a run loads (:data:`world.dem.MAX_CELLS`), since
-cutting a large raster down is what it is for."""
+raster's heights and no-data mask, 36 bytes per cell at peak on a 3000 × 3000 GeoTIFF
+(bench/bench_dem_limit.py), so about 1.1 GiB at this limit; twice what a run loads
+(:data:`world.dem.MAX_CELLS`), since cutting a large raster down is what it is for."""
 
 
 def crop_dem(source: str | Path, out: str | Path,

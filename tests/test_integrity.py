@@ -34,12 +34,12 @@ from protocol.folder import (
     open_file,
     write_atomic,
 )
+from protocol.record import DamagedRecord, read_observations, read_ticks
 from protocol.session import free_tcp_endpoint
 from swarm.launch import agent_commands, launch
 from swarm.local import run_local
 from tests.waiting import wait_for
 from world import checkpoint
-from world.results import DamagedRecord, read_observations, read_ticks
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = int(os.environ.get("FAULT_SEED", str(int(time.time()) % 100_000)))

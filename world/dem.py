@@ -60,10 +60,11 @@ KNOT_MARGIN = 1e-8
 """How far past a knot line (in cell widths) one integration step may end."""
 MAX_CELLS = 4096 * 4096
 """Most cells (width × height) of a DEM a run loads unless its ``max_cells`` says otherwise:
-about 0.5 GiB of memory at :data:`BYTES_PER_CELL`."""
-BYTES_PER_CELL = 32
+about 0.4 GiB of memory at :data:`BYTES_PER_CELL`."""
+BYTES_PER_CELL = 24
 """Peak memory per cell while a DEM is loaded: the heights as float64, their copies, and
-scipy's spline coefficients and working memory (measured 28–32 bytes: bench/bench_dem.py)."""
+scipy's spline coefficients and working memory (measured 23 bytes on a 3000 × 3000 float32
+GeoTIFF, about 19 for each cell more: bench/bench_dem_limit.py)."""
 _HEADER = 6  # params: n_ty, n_tx, y0, y1, x0, x1, then ty, tx, coefficients
 
 

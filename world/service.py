@@ -520,7 +520,7 @@ class WorldService:
             raise
         complete = not reason
         if reason:
-            log.error("world: run ended early: %s", reason)
+            log.info("world: run ended early: %s", reason)  # the caller says it
         elif self.config.mode == "lockstep":
             # an agent that vanished after it was through every tick (pipelined, long before
             # the run completes) gets time to come back and see world/done

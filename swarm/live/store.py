@@ -12,8 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 
+from protocol.record import OBS_FILE, SUMMARY_FILE, TICKS_FILE, read_observations, read_ticks
 from protocol.view import MAP_FILE, TICK_COLUMNS, check_map, tick_payloads
-from world.results import OBS_FILE, SUMMARY_FILE, TICKS_FILE, read_observations, read_ticks
 
 WAITING, RUNNING = "waiting for the world", "running"
 STARTING = "world alive, waiting for its first tick"
@@ -147,7 +147,7 @@ def load_run(run_dir: str | Path) -> RunStore:
 
 
 def _row(row: dict) -> dict:
-    """A row of :func:`world.results.read_ticks` with the view's columns, as
+    """A row of :func:`protocol.record.read_ticks` with the view's columns, as
     ``WorldSim.finish_tick`` gives it (``missed`` is 0 where the file has no such column)."""
     view = {"tick": row["tick"], "t": row["t"]}
     for name in TICK_COLUMNS:
