@@ -27,7 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.config import checked_json, json_checksum, write_atomic
+from protocol.config import checked_json, json_checksum
+from protocol.folder import AppendFile, write_atomic
 from protocol.messages import ProtocolError, Sensing, from_body, to_body
 
 SCHEMA = 1
@@ -126,10 +127,13 @@ class StateLog:
         return entries
 
     def append(self, entry: Entry) -> None:
-        """Add one tick (written and flushed before the tick is reported to anyone)."""
-        with open(self.path, "a", encoding="utf-8") as fh:
-            fh.write(_line(entry.body()))
-            fh.flush()
+        """Add one tick (written before the tick is reported to anyone), whole or not at all:
+        a failed write is cut back to the previous line before the error is raised."""
+        log = AppendFile(self.path)
+        try:
+            log.append(_line(entry.body()).encode("utf-8"))
+        finally:
+            log.close()
 
     def rewrite(self, entries: list[Entry]) -> None:
         """Replace the file atomically with the header and ``entries`` (a rollback)."""

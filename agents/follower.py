@@ -17,7 +17,7 @@ import zenoh
 
 from agents.checkpoint import Entry, StateLog, replay
 from agents.cli import parser, run_cli
-from agents.link import AgentAbort, AgentLink, MarkedMissed, RunFinished
+from agents.link import AgentAbort, AgentLink, MarkedMissed, Rejoin, RunFinished
 from agents.policies import (NotReady, Policy, make_policy, move_variance, reading_variance,
                              relative)
 from protocol.config import AgentSettings
@@ -81,40 +81,47 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
     return TickOutcome(observation, settled, target)
 
 
-def _restore(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Policy,
-             state_dir: str | Path | None) -> tuple[StateLog | None, int, int]:
-    """Join the run, rebuild ``policy`` from the state log, roll back what the world has not
-    recorded; return the log (None without a state dir), the last tick the policy has seen and
-    the last tick the world has this agent through.
+def _join(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Policy, last: int,
+          state_dir: str | Path | None, again: bool) -> tuple[StateLog | None, Policy, int, int]:
+    """Join the run, or join it ``again`` after :class:`agents.link.Rejoin`; return the state
+    log (None without a state dir), the policy, the last tick it is through and the last tick
+    the world has this agent through. ``policy`` is through every tick up to ``last`` (-1:
+    none): it learnt from them, skipped them or missed them.
 
     The world says where this agent stands (the last tick it has the agent through, and up to
     which tick the agent may act now). Log entries past that point describe ticks the world
-    will run again (it restarted from its checkpoint, or this agent died before reporting), so
-    they are dropped and the ticks are redone from the same state: the numbers are those of an
-    uninterrupted run.
+    will run again (it restarted from its checkpoint, this agent died before reporting, or its
+    session was cut while it stalled), so they are dropped and the policy is rebuilt from the
+    rest: the ticks are redone from the same state and the numbers are those of an
+    uninterrupted run. Without a state dir the policy can go on only if the world has the agent
+    through every tick the policy is through.
     """
     joined = link.join(settings.start_timeout)
     through = joined.through
-    state = None
-    if state_dir:
-        state, entries = StateLog.open(state_dir, settings.run_id, agent_id, joined.start)
-        kept = [e for e in entries if e.tick <= through]
-        if len(kept) != len(entries):
-            log.info("follower %d: rolling back to tick %d (the world redoes tick %d)",
-                     agent_id, through, through + 1)
-            state.rewrite(kept)
-        last = kept[-1].tick if kept else -1
-        if last < through:  # ticks it was not there for (realtime misses): bridged
-            kept.append(Entry(tick=through, skips=through - last - 1, settled=None, target=None))
-            state.append(kept[-1])
-            last = through
-        replay(policy, kept)
-        if entries:
-            log.info("follower %d: restored %d ticks of history from %s", agent_id, len(kept),
-                     state.path)
-    else:
-        last = -1
-    return state, last, through
+    if not state_dir:
+        if last > through:
+            raise AgentAbort(f"follower {agent_id} cannot rejoin: the world redoes tick "
+                             f"{through + 1}, which its estimator has learnt from, and it keeps "
+                             "no state dir to roll back to (see --state-dir)")
+        return None, policy, last, through
+    if again:  # the log holds what to learn from
+        policy = make_policy(settings)
+    state, entries = StateLog.open(state_dir, settings.run_id, agent_id, joined.start)
+    kept = [e for e in entries if e.tick <= through]
+    if len(kept) != len(entries):
+        log.info("follower %d: rolling back to tick %d (the world redoes tick %d)",
+                 agent_id, through, through + 1)
+        state.rewrite(kept)
+    last = kept[-1].tick if kept else -1
+    if last < through:  # ticks it was not there for (realtime misses): bridged
+        kept.append(Entry(tick=through, skips=through - last - 1, settled=None, target=None))
+        state.append(kept[-1])
+        last = through
+    replay(policy, kept)
+    if entries:
+        log.info("follower %d: restored %d ticks of history from %s", agent_id, len(kept),
+                 state.path)
+    return state, policy, last, through
 
 
 def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
@@ -124,46 +131,54 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
     With ``state_dir`` every tick is appended to the follower's replay log
     (:mod:`agents.checkpoint`) before it is reported, and a restarted follower rebuilds its
     policy from it, so it continues with its whole history; ticks it missed meanwhile are
-    bridged by the policy's own predictions (``Policy.skip``). The log is deleted once the run
-    is complete.
+    bridged by the policy's own predictions (``Policy.skip``). A follower whose session to the
+    world was cut (it stalled) joins again the same way. The log is deleted once the run is
+    complete.
     """
     if not 1 <= agent_id <= settings.followers:
         raise ValueError(f"--id must be in 1..{settings.followers} for this run, got {agent_id}")
     policy = make_policy(settings)
     link = AgentLink.for_agent(session, settings, agent_id)
-    state = None
+    state, last, again = None, -1, False
     try:
-        state, last, tick = _restore(link, settings, agent_id, policy, state_dir)
-        timeout = settings.start_timeout
         while True:
-            tick = link.wait_step(tick, timeout)
-            timeout = settings.step_timeout
-            skips = tick - last - 1
-            if tick >= settings.ticks:
-                raise AgentAbort(f"tick {tick} is past this run's {settings.ticks} ticks")
-            for _ in range(skips):
-                policy.skip()
-            last = tick
+            state, policy, last, tick = _join(link, settings, agent_id, policy, last, state_dir,
+                                              again)
+            timeout = settings.start_timeout
             try:
-                outcome = follower_tick(link, policy, settings, tick)
-            except MarkedMissed:
-                entry = Entry(tick=tick, skips=skips, settled=None, target=None)
-                outcome = None
-            else:
-                target = outcome.target
-                entry = Entry(tick=tick, skips=skips, settled=outcome.settled,
-                              target=None if target is None else (float(target[0]),
-                                                                  float(target[1])))
-            if state is not None:
-                try:
-                    state.append(entry)
-                except OSError as exc:  # a run must not die for its safety net
-                    log.error("follower %d: cannot write its state file %s (%s); going on "
-                              "without", agent_id, state.path, exc.strerror)
-                    state = None
-            if outcome is not None:
-                link.publish_obs(outcome.observation)
-                link.publish_rod(tick, settings.spacing, settings.side_sign)
+                while True:
+                    tick = link.wait_step(tick, timeout)
+                    timeout = settings.step_timeout
+                    skips = tick - last - 1
+                    if tick >= settings.ticks:
+                        raise AgentAbort(f"tick {tick} is past this run's {settings.ticks} ticks")
+                    for _ in range(skips):
+                        policy.skip()
+                    last = tick - 1
+                    try:
+                        outcome = follower_tick(link, policy, settings, tick)
+                    except MarkedMissed:
+                        entry = Entry(tick=tick, skips=skips, settled=None, target=None)
+                        outcome = None
+                    else:
+                        target = outcome.target
+                        entry = Entry(tick=tick, skips=skips, settled=outcome.settled,
+                                      target=None if target is None else (float(target[0]),
+                                                                          float(target[1])))
+                    last = tick
+                    if state is not None:
+                        try:
+                            state.append(entry)
+                        except OSError as exc:  # a run must not die for its safety net
+                            log.error("follower %d: cannot write its state file %s (%s); going "
+                                      "on without", agent_id, state.path, exc.strerror)
+                            state = None
+                    if outcome is not None:
+                        link.publish_obs(outcome.observation)
+                        link.publish_rod(tick, settings.spacing, settings.side_sign)
+            except Rejoin as cut:
+                log.warning("follower %d: %s", agent_id, cut)
+                again = True
     except RunFinished as end:
         if state is not None and end.complete:
             state.remove()

@@ -1,33 +1,41 @@
 """The leader: drives its geodesic tick by tick and holds its rod out (``python -m agents.leader``)."""
 from __future__ import annotations
 
+import logging
 import sys
 
 import zenoh
 
 from agents.cli import parser, run_cli
-from agents.link import AgentLink, MarkedMissed
+from agents.link import AgentLink, MarkedMissed, Rejoin
 from protocol.config import AgentSettings
 from protocol.messages import Drive
+
+log = logging.getLogger(__name__)
 
 
 def run_leader(session: zenoh.Session, settings: AgentSettings) -> None:
     """Lockstep leader loop; returns by raising RunFinished when the world is done."""
     link = AgentLink.for_agent(session, settings, 0)
     try:
-        # a restarted leader redoes the tick in progress if the world has not recorded its
-        # rod (the world rolled its drive back), else waits for the next tick
-        tick = link.join(settings.start_timeout).through
-        timeout = settings.start_timeout
         while True:
-            tick = link.wait_step(tick, timeout)
-            timeout = settings.step_timeout
-            t = tick * settings.comm_period
+            # a restarted leader, or one whose session was cut (it stalled), redoes the tick in
+            # progress if the world has not recorded its rod (the world rolled its drive
+            # back), else waits for the next tick
+            tick = link.join(settings.start_timeout).through
+            timeout = settings.start_timeout
             try:
-                link.act(Drive(tick=tick, t=t))
-            except MarkedMissed:  # realtime: too late for this tick; the world keeps its pose
-                continue
-            link.publish_rod(tick, settings.spacing, settings.side_sign)
+                while True:
+                    tick = link.wait_step(tick, timeout)
+                    timeout = settings.step_timeout
+                    t = tick * settings.comm_period
+                    try:
+                        link.act(Drive(tick=tick, t=t))
+                    except MarkedMissed:  # realtime: too late for this tick; the pose is kept
+                        continue
+                    link.publish_rod(tick, settings.spacing, settings.side_sign)
+            except Rejoin as cut:
+                log.warning("leader: %s", cut)
     finally:
         link.close()
 

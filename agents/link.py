@@ -4,6 +4,14 @@
 leader's rod, the world's liveliness), holds the agent's liveliness token, and offers
 blocking waits that end with :class:`AgentAbort` on timeout, on ``world/done`` or when the
 world disappears, so no agent ever hangs.
+
+A stall is not a death (SPEC §4). When this process (or the world) is paused for longer than
+Zenoh's lease (SIGSTOP, a long garbage collection, a slow disk), the router drops its session;
+the session reconnects by itself once the process runs again, and the world may meanwhile have
+rolled this agent's tick back. The link sees it as the world's liveliness token going and
+coming back: every wait and query then raises :class:`Rejoin`, and the agent joins again
+(``JoinRequest``) from where the world has it. The world counts as gone only if its token is
+not back within :data:`WORLD_RETURN_S` and a fresh liveliness query does not find it either.
 """
 from __future__ import annotations
 
@@ -26,6 +34,10 @@ log = logging.getLogger(__name__)
 QUERY_TIMEOUT_S = 10.0  # the least time an agent waits for the world's reply to a query
 WAIT_RETRY_S = 0.002  # pause before asking again after a ``wait`` refusal
 MAX_HELD = 256  # most predecessor ticks held until the world announces them
+WORLD_RETURN_S = 3.0
+"""How long an agent whose session to the world was cut waits for the world's token to come
+back (a reconnection takes milliseconds) before it asks once more and, if no world answers,
+concludes that the world process has gone."""
 
 
 class AgentAbort(RuntimeError):
@@ -38,6 +50,11 @@ class RunFinished(AgentAbort):
     def __init__(self, message: str, complete: bool = True) -> None:
         super().__init__(message)
         self.complete = complete
+
+
+class Rejoin(RuntimeError):
+    """The session to the world was cut and is back (this process or the world stalled): the
+    world may have rolled this agent's tick back, so it must join again."""
 
 
 class MarkedMissed(RuntimeError):
@@ -86,6 +103,8 @@ class AgentLink:
         self._done: Done | None = None
         self._world_alive = False
         self._world_seen = False
+        self._cuts = 0  # how often the world's token went away since it was first seen
+        self._joined_at = 0  # the value of _cuts when this agent last joined
         self._declared = []
         if token_live(session, keys.alive(run_id, agent_id)):
             raise AgentAbort(f"agent id {agent_id} is already live in run {run_id}: refusing to start")
@@ -184,6 +203,8 @@ class AgentLink:
     def _on_world_liveliness(self, sample: zenoh.Sample) -> None:
         with self._cond:
             self._world_alive = sample.kind == zenoh.SampleKind.PUT
+            if self._world_seen and not self._world_alive:
+                self._cuts += 1
             self._world_seen = self._world_seen or self._world_alive
             self._cond.notify_all()
 
@@ -195,34 +216,43 @@ class AgentLink:
             raise RunFinished(f"run finished: results in {self._done.results}",
                               complete=self._done.complete)
 
-    def _world_gone(self) -> bool:
-        """The world's liveliness token was seen and has gone since."""
-        return self._world_seen and not self._world_alive
+    def _cut(self) -> bool:
+        """(Lock held.) Whether the session to the world was cut since this agent joined."""
+        return self._cuts != self._joined_at
 
-    def _raise_if_world_gone(self) -> None:
-        """Raise AgentAbort if the world process disappeared."""
-        if self._world_gone():
+    def _after_cut(self) -> None:
+        """(Lock not held.) The session was cut: raise :class:`Rejoin` once the world's token
+        is back, or AgentAbort if no world is found (RunFinished if the run ended meanwhile)."""
+        with self._cond:
+            back = self._cond.wait_for(lambda: self._world_alive or self._done is not None,
+                                       WORLD_RETURN_S)
+            self._raise_if_finished()
+        if not back and not token_live(self.session, keys.alive(self.run_id, "world"),
+                                       timeout=1.0):
             raise AgentAbort("the world process disappeared")
+        raise Rejoin(f"agent {self.agent_id}: its session to the world was cut and is back "
+                     "(a stall?): joining again")
 
     def wait_step(self, after: int, timeout: float) -> int:
         """Block until a tick newer than ``after`` is announced; return the next one to do
         (``after + 1`` in lockstep, else the newest).
 
-        Raises RunFinished on ``world/done`` and AgentAbort if the world vanishes or nothing
-        comes within ``timeout`` seconds.
+        Raises RunFinished on ``world/done``, :class:`Rejoin` if the session to the world was
+        cut and is back, and AgentAbort if the world vanishes or nothing comes within
+        ``timeout`` seconds.
         """
         deadline = time.monotonic() + timeout
         with self._cond:
-            while True:
+            while not self._cut():
                 if self._latest > after:
                     return after + 1 if self.lockstep else self._latest
                 self._raise_if_finished()
-                self._raise_if_world_gone()
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise AgentAbort(f"agent {self.agent_id}: nothing to do for {timeout:.1f} s "
                                      "(is the world running?)")
                 self._cond.wait(left)
+        self._after_cut()
 
     # --- world requests ------------------------------------------------------------------------
 
@@ -233,7 +263,15 @@ class AgentLink:
         payload = encode(request)
         failure = f"no reply from the world on {key} within {self.query_timeout} s"
         while (left := deadline - time.monotonic()) > 0:
+            with self._cond:
+                cut = self._cut()
+            if cut:  # never act across a cut: the world may have rolled this tick back
+                self._after_cut()
             reply = next(iter(self.session.get(key, payload=payload, timeout=left)), None)
+            with self._cond:
+                cut = self._cut()
+            if cut:  # a reply from before the cut is not believed either
+                self._after_cut()
             if reply is None:  # no reply at all within the time left
                 break
             if reply.ok is not None:
@@ -256,9 +294,10 @@ class AgentLink:
                 raise AgentAbort(f"the world refused {request.TYPE} at tick {request.tick}: "
                                  f"{error.error}")
             time.sleep(WAIT_RETRY_S)
-        with self._cond:  # a world that died mid-query: its token goes a moment later
-            self._cond.wait_for(self._world_gone, timeout=1.0)
-            self._raise_if_world_gone()
+        with self._cond:  # a world that died or a session cut mid-query: its token goes soon
+            cut = self._cond.wait_for(self._cut, timeout=1.0)
+        if cut:
+            self._after_cut()
         raise AgentAbort(failure)
 
     def _await_done(self, why: str) -> None:
@@ -273,18 +312,25 @@ class AgentLink:
                          f"{self.end_timeout:g} s")
 
     def join(self, timeout: float) -> Joined:
-        """Wait (up to ``timeout`` s) for the world, then ask it where the run stands (the
-        first thing an agent process does)."""
+        """Wait (up to ``timeout`` s) for the world, then ask it where the run stands: the first
+        thing an agent process does, and what it does again after :class:`Rejoin`."""
         deadline = time.monotonic() + timeout
-        with self._cond:
-            while not self._world_alive:
-                self._raise_if_finished()
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise AgentAbort(f"agent {self.agent_id}: no world for run {self.run_id} "
-                                     f"within {timeout:.1f} s (is the world running?)")
-                self._cond.wait(left)
-        joined = self._query(self._act_key, JoinRequest(tick=0), Joined)
+        while True:
+            with self._cond:
+                self._joined_at = self._cuts
+                while not self._world_alive:
+                    self._raise_if_finished()
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        raise AgentAbort(f"agent {self.agent_id}: no world for run "
+                                         f"{self.run_id} within {timeout:.1f} s (is the world "
+                                         "running?)")
+                    self._cond.wait(left)
+            try:
+                joined = self._query(self._act_key, JoinRequest(tick=0), Joined)
+            except Rejoin:  # cut again while joining: ask again
+                continue
+            break
         with self._cond:
             self._world_tick = max(self._world_tick, joined.world)
         if joined.ready and not joined.settled:

@@ -84,6 +84,11 @@ def run_command(command: Callable[[], int | None]) -> int:
             return INTERRUPTED
 
 
+class Refused(ValueError):
+    """Input refused before anything ran (exit status 2 in every command): e.g. a results
+    folder another run writes into, or a raster larger than the limit."""
+
+
 INTERRUPT_GRACE_S = 8.0
 """Seconds a process may spend cleaning up after Ctrl-C or SIGTERM before it exits regardless."""
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)

@@ -22,13 +22,13 @@ import json
 import math
 import os
 import re
-import tempfile
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from protocol.folder import write_atomic
 from protocol.keys import check_run_id
 
 CLASSICAL = ("cv", "kalman", "arx", "gp")  # the classical tracking baselines (SPEC §6)
@@ -531,19 +531,6 @@ def checked_json(text: str | bytes, key: str) -> dict:
 
 def _no_constant(name: str):
     raise ValueError(f"{name} is not a number here")
-
-
-def write_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same folder and a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _toml_value(value: Any) -> str:

@@ -7,12 +7,13 @@ import sys
 from pathlib import Path
 
 from protocol.cli import (
-    EXPECTED_FAILURES, FAILED, INTERRUPTED, REFUSED, add_log_level_flag, check_out_dir, describe,
+    EXPECTED_FAILURES, FAILED, INTERRUPTED, REFUSED, Refused, add_log_level_flag, check_out_dir, describe,
     ends_with, fail, refuse, run_command, setup_logging,
 )
 from protocol.config import (OPTIONS, Option, RunConfig, applies_to, config_from_dict,
                              config_from_file, flag_of, read_toml)
 from protocol.distribution import DISTRIBUTION, require, version
+from protocol.folder import FolderLock
 from protocol.ros2 import domain_from_env
 from protocol.session import add_connection_flags, connection_config
 
@@ -178,9 +179,6 @@ def cmd_run(args: argparse.Namespace) -> int:
         if config.ros2:
             require("ros")  # the [ros] extra, before anything runs
         out = Path(args.out) if args.out else Path("runs") / config.run_id
-        if (out / "summary.json").exists() and not args.force:
-            raise ValueError(f"{out} already holds a run's results; choose another --out or "
-                             "replace them with --force (nothing was overwritten)")
         if args.live:  # its arguments are checked before anything is written
             from protocol.session import free_tcp_endpoint
             from swarm.live.observer import LiveView
@@ -188,17 +186,25 @@ def cmd_run(args: argparse.Namespace) -> int:
             live = LiveView(port=args.live_port, run_id=config.run_id)
             endpoint = free_tcp_endpoint()
         check_out_dir(out)
-    try:
+    lock = FolderLock(out, config.run_id)
+    try:  # the folder is checked under its one-writer lock, held until the run ends
+        with ends_with(REFUSED, ValueError, OSError):
+            lock.acquire()
+            if (out / "summary.json").exists() and not args.force:
+                raise ValueError(f"{out} already holds a run's results; choose another --out "
+                                 "or replace them with --force (nothing was overwritten)")
         if live is not None:
             with ends_with(REFUSED, RuntimeError):
                 print(f"live view: {live.start()}", flush=True)
-        return _run_and_report(args, config, out, live, endpoint)
+        return _run_and_report(args, config, out, live, endpoint, lock)
     finally:
+        lock.release()
         if live is not None:
             live.close()
 
 
-def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live, endpoint) -> int:
+def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live, endpoint,
+                    lock: FolderLock) -> int:
     from tqdm import tqdm
 
     from swarm.launch import launch
@@ -214,8 +220,10 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
                disable=None)
     try:
         summary = launch(config, out, in_process=args.in_process, on_tick=lambda j: bar.update(1),
-                         endpoint=endpoint, force=args.force,
+                         endpoint=endpoint, force=args.force, lock=lock,
                          before_agents=None if live is None else observe)
+    except Refused as exc:  # e.g. a raster larger than the limit: nothing ran
+        refuse(str(exc))
     except OSError as exc:  # the results disk failed during the run (read-only, full)
         fail(f"cannot write the results in {out}: {describe(exc)}")
     except EXPECTED_FAILURES as exc:
@@ -232,9 +240,12 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
 
         for path in plot_run(out):
             print(f"figure: {path}")
-    empty = empty_followers(summary, config.init_ticks)
+    # a run that ended early says why in one line; its empty followers are no news then
+    empty = empty_followers(summary, config.init_ticks) if summary["complete"] else []
     for line in empty:
         print(f"warning: {line}", file=sys.stderr)
+    if not summary["complete"]:
+        print(f"error: run incomplete: {summary['reason']}", file=sys.stderr)
     if live is not None:
         print(f"live view still at {live.server.url} (Ctrl-C to quit)", flush=True)
         live.serve_until_interrupted()
@@ -430,7 +441,8 @@ def cmd_dem_crop(args: argparse.Namespace) -> int:
     from swarm.terrain import crop_dem
 
     with ends_with(REFUSED, ValueError, OSError):
-        crop = crop_dem(args.source, args.out, args.bounds, force=args.force)
+        crop = crop_dem(args.source, args.out, args.bounds, force=args.force,
+                        max_cells=args.max_cells)
     (i0, i1), (j0, j1) = crop.columns, crop.rows
     print(f"dem: {crop.path}: {i1 - i0 + 1} × {j1 - j0 + 1} nodes (columns {i0}–{i1}, rows "
           f"{j0}–{j1} from the south of {args.source}; {crop.dropped} no-data node(s) left out)")
@@ -569,6 +581,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="keep these nodes instead (m, in IN's frame: origin at its "
                            "south-west node)")
     crop.add_argument("--force", action="store_true", help="replace OUT if it exists")
+    crop.add_argument("--max-cells", type=int, default=None, metavar="N",
+                      help="refuse a raster of more cells than N (default: twice what a run "
+                           "loads; see docs/reliability.md)")
     crop.set_defaults(func=cmd_dem_crop)
     plot = sub.add_parser("plot", help="draw one run's figures into RUN_DIR/figures")
     plot.add_argument("run_dir", metavar="RUN_DIR", help="a results folder of `swarm run`")

@@ -30,8 +30,9 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 from protocol.config import (DEFAULTS, OPTIONS, RunConfig, estimator_options, given_options,
-                             idle_reason, load_config, write_atomic)
+                             idle_reason, load_config)
 from protocol.distribution import needs, require
+from protocol.folder import FolderLock, write_atomic
 from protocol.limits import MAX_RUN_ID
 
 RUN_ATTEMPTS = 2
@@ -130,7 +131,8 @@ def _clear_unfinished(run: GridRun, folder: Path) -> None:
     if written != run.config.run_id:
         raise ValueError(f"{folder} holds something other than run {run.config.run_id}: "
                          "remove it or choose another output folder")
-    shutil.rmtree(folder)
+    with FolderLock(folder, run.config.run_id):  # never from under a live writer
+        shutil.rmtree(folder)
 
 
 def run_grid(runs: list[GridRun], runs_dir: Path, workers: int | None = None,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import subprocess
 import sys
 import tempfile
@@ -22,8 +23,9 @@ import zenoh
 from agents.follower import run_follower
 from agents.leader import run_leader
 from agents.link import AgentAbort, RunFinished
-from protocol.config import AgentSettings, RunConfig
 from protocol.cli import describe
+from protocol.config import AgentSettings, RunConfig
+from protocol.folder import FolderLock, open_file
 from protocol.messages import safe_text
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.deploy import (OBSERVER, agent_user, private_dir, router_config, users,
@@ -122,26 +124,36 @@ class _ProcessAgents:
         self._stop = threading.Event()
 
     def start(self, service: WorldService) -> None:
-        logs = self.out_dir / "logs"
-        logs.mkdir(exist_ok=True)
         cmds = agent_commands(self.out_dir / "config.toml", self.endpoint, self.config.followers,
                               self.credentials)
         for k, cmd in enumerate(cmds):
-            with open(logs / f"agent-{k}.log", "wb") as log_file:
+            log_fd = open_file(self.out_dir / "logs" / f"agent-{k}.log",
+                               os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
+            with os.fdopen(log_fd, "wb") as log_file:
                 self.procs.append(subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT,
                                                    stdin=subprocess.DEVNULL))
         threading.Thread(target=self._watch, args=(service,), daemon=True).start()
 
     def _watch(self, service: WorldService) -> None:
+        """End the run when an agent fails; in realtime an agent killed by a signal is only
+        reported: the world records its ticks as missed and the run goes on (SPEC §4)."""
+        dead: set[int] = set()
         while not self._stop.wait(POLL_S):
             for k, proc in enumerate(self.procs):
                 code = proc.poll()
-                if code not in (None, 0):
-                    log = self.out_dir / "logs" / f"agent-{k}.log"
-                    said = last_error_line(log)
-                    service.abort(f"agent {k} exited with status {code}"
-                                  + (f": {said}" if said else "") + f" (see {log})")
-                    return
+                if code in (None, 0) or k in dead:
+                    continue
+                path = self.out_dir / "logs" / f"agent-{k}.log"
+                said = last_error_line(path)
+                why = (f"agent {k} exited with status {code}" + (f": {said}" if said else "")
+                       + f" (see {path})")
+                if self.config.mode == "realtime" and code < 0:
+                    dead.add(k)
+                    log.warning("%s; the run goes on without it, its ticks recorded as missed",
+                                why)
+                    continue
+                service.abort(why)
+                return
 
     def stop(self, timeout: float = 10.0) -> None:
         self._stop.set()
@@ -222,7 +234,7 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
            credentials_dir: str | Path | None = None,
            credentials: RunCredentials | None = None,
            before_agents: Callable[[RunCredentials], None] | None = None,
-           force: bool = False) -> dict:
+           force: bool = False, lock: FolderLock | None = None) -> dict:
     """Run ``config`` end to end; return the summary (also in ``out_dir/summary.json``).
 
     The world listens on ``endpoint`` (default: a free loopback port) as a router that admits
@@ -232,7 +244,8 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
     end; or ``credentials`` made beforehand with :meth:`RunCredentials.create` are used.
     ``before_agents`` is called with them once the world is up, before the agents start
     (the live view connects there, as the ``observer`` user). A folder that holds results
-    is refused unless ``force`` (which replaces them).
+    is refused unless ``force`` (which replaces them). ``lock``: the folder's one-writer lock,
+    when the caller holds it already (see :func:`world.main.run_world`).
 
     Raises RuntimeError if the agents do not come up. Ctrl-C stops every agent and leaves a
     partial result marked incomplete.
@@ -241,22 +254,22 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
     endpoint = endpoint or free_tcp_endpoint()
     if credentials is not None:
         return _launch(config, out_dir, in_process, on_tick, endpoint, credentials,
-                       before_agents, force)
+                       before_agents, force, lock)
     if credentials_dir is not None:
         return _launch(config, out_dir, in_process, on_tick, endpoint,
                        RunCredentials.create(Path(credentials_dir), config.followers),
-                       before_agents, force)
+                       before_agents, force, lock)
     with tempfile.TemporaryDirectory(prefix="swarm-credentials-") as scratch:
         return _launch(config, out_dir, in_process, on_tick, endpoint,
                        RunCredentials.create(Path(scratch) / "run", config.followers),
-                       before_agents, force)
+                       before_agents, force, lock)
 
 
 def _launch(config: RunConfig, out_dir: Path, in_process: bool,
             on_tick: Callable[[int], None] | None, endpoint: str,
             credentials: RunCredentials,
             before_agents: Callable[[RunCredentials], None] | None = None,
-            force: bool = False) -> dict:
+            force: bool = False, lock: FolderLock | None = None) -> dict:
     agents = (_ThreadAgents(config, endpoint, credentials) if in_process
               else _ProcessAgents(config, out_dir, endpoint, credentials))
     log.info("run %s: credentials in %s (observer: %s)", config.run_id, credentials.folder,
@@ -269,7 +282,8 @@ def _launch(config: RunConfig, out_dir: Path, in_process: bool,
 
     try:
         summary = run_world(config, embedded_router_config(config, endpoint, credentials),
-                            out_dir, on_tick=on_tick, on_ready=ready, force=force)
+                            out_dir, on_tick=on_tick, on_ready=ready, force=force,
+                            lock=lock)
     except BaseException:  # Ctrl-C or a failure: end every agent now
         agents.stop(timeout=1.0)
         raise

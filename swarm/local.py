@@ -15,6 +15,7 @@ from pathlib import Path
 from agents.follower import follower_tick
 from agents.policies import Policy, make_policy
 from protocol.config import AgentSettings, RunConfig
+from protocol.folder import FolderLock
 from protocol.messages import (ActResult, ActSensing, Drive, Message, Move, Observation,
                                SenseRequest, Sensing, Snap, decode, encode)
 from world.main import resolve_with_surface
@@ -53,8 +54,18 @@ def run_local(config: RunConfig, out_dir: str | Path | None = None,
     may, and then every agent that may begin its next tick does it (pipelined, agent ``k``
     does tick ``s - k`` in step ``s``; unpipelined, one agent at a time).
     ``policy_factory`` builds each follower's policy (default: the one the config names);
-    estimator studies pass their own.
+    estimator studies pass their own. ``out_dir``'s one-writer lock is held meanwhile
+    (:class:`protocol.folder.FolderLock`).
     """
+    if out_dir is None:
+        return _simulate(config, None, policy_factory)
+    with FolderLock(out_dir, config.run_id):
+        return _simulate(config, out_dir, policy_factory)
+
+
+def _simulate(config: RunConfig, out_dir: str | Path | None,
+              policy_factory: Callable[[AgentSettings], Policy]) -> tuple[dict, list[dict]]:
+    """:func:`run_local`'s run (its folder locked by the caller)."""
     config, surface = resolve_with_surface(config)
     sim = WorldSim(config, surface)
     settings = AgentSettings.from_config(config)
@@ -100,6 +111,6 @@ def run_local(config: RunConfig, out_dir: str | Path | None = None,
             through[k] += 1
     complete, reason = sim.end_tick is None, sim.end_reason
     if out_dir is not None:
-        recorder.write_summary(complete=complete, reason=reason)
+        recorder.write_summary(complete=complete, reason=reason, final=True)
         recorder.close()
     return recorder.summary(complete=complete, reason=reason), rows

@@ -10,10 +10,9 @@ Table figures take the rows of a table as read back by :func:`swarm.experiment.r
 """
 from __future__ import annotations
 
+import io
 import json
 import math
-import os
-import tempfile
 from collections.abc import Callable, Sequence
 from functools import wraps
 from pathlib import Path
@@ -26,6 +25,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import NullLocator
 
 from protocol.config import RunConfig, load_config
+from protocol.folder import write_atomic
 from world.dem import DemSurface
 from world.results import read_ticks
 from world.view import height_grid
@@ -97,17 +97,12 @@ def _figure(width: float, height: float) -> Figure:
 
 
 def _save(fig: Figure, path: str | Path) -> Path:
-    """Write ``fig`` as PNG through a temporary file in the same folder and a rename."""
+    """Write ``fig`` as PNG atomically, never through a symbolic link
+    (:func:`protocol.folder.write_atomic`)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        fig.savefig(tmp, format="png")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    write_atomic(path, buf.getvalue(), mode=0o644)
     return path
 
 

@@ -10,7 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from protocol.config import RunConfig, write_atomic
+from protocol.config import RunConfig
+from protocol.folder import write_atomic
 from swarm.grid import RunOutcome, is_nan
 
 def _g(x: float) -> str:

@@ -32,8 +32,9 @@ from typing import Any
 import numba
 import numpy as np
 
-from protocol.config import AUTO, CLASSICAL, OWN_MOTION, write_atomic
+from protocol.config import AUTO, CLASSICAL, OWN_MOTION
 from protocol.distribution import needs
+from protocol.folder import write_atomic
 from swarm.experiment import draw_jobs
 from swarm.grid import (Axis, GridRun, RunOutcome, estimator_axis, expand, follower_rows, is_nan,
                         mean_over, run_grid, write_tables)
@@ -409,11 +410,20 @@ class Crop:
     dropped: int  # no-data nodes of the source left out
 
 
+CROP_MAX_CELLS = 2 * 4096 * 4096
+"""Most cells of a raster ``dem-crop`` reads (``--max-cells`` raises it): it holds the whole
+raster's heights and no-data mask, 36 bytes per cell at peak on a 3000 × 3000 GeoTIFF
+(bench/bench_dem_limit.py), so about 1.1 GiB at this limit; twice what a run loads
+(:data:`world.dem.MAX_CELLS`), since cutting a large raster down is what it is for."""
+
+
 def crop_dem(source: str | Path, out: str | Path,
              bounds: tuple[float, float, float, float] | None = None,
-             force: bool = False) -> Crop:
+             force: bool = False, max_cells: int | None = None) -> Crop:
     """Write a rectangle of the DEM at ``source`` without any no-data node as the GeoTIFF
     ``out`` (same CRS, cell size, data type and no-data value; a geo-referenced window).
+    A raster over ``max_cells`` cells (default :data:`CROP_MAX_CELLS`) is refused
+    (:class:`world.dem.RasterTooLarge`) before its data is read.
 
     Parameters
     ----------
@@ -444,7 +454,10 @@ def crop_dem(source: str | Path, out: str | Path,
     if bounds is not None and not (bounds[0] < bounds[2] and bounds[1] < bounds[3]):
         raise ValueError(f"bounds must be xmin,ymin,xmax,ymax with xmin < xmax and "
                          f"ymin < ymax, got {bounds}")
-    x, y, z = read_grid(source)
+    max_cells = CROP_MAX_CELLS if max_cells is None else max_cells
+    if isinstance(max_cells, bool) or not isinstance(max_cells, int) or max_cells < 1:
+        raise ValueError(f"max_cells must be a whole number >= 1, got {max_cells!r}")
+    x, y, z = read_grid(source, max_cells, limit="dem-crop --max-cells")
     valid = np.isfinite(z)
     if bounds is None:
         j0, j1, i0, i1 = largest_rectangle(valid, MIN_NODES)

@@ -59,3 +59,12 @@ class KillsItsProcess(MeanStep):
 
     def propose(self, pre):
         os.kill(os.getpid(), signal.SIGKILL)
+
+
+class FailsAtTick(MeanStep):
+    """Raises in ``propose`` once it has a full history (from tick 5 on): a plug-in's bug."""
+
+    def propose(self, pre):
+        if len(self.history) > self.n:
+            raise KeyError("no such column 'x'")
+        return super().propose(pre)

@@ -11,6 +11,7 @@ else to the test's temporary folder.
 """
 from __future__ import annotations
 
+import csv
 import json
 import math
 import os
@@ -360,8 +361,12 @@ def test_replay_store_reads_the_run_folder(tmp_path):
         load_run(tmp_path)
     # auto's followed candidate, where observations carry it, is shown instead of "auto"
     path = tmp_path / "run" / "observations.csv"
-    lines = path.read_text().splitlines()
-    path.write_text("\n".join([lines[0] + ",followed"] + [line + ",edmd-bu" for line in lines[1:]]))
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    for row in rows[1:]:
+        row[rows[0].index("followed")] = "edmd-bu"
+    with open(path, "w", newline="") as fh:  # whole rows: the reader refuses anything else
+        csv.writer(fh, lineterminator="\n").writerows(rows)
     assert set(load_run(tmp_path / "run").snapshot().choices.values()) == {"edmd-bu"}
 
 

@@ -14,7 +14,8 @@ import json
 import secrets
 from pathlib import Path
 
-from protocol.config import checked_json, json_checksum, write_atomic
+from protocol.config import checked_json, json_checksum
+from protocol.folder import write_atomic
 from world.results import RESULT_FILES, SUMMARY_FILE
 
 STATE_FILE = "world_state.json"

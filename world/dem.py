@@ -14,6 +14,11 @@ SPEC's frame: metres, x east, y north, origin at the centre of the south-west ce
 - A raster without any CRS (an ASCII grid without ``.prj``) is taken to be in metres.
 - Anything else (feet, a rotated grid, no-data cells, fewer than 4 × 4 nodes) is refused with
   a ``ValueError`` saying why.
+- A raster whose header claims more than :data:`MAX_CELLS` cells (width × height) is refused
+  with :class:`RasterTooLarge` before any of its data is read: loading takes about
+  :data:`BYTES_PER_CELL` bytes of memory per cell. A run may raise the limit with the surface
+  parameter ``max_cells`` (TOML ``[surface_params] max_cells = ...``); ``python -m swarm
+  dem-crop`` cuts a large raster down.
 
 Surface
 -------
@@ -41,6 +46,7 @@ import numpy as np
 from numba.extending import register_jitable
 from numpy.typing import ArrayLike
 
+from protocol.cli import Refused
 from world.surfaces import DEM_PREFIX
 
 DEM_KIND = 100
@@ -52,10 +58,22 @@ MIN_NODES = 4
 """A bicubic spline needs at least 4 nodes along each axis."""
 KNOT_MARGIN = 1e-8
 """How far past a knot line (in cell widths) one integration step may end."""
+MAX_CELLS = 4096 * 4096
+"""Most cells (width × height) of a DEM a run loads unless its ``max_cells`` says otherwise:
+about 0.4 GiB of memory at :data:`BYTES_PER_CELL`."""
+BYTES_PER_CELL = 24
+"""Peak memory per cell while a DEM is loaded: the heights as float64, their copies, and
+scipy's spline coefficients and working memory (measured 23 bytes on a 3000 × 3000 float32
+GeoTIFF, about 19 for each cell more: bench/bench_dem_limit.py)."""
 _HEADER = 6  # params: n_ty, n_tx, y0, y1, x0, x1, then ty, tx, coefficients
 
 
-def read_dem(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+class RasterTooLarge(Refused):
+    """A raster whose header claims more cells than the limit (its data was not read)."""
+
+
+def read_dem(path: str | Path,
+             max_cells: int = MAX_CELLS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Read a DEM raster into the SPEC §3 frame: :func:`read_grid`, no-data cells refused.
 
     Raises
@@ -64,7 +82,7 @@ def read_dem(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         As :func:`read_grid`, and for no-data cells (their count and the first one's column
         and row, counted from the south).
     """
-    x, y, z = read_grid(path)
+    x, y, z = read_grid(path, max_cells)
     missing = ~np.isfinite(z)
     if missing.any():
         j, i = np.argwhere(missing)[0]
@@ -74,13 +92,19 @@ def read_dem(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return x, y, z
 
 
-def read_grid(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def read_grid(path: str | Path, max_cells: int = MAX_CELLS,
+              limit: str = "surface_params.max_cells") -> tuple[np.ndarray, np.ndarray,
+                                                                  np.ndarray]:
     """Read a DEM raster into the SPEC §3 frame, no-data cells as NaN.
 
     Parameters
     ----------
     path : str or Path
         A GeoTIFF, an ESRI ASCII grid, or any single-band raster rasterio opens.
+    max_cells : int
+        The most cells (width × height) read; the header is checked before any data.
+    limit : str
+        What raises ``max_cells`` (named in the refusal).
 
     Returns
     -------
@@ -94,6 +118,8 @@ def read_grid(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
     Raises
     ------
+    RasterTooLarge
+        The header claims more than ``max_cells`` cells.
     ValueError
         Missing or unreadable file, rotated grid, unknown CRS units, or fewer than 4 × 4
         nodes.
@@ -108,7 +134,8 @@ def read_grid(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not path.is_file():
         raise ValueError(f"path {str(path)!r}: no such DEM file")
     try:
-        with rasterio.open(path) as src:
+        with rasterio.open(path) as src:  # reads the header only
+            check_size(path, src.width, src.height, max_cells, limit)
             band = src.read(1, masked=True)
             transform, crs = src.transform, src.crs
     except RasterioIOError as exc:
@@ -147,6 +174,21 @@ def read_grid(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     x = np.arange(cols) * (step_x * scale_x)
     y = np.arange(rows) * (step_y * scale_y)
     return x, y, np.ascontiguousarray(z)
+
+
+def check_size(path: str | Path, width: int, height: int, max_cells: int, limit: str) -> None:
+    """Refuse (:class:`RasterTooLarge`) a ``width`` × ``height`` raster over ``max_cells``,
+    naming its size, the memory it would take, the ``limit`` that raises it, and dem-crop."""
+    cells = width * height
+    if cells <= max_cells:
+        return
+    gib = 2.0 ** 30
+    raise RasterTooLarge(
+        f"path {str(path)!r}: a {width} × {height} raster ({cells:,} cells, "
+        f"{cells * 8 / gib:,.1f} GiB as float64, about {cells * BYTES_PER_CELL / gib:,.1f} GiB "
+        f"to load) is over the limit of {max_cells:,} cells ({limit} raises it); cut out the "
+        f"part you need first: python -m swarm dem-crop {path} OUT.tif --bounds "
+        "XMIN,YMIN,XMAX,YMAX")
 
 
 class DemSurface:
@@ -246,22 +288,29 @@ class DemSurface:
         return np.array([[self._ev(p, 2, 0), fxy], [fxy, self._ev(p, 0, 2)]])
 
 
-def load_dem(path: str | Path, smoothing: float = 0.0) -> DemSurface:
+def load_dem(path: str | Path, smoothing: float = 0.0,
+             max_cells: int = MAX_CELLS) -> DemSurface:
     """The surface of the DEM at ``path`` (see :func:`read_dem` and :class:`DemSurface`)."""
-    x, y, z = read_dem(path)
+    x, y, z = read_dem(path, max_cells)
     return DemSurface(x, y, z, smoothing=smoothing, source=str(path))
 
 
 def make_dem_surface(name: str, params: dict[str, Any]) -> DemSurface:
-    """``make_surface`` for ``"dem:PATH"``; the only parameter is ``smoothing``."""
+    """``make_surface`` for ``"dem:PATH"``; its parameters are ``smoothing`` and ``max_cells``
+    (the raster limit, default :data:`MAX_CELLS`)."""
     path = name[len(DEM_PREFIX):]
     if not path:
         raise ValueError(f"name {name!r} must be 'dem:PATH' with a file path")
-    unknown = sorted(set(params) - {"smoothing"})
+    unknown = sorted(set(params) - {"smoothing", "max_cells"})
     if unknown:
         raise ValueError(f"params {unknown} are not parameters of a DEM surface "
-                         "(it takes smoothing)")
-    return load_dem(path, params.get("smoothing", 0.0))
+                         "(it takes smoothing and max_cells)")
+    max_cells = params.get("max_cells", MAX_CELLS)
+    if isinstance(max_cells, bool) or not isinstance(max_cells, (int, float)) \
+            or not float(max_cells).is_integer() or max_cells < 1:
+        raise ValueError(f"surface_params.max_cells must be a whole number of cells >= 1, got "
+                         f"{max_cells!r}")
+    return load_dem(path, params.get("smoothing", 0.0), int(max_cells))
 
 
 def describe_domain(params: np.ndarray) -> str:

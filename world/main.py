@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -9,11 +10,12 @@ from pathlib import Path
 import zenoh
 
 from protocol.cli import (
-    DONE, EXPECTED_FAILURES, REFUSED, add_log_level_flag, check_out_dir, describe, ends_with,
+    DONE, EXPECTED_FAILURES, REFUSED, Refused, add_log_level_flag, check_out_dir, describe, ends_with,
     fail, refuse, run_command, setup_logging,
 )
 from protocol.config import RunConfig, dump_config, load_config, read_toml
 from protocol.distribution import require
+from protocol.folder import FolderLock
 from protocol.ros2 import domain_from_env
 from protocol.session import add_connection_flags, connection_config
 from world import checkpoint
@@ -44,28 +46,36 @@ def default_out(config: RunConfig) -> Path:
 def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
               on_tick: Callable[[int], None] | None = None,
               on_ready: Callable[[WorldService], None] | None = None,
-              resume: bool = False, force: bool = False) -> dict:
+              resume: bool = False, force: bool = False,
+              lock: FolderLock | None = None) -> dict:
     """Run one world on a new session built from ``conf``; return the summary.
 
-    Writes ``config.toml`` (resolved) before the first tick. ``on_ready`` gets the service once
-    its queryables and token are declared (launchers start agents then, and may ``abort`` it).
-    ``resume`` continues the run in ``out_dir`` from its last complete tick. A fresh run
-    refuses a folder that holds results already, unless ``force`` (which replaces them).
+    Holds ``out_dir``'s one-writer lock (:class:`protocol.folder.FolderLock`) from before it
+    looks at the folder until the results are closed; a caller that took it already (``swarm
+    run`` checks the folder under it) passes it as ``lock``. Writes ``config.toml`` (resolved)
+    before the first tick. ``on_ready`` gets the service once its queryables and token are
+    declared (launchers start agents then, and may ``abort`` it). ``resume`` continues the run
+    in ``out_dir`` from its last complete tick. A fresh run refuses a folder that holds results
+    already, unless ``force`` (which replaces them).
+
+    Raises FolderBusy if another process writes into ``out_dir``, FolderRefused if it holds a
+    symbolic link.
     """
-    config, surface = resolve_with_surface(config)
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    if not resume:
-        checkpoint.claim(out_dir, force)
-        dump_config(config, out_dir / "config.toml")
-    with zenoh.open(conf) as session:
-        service = WorldService(session, config, surface, out_dir, on_tick=on_tick, resume=resume)
-        try:
-            if on_ready is not None:
-                on_ready(service)
-            return service.run()
-        finally:
-            service.close()
+    with contextlib.nullcontext() if lock is not None else FolderLock(out_dir, config.run_id):
+        config, surface = resolve_with_surface(config)
+        if not resume:
+            checkpoint.claim(out_dir, force)
+            dump_config(config, out_dir / "config.toml")
+        with zenoh.open(conf) as session:
+            service = WorldService(session, config, surface, out_dir, on_tick=on_tick,
+                                   resume=resume)
+            try:
+                if on_ready is not None:
+                    on_ready(service)
+                return service.run()
+            finally:
+                service.close()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -125,6 +135,8 @@ def _serve(args: argparse.Namespace) -> int:
         return DONE
     except checkpoint.StateError as exc:  # nothing to resume, or results it must not replace
         refuse(describe(exc))
+    except Refused as exc:  # a folder in use, a raster too large: nothing was written
+        refuse(str(exc))
     except OSError as exc:  # the results disk failed during the run (read-only, full)
         fail(f"cannot write the results in {out}: {describe(exc)}")
     except EXPECTED_FAILURES as exc:

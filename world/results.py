@@ -12,21 +12,26 @@ import csv
 import io
 import json
 import math
+import os
 import re
 from pathlib import Path
 
-from protocol.config import RunConfig, write_atomic
+from protocol.config import RunConfig
 from protocol.distribution import version
+from protocol.folder import AppendFile, write_atomic
+from protocol.limits import MAX_TEXT
+from protocol.record import OBS_COLUMNS as OBS_COLUMNS
+from protocol.record import OBS_FILE as OBS_FILE
+from protocol.record import RESULT_FILES as RESULT_FILES
+from protocol.record import SUMMARY_FILE as SUMMARY_FILE
+from protocol.record import TICK_COLUMNS as TICK_COLUMNS
+from protocol.record import TICKS_FILE as TICKS_FILE
+from protocol.record import DamagedRecord as DamagedRecord
+from protocol.record import parse_observations, parse_ticks
+from protocol.record import read_observations as read_observations
+from protocol.record import read_ticks as read_ticks
 
-TICK_COLUMNS = (
-    "tick", "t", "agent", "estimator", "ideal_x", "ideal_y", "est_x", "est_y", "pos_x", "pos_y",
-    "required_range", "stay_range", "persist_range", "lost", "formation_error",
-    "persist_range_noise_free", "missed", "floor_range", "heading_x", "heading_y",
-)
-OBS_COLUMNS = ("tick", "agent", "estimator", "lost", "measurement", "prediction", "followed",
-               "fallback")
-TICKS_FILE, OBS_FILE, SUMMARY_FILE = "ticks.csv", "observations.csv", "summary.json"
-RESULT_FILES = (TICKS_FILE, OBS_FILE, SUMMARY_FILE)
+RESERVE_FILE = ".summary.reserve"
 
 
 class ExactSum:
@@ -112,11 +117,15 @@ class RunRecorder:
     """Records each complete tick: its ground-truth rows and the followers' observations.
 
     With a results folder, :meth:`open` it first; each :meth:`add_tick` then appends one tick to
-    ``ticks.csv`` and ``observations.csv`` and flushes them. :attr:`offsets` are the two files'
-    lengths after the last complete tick: the world's checkpoint stores them, and
-    ``open(resume_offsets=...)`` cuts off whatever a crash left past them (a half-written or
-    unconfirmed tick), then reads the kept rows back for the summary's totals. Without a folder
-    (``out_dir=None``) only the totals are kept.
+    ``ticks.csv`` and ``observations.csv``, whole or not at all (a failed write is cut back to
+    the previous tick in both files before the error, naming the file, is raised).
+    :attr:`offsets` are the two files' lengths after the last complete tick: the world's
+    checkpoint stores them, and ``open(resume_offsets=...)`` first checks that the files hold
+    whole, ordered rows up to them (nothing is changed otherwise), then cuts off whatever a
+    crash left past them (a half-written or unconfirmed tick). A spare file of
+    :meth:`reserve_bytes` is kept in the folder while the run goes, and given up just before the
+    last summary is written, so that even a full disk leaves a summary with the true reason.
+    Without a folder (``out_dir=None``) only the totals are kept.
     """
 
     def __init__(self, out_dir: str | Path | None, config: RunConfig) -> None:
@@ -124,34 +133,66 @@ class RunRecorder:
         self.config = config
         self.ticks_done = 0
         self._metrics = {k: _FollowerMetrics() for k in range(1, config.followers + 1)}
-        self._files: dict[str, io.TextIOBase] = {}
+        self._files: dict[str, AppendFile] = {}
 
-    def open(self, resume_offsets: dict[str, int] | None = None) -> None:
-        """Open the CSV files: fresh (headers written) or cut back to ``resume_offsets``."""
+    def open(self, resume_offsets: dict[str, int] | None = None,
+             resume_ticks: int | None = None) -> None:
+        """Open the CSV files: fresh (headers written) or, to resume, checked to hold whole rows
+        of ``resume_ticks`` complete ticks up to ``resume_offsets`` and then cut back to them.
+
+        Raises
+        ------
+        DamagedRecord
+            A file to resume is shorter than its offset, cut mid-row, or its kept rows are
+            damaged, or hold another number of ticks (no file was changed).
+        """
         if self.out_dir is None:
             raise RuntimeError("this recorder has no results folder")
-        self.out_dir.mkdir(parents=True, exist_ok=True)
-        for name, columns in ((TICKS_FILE, TICK_COLUMNS), (OBS_FILE, OBS_COLUMNS)):
-            path = self.out_dir / name
-            if resume_offsets is None:
-                fh = open(path, "w", encoding="utf-8", newline="")
-                fh.write(_header(columns))
-                fh.flush()
-            else:
-                size = path.stat().st_size if path.exists() else -1
-                keep = resume_offsets.get(name)
-                if not isinstance(keep, int) or isinstance(keep, bool) or not 0 < keep <= size:
-                    raise ValueError(f"{path} holds {max(size, 0)} bytes, the checkpoint expects "
-                                     f"at least {keep}: the files do not belong together")
-                with open(path, "r+b") as raw:
-                    raw.truncate(keep)
-                fh = open(path, "a", encoding="utf-8", newline="")
-            self._files[name] = fh
         if resume_offsets is not None:
-            for row in read_ticks(self.out_dir / TICKS_FILE):
+            ticks, observations = self._kept_rows(resume_offsets, resume_ticks)
+        for name, columns in ((TICKS_FILE, TICK_COLUMNS), (OBS_FILE, OBS_COLUMNS)):
+            fresh = resume_offsets is None
+            self._files[name] = AppendFile(self.out_dir / name, truncate=fresh)
+            if fresh:
+                self._files[name].append(_header(columns).encode())
+            else:
+                self._files[name].cut(resume_offsets[name])
+        if resume_offsets is not None:
+            for row in ticks:
                 self._count_row(row)
-            for row in read_observations(self.out_dir / OBS_FILE):
+            for row in observations:
                 self._count_observation(row)
+        write_atomic(self.out_dir / RESERVE_FILE, bytes(self.reserve_bytes()))
+
+    def _kept_rows(self, offsets: dict[str, int],
+                   ticks: int | None) -> tuple[list[dict], list[dict]]:
+        """The rows of ``ticks.csv`` and ``observations.csv`` up to ``offsets``, validated
+        (whole rows, in order, ``ticks`` complete ticks if given), reading only."""
+        kept = {}
+        for name in (TICKS_FILE, OBS_FILE):
+            path, keep = self.out_dir / name, offsets.get(name)
+            try:
+                with open(path, "rb") as fh:
+                    size = os.fstat(fh.fileno()).st_size
+                    raw = fh.read(keep) if _offset(keep) and keep <= size else b""
+            except FileNotFoundError:
+                size, raw = -1, b""
+            if not (_offset(keep) and 0 < keep <= size):
+                raise DamagedRecord(f"{path} holds {max(size, 0)} bytes, the checkpoint expects "
+                                    f"at least {keep}: the files do not belong together")
+            kept[name] = raw
+        rows = parse_ticks(kept[TICKS_FILE], self.out_dir / TICKS_FILE)
+        observations = parse_observations(kept[OBS_FILE], self.out_dir / OBS_FILE)
+        held = rows[-1]["tick"] + 1 if rows else 0
+        if ticks is not None and held != ticks:
+            raise DamagedRecord(f"{self.out_dir / TICKS_FILE} holds {held} ticks up to the "
+                                f"checkpoint's offset, the checkpoint {ticks}")
+        return rows, observations
+
+    def reserve_bytes(self) -> int:
+        """Size of the spare file: room for two summaries with the longest reason, in pages."""
+        longest = json.dumps(self.summary(complete=False, reason="x" * MAX_TEXT), indent=2)
+        return -(-2 * len(longest.encode()) // 4096) * 4096
 
     def close(self) -> None:
         for fh in self._files.values():
@@ -161,7 +202,7 @@ class RunRecorder:
     @property
     def offsets(self) -> dict[str, int]:
         """Byte length of each CSV file after the last complete tick."""
-        return {name: fh.tell() for name, fh in self._files.items()}
+        return {name: fh.size for name, fh in self._files.items()}
 
     def _count_row(self, row: dict) -> None:
         if row["agent"] in self._metrics:
@@ -175,19 +216,24 @@ class RunRecorder:
 
     def add_tick(self, rows: list[dict], observations: list[tuple[int, object]] = ()) -> None:
         """Record one complete tick: its rows (``WorldSim.finish_tick``) and the followers'
-        observations of that tick as ``(agent, Observation)`` pairs, in agent order."""
+        observations of that tick as ``(agent, Observation)`` pairs, in agent order. With a
+        folder the tick is written whole to both files before it counts, or not at all."""
         obs_rows = [observation_row(agent, msg) for agent, msg in observations]
+        if self.out_dir is not None:
+            before = self.offsets
+            try:
+                for name, columns, data in ((TICKS_FILE, TICK_COLUMNS, rows),
+                                            (OBS_FILE, OBS_COLUMNS, obs_rows)):
+                    text = "".join(_line(columns, row) for row in data)
+                    self._files[name].append(text.encode("utf-8"))
+            except OSError:
+                for name, size in before.items():
+                    self._files[name].cut(size)
+                raise
         for row in rows:
             self._count_row(row)
         for row in obs_rows:
             self._count_observation(row)
-        if self.out_dir is None:
-            return
-        ticks, obs = self._files[TICKS_FILE], self._files[OBS_FILE]
-        ticks.write("".join(_line(TICK_COLUMNS, row) for row in rows))
-        obs.write("".join(_line(OBS_COLUMNS, row) for row in obs_rows))
-        ticks.flush()
-        obs.flush()
 
     def summary(self, *, complete: bool, reason: str = "", wall_time: float = 0.0) -> dict:
         """The ``summary.json`` content (SPEC §7)."""
@@ -209,10 +255,14 @@ class RunRecorder:
             "wall_time": wall_time,
         }
 
-    def write_summary(self, *, complete: bool, reason: str = "", wall_time: float = 0.0) -> None:
-        """Write ``summary.json`` atomically."""
+    def write_summary(self, *, complete: bool, reason: str = "", wall_time: float = 0.0,
+                      final: bool = False) -> None:
+        """Write ``summary.json`` atomically; the ``final`` one (the run is over, complete or
+        not) first gives up the spare file, so that it finds room on a full disk."""
         if self.out_dir is None:
             raise RuntimeError("this recorder has no results folder")
+        if final:
+            (self.out_dir / RESERVE_FILE).unlink(missing_ok=True)
         summary = self.summary(complete=complete, reason=reason, wall_time=wall_time)
         write_atomic(self.out_dir / SUMMARY_FILE, json.dumps(summary, indent=2) + "\n")
 
@@ -262,27 +312,5 @@ def _shares(counts: dict[str, int]) -> dict[str, float]:
     return {name: n / total for name, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))}
 
 
-def read_observations(path: str | Path) -> list[dict]:
-    """Read an ``observations.csv`` back (tick, agent, lost, fallback as int)."""
-    with open(path, newline="", encoding="utf-8") as fh:
-        return [{**row, **{k: int(row[k]) for k in ("tick", "agent", "lost", "fallback")
-                           if row.get(k) not in (None, "")},
-                 "followed": row.get("followed") or None}
-                for row in csv.DictReader(fh)]
-
-
-def read_ticks(path: str | Path) -> list[dict]:
-    """Read a ``ticks.csv`` back (numbers as float/int, empty cells as None)."""
-    with open(path, newline="", encoding="utf-8") as fh:
-        rows = []
-        for raw in csv.DictReader(fh):
-            row = {}
-            for key, value in raw.items():
-                if value == "" or key == "estimator":
-                    row[key] = value or None
-                elif key in ("tick", "agent", "lost", "missed"):
-                    row[key] = int(value)
-                else:
-                    row[key] = float(value)
-            rows.append(row)
-    return rows
+def _offset(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)

@@ -22,7 +22,7 @@ from protocol.messages import (
 )
 from protocol.session import token_live, undeclare_all
 from world import checkpoint
-from world.results import RunRecorder
+from world.results import DamagedRecord, RunRecorder
 from world.schedule import may_open, predecessor_through
 from world.sim import RequestError, RunEnded, TickMissed, WorldSim
 from world.surfaces import Surface
@@ -149,11 +149,10 @@ class WorldService:
         except (KeyError, TypeError, ValueError) as exc:
             raise checkpoint.StateError(f"checkpoint {self.out_dir / checkpoint.STATE_FILE}: bad simulation "
                                         f"state ({exc}); refusing it") from None
-        self.recorder.open(resume_offsets=state["offsets"])
-        if self.recorder.ticks_done != self.sim.tick + 1:
-            raise checkpoint.StateError(
-                f"cannot resume {self.out_dir}: ticks.csv holds {self.recorder.ticks_done} ticks, "
-                f"the checkpoint {self.sim.tick + 1}")
+        try:  # every file is checked before any is changed
+            self.recorder.open(resume_offsets=state["offsets"], resume_ticks=self.sim.tick + 1)
+        except DamagedRecord as exc:
+            raise checkpoint.StateError(f"cannot resume {self.out_dir}: {exc}") from None
         self.start, self._wall_before = state["start"], state["wall_time"]
         self._through = [self.sim.tick] * self.sim.n_agents
         log.warning("world: resuming run %s after tick %d", self.config.run_id, self.sim.tick)
@@ -235,7 +234,13 @@ class WorldService:
                 if isinstance(req, JoinRequest):
                     if self._finished is not None:  # an agent restarted after the end
                         self._done_pub.put(self._finished)
-                    return encode(self._joined(agent))
+                    joined = self._joined(agent)
+                    if self.config.mode == "lockstep":
+                        # it starts again from what the world has it through: whatever it did
+                        # since (before a stall cut its session, say) is void (in realtime
+                        # the tick it vanished in was marked missed)
+                        self._roll_back(agent)
+                    return encode(joined)
                 self._check_turn(agent, req.tick)
                 # the agent validates the reply on decode; its numbers are the world's own
                 return encode(self.sim.act(agent, req), check=False)
@@ -321,10 +326,17 @@ class WorldService:
                     else:  # lockstep: it redoes the tick when it is back (SPEC §4)
                         log.warning("world: agent %d vanished during tick %d; its tick is rolled "
                                     "back until it is back", agent, tick)
-                        self.sim.rollback(agent, tick)
-                        self._obs.get(tick, {}).pop(agent, None)
-                        self._rods.get(tick, set()).discard(agent)
+                        self._roll_back(agent)
             self._cond.notify_all()
+
+    def _roll_back(self, agent: int) -> None:
+        """(Lock held.) Undo what ``agent`` did in the tick after the last one the world has it
+        through (nothing if it has not begun it): it redoes that tick."""
+        tick = self._through[agent] + 1 if 0 <= agent < self.sim.n_agents else -1
+        if 0 <= tick <= self.sim.tick:
+            self.sim.rollback(agent, tick)
+            self._obs.get(tick, {}).pop(agent, None)
+            self._rods.get(tick, set()).discard(agent)
 
     # --- the run -------------------------------------------------------------------------------
 
@@ -449,10 +461,14 @@ class WorldService:
             # a dead agent misses at once: those behind it keep their time budget
             for agent in sorted(set(range(self.sim.n_agents)) - self._alive):
                 self._mark_missed(agent, "its process is not live")
+            share = self.period / self.sim.n_agents
             while self._ended is None and not self.sim.over and min(self._through) < tick:
                 waiting = min(k for k in range(self.sim.n_agents) if self._through[k] < tick)
-                # the clock restarts whenever some agent gets through the tick
-                deadline = min(self._progress + limit, self._tick_started + self.period)
+                # the clock restarts whenever some agent gets through the tick; the agent
+                # waited for has the rest of the period, and at least its share of a period
+                # after its predecessor: one stalled agent never eats its successors' time
+                deadline = min(self._progress + limit,
+                               max(self._tick_started + self.period, self._progress + share))
                 left = deadline - time.monotonic()
                 if left <= 0:
                     self._mark_missed(waiting, "did not settle in time")
@@ -508,20 +524,24 @@ class WorldService:
                         break
                     if self.on_tick is not None:
                         self.on_tick(tick)
+        except OSError as exc:  # the results disk failed (full, read-only): say which file
+            self._record_failure(exc)
+            raise
         except BaseException:
             with self._cond:
                 self.recorder.write_summary(complete=False, reason="interrupted",
-                                            wall_time=self._wall())
+                                            wall_time=self._wall(), final=True)
             raise
         complete = not reason
         if reason:
-            log.error("world: run ended early: %s", reason)
+            log.info("world: run ended early: %s", reason)  # the caller says it
         elif self.config.mode == "lockstep":
             # an agent that vanished after it was through every tick (pipelined, long before
             # the run completes) gets time to come back and see world/done
             self._wait_live(self.config.agent_timeout)
         with self._cond:
-            self.recorder.write_summary(complete=complete, reason=reason, wall_time=self._wall())
+            self.recorder.write_summary(complete=complete, reason=reason, wall_time=self._wall(),
+                                        final=True)
         done = encode(Done(tick=max(self.recorder.ticks_done - 1, 0), results=str(self.out_dir),
                            complete=complete, reason=safe_text(reason)))
         with self._cond:
@@ -531,6 +551,18 @@ class WorldService:
         if complete:  # a world killed before this resumes into the end phase again
             checkpoint.discard(self.out_dir)
         return self.recorder.summary(complete=complete, reason=reason, wall_time=self._wall())
+
+    def _record_failure(self, exc: OSError) -> None:
+        """Mark the run incomplete with the file that could not be written and why; if even
+        that summary cannot be written, the caller's error line is all there is."""
+        name = Path(exc.filename).name if exc.filename else "the results"
+        reason = f"cannot write {name}: {exc.strerror or exc}"
+        with self._cond:
+            try:
+                self.recorder.write_summary(complete=False, reason=reason, wall_time=self._wall(),
+                                            final=True)
+            except OSError as again:
+                log.error("world: cannot write the summary either: %s", again)
 
     def _wait_agents_gone(self, timeout: float) -> None:
         """Give agents time to see ``world/done`` and leave before the session closes."""

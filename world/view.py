@@ -17,7 +17,8 @@ import numpy as np
 import zenoh
 
 from protocol import keys
-from protocol.config import RunConfig, write_atomic
+from protocol.config import RunConfig
+from protocol.folder import write_atomic
 from protocol.view import (
     MAP_CELLS, MAP_FILE, MAX_VIEW_TEXT, VIEW_VERSION, check_map, encode_map, encode_tick, tick_payloads,
 )

@@ -6,13 +6,13 @@ fill from Zenoh's threads while pages read it.
 """
 from __future__ import annotations
 
-import csv
 import json
 import threading
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 
+from protocol.record import OBS_FILE, SUMMARY_FILE, TICKS_FILE, read_observations, read_ticks
 from protocol.view import MAP_FILE, TICK_COLUMNS, check_map, tick_payloads
 
 WAITING, RUNNING = "waiting for the world", "running"
@@ -127,36 +127,30 @@ def load_run(run_dir: str | Path) -> RunStore:
     store = RunStore()
     try:
         view_map = check_map(json.loads((run_dir / MAP_FILE).read_text()))
-        with open(run_dir / "ticks.csv", newline="", encoding="utf-8") as fh:
-            ticks = list(csv.DictReader(fh))
-        summary = json.loads((run_dir / "summary.json").read_text())
+        ticks = read_ticks(run_dir / TICKS_FILE)
+        summary = json.loads((run_dir / SUMMARY_FILE).read_text())
+        obs_path = run_dir / OBS_FILE
+        observations = read_observations(obs_path) if obs_path.exists() else []
         store.set_map(view_map)
         by_tick: dict[int, list[dict]] = {}
-        for raw in ticks:
-            by_tick.setdefault(int(raw["tick"]), []).append(_row(raw))
+        for row in ticks:
+            by_tick.setdefault(row["tick"], []).append(_row(row))
         for rows in by_tick.values():  # in chunks, as the world publishes them
             for chunk in tick_payloads(rows, view_map["followers"] + 1):
                 store.add_tick(chunk)
     except (OSError, ValueError) as exc:
         raise ValueError(f"cannot replay {run_dir}: {exc}") from None
-    obs_path = run_dir / "observations.csv"
-    if obs_path.exists():
-        with open(obs_path, newline="", encoding="utf-8") as fh:
-            for raw in csv.DictReader(fh):
-                store.add_choice(int(raw["tick"]), int(raw["agent"]),
-                                 raw.get("followed") or raw["estimator"])
+    for row in observations:
+        store.add_choice(row["tick"], row["agent"], row["followed"] or row["estimator"])
     store.finish(bool(summary.get("complete")), str(summary.get("reason", "")))
     return store
 
 
-def _row(raw: dict) -> dict:
-    """A ``ticks.csv`` row with its view columns typed (``missed`` is 0 where the file has no
-    such column), as ``WorldSim.finish_tick`` gives it."""
-    row: dict = {"tick": int(raw["tick"]), "t": float(raw["t"])}
+def _row(row: dict) -> dict:
+    """A row of :func:`protocol.record.read_ticks` with the view's columns, as
+    ``WorldSim.finish_tick`` gives it (``missed`` is 0 where the file has no such column)."""
+    view = {"tick": row["tick"], "t": row["t"]}
     for name in TICK_COLUMNS:
-        value = raw.get(name) or ""
-        if name in ("agent", "lost", "missed"):
-            row[name] = int(value or 0)
-        else:
-            row[name] = float(value) if value else None
-    return row
+        value = row.get(name)
+        view[name] = (value or 0) if name in ("agent", "lost", "missed") else value
+    return view

@@ -1,0 +1,148 @@
+"""A stall is not a death (SPEC §4): a follower paused with SIGSTOP for longer than Zenoh's
+lease, then continued, joins again and the run goes on: in lockstep with the numbers of an
+undisturbed run, in realtime without its successor missing a tick because of it. A follower
+killed in realtime is recorded and the run goes on.
+
+The pause's moment and length are drawn from a printed seed (``FAULT_SEED=...`` replays them).
+Faults come from outside (signals); every process is ended by its own handle.
+"""
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from protocol.config import load_config
+from swarm.local import run_local
+from tests.waiting import children, wait_for
+from world.results import read_ticks
+
+ROOT = Path(__file__).resolve().parents[1]
+SEED = int(os.environ.get("FAULT_SEED", str(int(time.time()) % 100_000)))
+LEASE_S = 10.0  # Zenoh's default lease: a pause longer than this cuts the session
+REJOINED = "its session to the world was cut and is back"
+
+
+def _ticks_done(out: Path) -> int:
+    try:
+        return json.loads((out / "summary.json").read_text())["ticks_completed"]
+    except (OSError, ValueError, KeyError):
+        return 0
+
+
+def _follower_pid(swarm: subprocess.Popen, agent: int) -> int:
+    for pid in children(swarm.pid):
+        try:
+            args = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"agents.follower" in args and args[args.index(b"--id") + 1] == str(agent).encode():
+            return pid
+    raise AssertionError(f"no process of follower {agent} under swarm run")
+
+
+class SwarmRun:
+    """``swarm run --processes`` in the background; killed at the end if still running."""
+
+    def __init__(self, out: Path, *flags: str) -> None:
+        self.out = out
+        self.proc = subprocess.Popen([sys.executable, "-m", "swarm", "run", "--processes",
+                                      "--followers", "2", *flags, "--out", str(out)], cwd=ROOT,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def finish(self, timeout: float) -> tuple[int, str]:
+        _, err = self.proc.communicate(timeout=timeout)
+        return self.proc.returncode, err
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            for pid in children(self.proc.pid):
+                os.kill(pid, signal.SIGCONT)  # nobody stays stopped after a failed test
+            self.proc.kill()
+            self.proc.communicate(timeout=10)
+
+
+@pytest.fixture
+def runs():
+    started: list[SwarmRun] = []
+    yield lambda *args: started.append(SwarmRun(*args)) or started[-1]
+    for run in started:
+        run.close()
+
+
+def _pause(run: SwarmRun, agent: int, after: int, seconds: float) -> None:
+    """SIGSTOP follower ``agent`` once the run has recorded ``after`` ticks, SIGCONT it
+    ``seconds`` later."""
+    wait_for(lambda: _ticks_done(run.out) >= after, 120, f"tick {after}")
+    pid = _follower_pid(run.proc, agent)
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        time.sleep(seconds)
+    finally:
+        os.kill(pid, signal.SIGCONT)
+
+
+def _draw(kind: str) -> tuple[int, float]:
+    rng = random.Random(f"{SEED}-{kind}")
+    after, seconds = rng.randrange(5, 40), rng.uniform(LEASE_S + 2.0, LEASE_S + 8.0)
+    print(f"FAULT_SEED={SEED}: follower 1 paused after tick {after} for {seconds:.1f} s")
+    return after, seconds
+
+
+@pytest.mark.slow
+def test_a_paused_follower_rejoins_and_lockstep_numbers_do_not_change(tmp_path, runs):
+    after, seconds = _draw("lockstep")
+    run = runs(tmp_path / "run", "--ticks", "2000", "--agent-timeout", "40",
+               "--noise-range", "0.01", "--seed", "7")
+    _pause(run, 1, after, seconds)
+    code, err = run.finish(timeout=600)
+    assert code == 0, err
+    assert REJOINED in (run.out / "logs" / "agent-1.log").read_text()  # the stall cut it
+    reference = tmp_path / "reference"
+    run_local(load_config(run.out / "config.toml"), reference)
+    for name in ("ticks.csv", "observations.csv"):
+        assert (run.out / name).read_bytes() == (reference / name).read_bytes(), name
+
+
+def _missed(out: Path) -> dict[int, set[int]]:
+    rows = read_ticks(out / "ticks.csv")
+    return {k: {r["tick"] for r in rows if r["agent"] == k and r["missed"]} for k in (1, 2)}
+
+
+@pytest.mark.slow
+def test_a_paused_follower_never_makes_its_successor_miss_in_realtime(tmp_path, runs):
+    after, seconds = _draw("realtime")
+    ticks = after + int(seconds / 0.256) + 30
+    run = runs(tmp_path / "run", "--mode", "realtime", "--time-scale", "0.2", "--ticks",
+               str(ticks))
+    _pause(run, 1, after, seconds)
+    code, err = run.finish(timeout=600)
+    assert code == 0, err
+    assert REJOINED in (run.out / "logs" / "agent-1.log").read_text()
+    missed = _missed(run.out)
+    assert len(missed[1]) >= int(LEASE_S / 0.256)  # it did miss while it was paused
+    assert not missed[1] & missed[2], f"follower 2 missed {sorted(missed[1] & missed[2])}"
+    assert max(missed[1]) < ticks - 5  # and it was back, settling, before the end
+
+
+def test_a_killed_follower_is_recorded_and_a_realtime_run_goes_on(tmp_path, runs):
+    kill_after = random.Random(f"{SEED}-kill").randrange(5, 20)
+    print(f"FAULT_SEED={SEED}: follower 1 killed after tick {kill_after}")
+    run = runs(tmp_path / "run", "--mode", "realtime", "--time-scale", "0.2", "--ticks", "60")
+    wait_for(lambda: _ticks_done(run.out) >= kill_after, 120, f"tick {kill_after}")
+    os.kill(_follower_pid(run.proc, 1), signal.SIGKILL)
+    code, err = run.finish(timeout=300)
+    assert code == 0, err
+    assert "agent 1 exited with status -9" in err and "the run goes on without it" in err
+    summary = json.loads((run.out / "summary.json").read_text())
+    assert summary["complete"] and summary["ticks_completed"] == 60
+    missed = _missed(run.out)
+    assert set(range(kill_after + 3, 60)) <= missed[1]  # recorded from its death on
+    assert not missed[1] & missed[2], f"follower 2 missed {sorted(missed[1] & missed[2])}"
