@@ -304,10 +304,12 @@ class AgentLink:
         """The world said the run ends before this agent's tick (``why``): wait for
         ``world/done`` (raised as RunFinished) while the world completes the earlier ticks."""
         with self._cond:
-            self._cond.wait_for(lambda: self._done is not None or self._world_gone(),
+            self._cond.wait_for(lambda: self._done is not None or self._cut(),
                                 timeout=self.end_timeout)
             self._raise_if_finished()
-            self._raise_if_world_gone()
+            cut = self._cut()
+        if cut:
+            self._after_cut()
         raise AgentAbort(f"the run ends ({why}), but world/done did not come within "
                          f"{self.end_timeout:g} s")
 

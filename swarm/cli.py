@@ -176,8 +176,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     live = endpoint = None
     with ends_with(REFUSED, ValueError, RuntimeError):
         config = config_from_args(args)
+        from world.surfaces import require_surface_extra
+
+        require_surface_extra(config.surface)  # the extras it needs, before anything runs
         if config.ros2:
-            require("ros")  # the [ros] extra, before anything runs
+            require("ros")
         out = Path(args.out) if args.out else Path("runs") / config.run_id
         if args.live:  # its arguments are checked before anything is written
             from protocol.session import free_tcp_endpoint

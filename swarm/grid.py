@@ -31,7 +31,7 @@ from typing import Any
 
 from protocol.config import (DEFAULTS, OPTIONS, RunConfig, estimator_options, given_options,
                              idle_reason, load_config)
-from protocol.distribution import needs, require
+from protocol.distribution import needs
 from protocol.folder import FolderLock, write_atomic
 from protocol.limits import MAX_RUN_ID
 
@@ -164,10 +164,10 @@ def run_grid(runs: list[GridRun], runs_dir: Path, workers: int | None = None,
     """
     from tqdm import tqdm
 
-    from world.surfaces import DEM_PREFIX
+    from world.surfaces import require_surface_extra
 
-    if any(run.config.surface.startswith(DEM_PREFIX) for run in runs):
-        require("dem")  # refused here, not once per run in the workers
+    for surface in {run.config.surface for run in runs}:
+        require_surface_extra(surface)  # refused here, not once per run in the workers
     outcomes: dict[str, RunOutcome] = {}
     todo = []
     for run in runs:

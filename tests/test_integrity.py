@@ -266,7 +266,7 @@ def test_readers_refuse_a_damaged_record_in_one_line(finished_run, tmp_path, cap
     (folder / "ticks.csv").write_text(_damage(kind, (folder / "ticks.csv").read_text()))
     with pytest.raises(DamagedRecord, match=r"ticks\.csv, line \d+: .*damaged"):
         read_ticks(folder / "ticks.csv")
-    assert swarm.cli.main(["plot", str(folder)]) == 1
+    assert swarm.cli.main(["plot", str(folder)]) == 2
     assert "ticks.csv, line" in _error_line(capsys.readouterr().err)
     assert swarm.cli.main(["replay", str(folder), "--live-port", "0"]) == 2
     assert "ticks.csv, line" in _error_line(capsys.readouterr().err)
@@ -308,7 +308,7 @@ def test_resume_changes_nothing_until_everything_is_validated(tmp_path, procs, d
     before = files()
     world = procs.start("-m", "world", "--resume", str(folder), "--listen", free_tcp_endpoint())
     code, err = _outcomes(world)[0]
-    assert code == 1
+    assert code == 2  # refused before anything ran
     line = _error_line(err)
     assert line.startswith(f"error: cannot resume {folder}: {folder / 'ticks.csv'}"), line
     assert files() == before

@@ -29,7 +29,8 @@ def _stderr_lines(capsys) -> list[str]:
 ], ids=["factory", "method"])
 def test_a_failing_plugin_ends_the_run_in_one_line(tmp_path, capsys, layout, mode, estimator,
                                                    said):
-    status = swarm.cli.main(["run", layout, "--mode", mode, "--time-scale", "0.2",
+    pace = ["--time-scale", "0.2"] if mode == "realtime" else []
+    status = swarm.cli.main(["run", layout, "--mode", mode, *pace,
                              "--estimator", estimator, "--ticks", "40",
                              "--out", str(tmp_path / "out")])
     assert status == 1

@@ -21,7 +21,7 @@ from protocol.session import add_connection_flags, connection_config
 from world import checkpoint
 from world.service import WorldService
 from world.sim import resolve_leader_start
-from world.surfaces import Surface, make_surface
+from world.surfaces import Surface, make_surface, require_surface_extra
 
 
 DEFAULT_LISTEN = ("tcp/127.0.0.1:7447",)
@@ -109,6 +109,7 @@ def ros_options(config: RunConfig, args: argparse.Namespace) -> RunConfig:
     if args.ros_domain is not None:
         changes["ros_domain"] = args.ros_domain
     config = config.replace(**changes)  # refuses --ros-domain without --ros2
+    require_surface_extra(config.surface)
     if config.ros2:
         if args.ros_domain is None and "ros_domain" not in read_toml(path, "config file"):
             config = config.replace(ros_domain=domain_from_env())

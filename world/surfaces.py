@@ -38,8 +38,17 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
+from protocol.distribution import require
+
 LeaderStart = tuple[float, float, float, float]
 DEM_PREFIX = "dem:"  # a surface name "dem:PATH" is a digital elevation model (world.dem)
+
+
+def require_surface_extra(name: str) -> None:
+    """Refuse (:class:`protocol.distribution.MissingExtra`) a surface whose loading needs an
+    extra that is not installed — a DEM without ``[dem]`` — before anything is written."""
+    if name.startswith(DEM_PREFIX):
+        require("dem")
 
 
 @runtime_checkable
