@@ -4,6 +4,12 @@ One tick (SPEC §4): sense the leader (``pre``) and ask the policy for its estim
 ``init_ticks`` on, move there (the reply carries the ``moved`` sensing); snap onto the rod end
 if it is in range, else count a lost tick (the reply carries the ``settled`` sensing); record
 the measurement; publish the observation and the rod. Three round trips to the world per tick.
+
+With ``--motion drive`` the move and the snap are control steps (:mod:`agents.drive`: one
+round trip each, to the estimate — in the initial ticks to the rod end sensed at ``pre`` —
+then onto the rod end), and the snap request only settles the follower where it stands. The
+controller's state lives within the tick (its dead reckoning starts afresh at every tick), so
+the replay log needs nothing more: a tick redone after a restart is driven again from its start.
 """
 from __future__ import annotations
 
@@ -17,6 +23,7 @@ import zenoh
 
 from agents.checkpoint import Entry, StateLog, replay
 from agents.cli import parser, run_cli
+from agents.drive import drive_tick
 from agents.link import AgentAbort, AgentLink, RunFinished, TickMissed
 from agents.policies import (NotReady, Policy, make_policy, move_variance, reading_variance,
                              relative)
@@ -40,8 +47,9 @@ def displacement(offset: np.ndarray, pre: Sensing, moved: Sensing,
                  settings: AgentSettings) -> np.ndarray:
     """Where the follower's ideal position was relative to where it stood before moving (the
     ``target`` its policy learns from), as well as the follower can tell: the offset it
-    commanded plus the rod end it read after the move (a noisy reading, SPEC §5), corrected for
-    the move's actuation noise.
+    commanded (a driving follower: the displacement its odometry summed) plus the rod end it
+    read after the move (a noisy reading, SPEC §5), corrected for the move's actuation noise
+    (a driving follower: its odometry's error).
 
     The move landed ``eta`` off the command (declared variance ``noise_move**2`` per
     coordinate), which would enter the target whole. The two readings of the leader around the
@@ -67,7 +75,12 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
         followed, fallback = proposal.followed, proposal.fallback
     except NotReady:
         offset, prediction, followed, fallback = np.zeros(2), None, "", False
-    if tick < settings.init_ticks:
+    if settings.motion == "drive":  # control steps to the estimate, then onto the rod end
+        goal = np.asarray(pre.rod) if tick < settings.init_ticks else offset
+        chord_variance = 2.0 * (reading_variance(settings) + move_variance(settings))
+        driven = drive_tick(link.act, pre, goal, settings, chord_variance)
+        offset, moved = driven.travelled, driven.moved
+    elif tick < settings.init_ticks:
         offset, moved = np.zeros(2), pre
     else:
         moved = link.act(Move(tick=tick, offset=(float(offset[0]), float(offset[1])))).sensing

@@ -33,6 +33,7 @@ GPS_DICTIONARIES = ("d", "e", "f", "g")
 VELOCITY_VARIANTS = ("oracle", "lagged", "estimated")
 SIDES = {"left": 1, "right": -1}
 MODES = ("lockstep", "realtime")
+MOTIONS = ("teleport", "drive")  # SPEC §4 "Motion"
 
 # Sane ranges of every number of a run (inclusive; a float range's low end is exclusive when
 # the option must be positive). Timeouts are seconds; a day-long wait is never meant.
@@ -45,6 +46,9 @@ INT_RANGES = {
     "arx_window": (0, 1_000_000),
     "gp_samples": (3, 1000),
     "seed": (0, 2**63 - 1),
+    # --motion drive (SPEC §4): control steps per comm interval, steps of the correction window
+    "control_steps": (1, 10_000),
+    "snap_steps": (0, 10_000),
 }
 FLOAT_RANGES = {  # name: (low, high, low end exclusive)
     "comm_period": (0.0, 1e4, True),
@@ -61,7 +65,20 @@ FLOAT_RANGES = {  # name: (low, high, low end exclusive)
     "noise_move": (0.0, 1e3, False),
     "noise_gps": (0.0, 1e6, False),
     "sensing_range": (0.0, math.inf, True),
+    # --motion drive (SPEC §4): limits (m of arc / time unit, rad / time unit; inf: unbounded)
+    # and the actuation noise σ of v and ω per control step
+    "max_speed": (0.0, math.inf, True),
+    "max_turn": (0.0, math.inf, True),
+    "noise_speed": (0.0, 1e3, False),
+    "noise_turn": (0.0, 1e3, False),
 }
+DRIVE_OPTIONS = ("max_speed", "max_turn", "control_steps", "snap_steps", "noise_speed",
+                 "noise_turn")
+"""Options that only matter with ``motion = "drive"``."""
+TELEPORT_OPTIONS = ("noise_move",)
+"""Options that only matter with ``motion = "teleport"`` (drive has noise_speed, noise_turn)."""
+UNSET_DEFAULT = ("max_speed",)
+"""Options whose default (None) the world resolves: ``max_speed`` is twice the leader's speed."""
 MAX_COORDINATE = 1e9  # bound on a leader start component and on a surface parameter
 MAX_SURFACE_PARAMS = 32
 MAX_SURFACE_NAME = 4096  # room for a 'dem:PATH' with a long path (Linux PATH_MAX)
@@ -110,6 +127,13 @@ class RunConfig:
     time_scale: float = 1.0
     agent_timeout: float = 10.0
     start_timeout: float = 30.0
+    motion: str = "teleport"
+    max_speed: float | None = None
+    max_turn: float = 2.0
+    control_steps: int = 8
+    snap_steps: int = 4
+    noise_speed: float = 0.0
+    noise_turn: float = 0.0
 
     def __post_init__(self) -> None:
         check_run_id(self.run_id)
@@ -119,6 +143,7 @@ class RunConfig:
         _check_choice("velocity", self.velocity, VELOCITY_VARIANTS)
         _check_choice("side", self.side, tuple(SIDES))
         _check_choice("mode", self.mode, MODES)
+        _check_choice("motion", self.motion, MOTIONS)
         if (not isinstance(self.surface, str) or not 0 < len(self.surface) <= MAX_SURFACE_NAME
                 or not self.surface.isprintable()):
             raise ValueError("surface must be a preset name, 'package.module:name' or 'dem:PATH' "
@@ -131,7 +156,9 @@ class RunConfig:
             raise ValueError(f"init_ticks ({self.init_ticks}) must be at most ticks "
                              f"({self.ticks}): raise ticks or lower init_ticks")
         for name, bounds in FLOAT_RANGES.items():
-            _check_range(name, getattr(self, name), *bounds)
+            if not (name in UNSET_DEFAULT and getattr(self, name) is None):
+                _check_range(name, getattr(self, name), *bounds)
+        check_motion_options(self)
         for name in ("online", "affine", "gps", "pipelined"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
@@ -178,6 +205,19 @@ class RunConfig:
         return out
 
 
+def check_motion_options(config: RunConfig) -> None:
+    """Refuse an option set away from its default that the run's motion model ignores
+    (ValueError naming it): the drive options with ``teleport``, ``noise_move`` with
+    ``drive``."""
+    ignored = DRIVE_OPTIONS if config.motion == "teleport" else TELEPORT_OPTIONS
+    for name in ignored:
+        default = RunConfig.__dataclass_fields__[name].default
+        if getattr(config, name) != default:
+            other = "drive" if config.motion == "teleport" else "teleport"
+            raise ValueError(f"{name} applies only to motion {other!r} (this run's motion is "
+                             f"{config.motion!r})")
+
+
 @dataclass(frozen=True)
 class AgentSettings:
     """What an agent process is told: timing, rods and its estimator. Never the surface."""
@@ -210,6 +250,12 @@ class AgentSettings:
     time_scale: float
     agent_timeout: float
     start_timeout: float
+    noise_velocity: float
+    motion: str
+    max_speed: float | None
+    max_turn: float
+    control_steps: int
+    snap_steps: int
 
     @property
     def step_timeout(self) -> float:

@@ -14,7 +14,8 @@ from pathlib import Path
 from agents.follower import follower_tick
 from agents.policies import Policy, make_policy
 from protocol.config import AgentSettings, RunConfig
-from protocol.messages import ActSensing, Message, Move, Observation, Sensing, Snap, decode, encode
+from protocol.messages import (ActSensing, Control, Message, Move, Observation, Sensing, Snap,
+                               decode, encode)
 from world.main import resolve_with_surface
 from world.results import RunRecorder
 from world.sim import RunEnded, WorldSim
@@ -33,7 +34,7 @@ class LocalLink:
     def sense(self, tick: int, phase: str) -> Sensing:
         return self._wire(self.sim.sense(self.agent, tick, phase))
 
-    def act(self, request: Move | Snap) -> ActSensing:
+    def act(self, request: Move | Snap | Control) -> ActSensing:
         return self._wire(self.sim.act(self.agent, self._wire(request)))
 
 

@@ -16,14 +16,18 @@ from protocol.config import RunConfig, dump_config, load_config
 from protocol.session import add_credential_flags, credentials, tls_options, zenoh_config
 from world import checkpoint
 from world.service import WorldService
-from world.sim import resolve_leader_start
+from world.sim import default_max_speed, resolve_leader_start
 from world.surfaces import Surface, make_surface
 
 
 def resolve_with_surface(config: RunConfig) -> tuple[RunConfig, Surface]:
-    """Build the run's surface and fill in what the config leaves to it (the leader start)."""
+    """Build the run's surface and fill in what the config leaves to it (the leader start,
+    and with ``motion = "drive"`` the default top speed)."""
     surface = make_surface(config.surface, config.surface_params)
-    return config.replace(leader_start=resolve_leader_start(config, surface)), surface
+    config = config.replace(leader_start=resolve_leader_start(config, surface))
+    if config.motion == "drive" and config.max_speed is None:
+        config = config.replace(max_speed=default_max_speed(config, surface))
+    return config, surface
 
 
 def resolve(config: RunConfig) -> RunConfig:

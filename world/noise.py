@@ -1,7 +1,8 @@
 """Sensor and actuation noise streams keyed by (seed, agent, tick, channel, phase) (SPEC §5).
 
 Each draw comes from its own ``numpy.random.Generator`` seeded by that key, so the numbers do
-not depend on the order in which processes ask: any process layout gives the same run.
+not depend on the order in which processes ask: any process layout gives the same run. A
+driving follower's control steps (``--motion drive``) add the step index to the key.
 """
 from __future__ import annotations
 
@@ -10,22 +11,28 @@ import numpy as np
 # The leader reading's range and bearing, odometry, the move's actuation; then (added with the
 # honest rod-end reading, SPEC §5) the rod end's own range and bearing, the snap's actuation,
 # GPS of the follower and of its leader, the oracle velocity. Numbers are part of the streams'
-# keys: never renumber one.
+# keys: never renumber one. Then (``--motion drive``, SPEC §4) the actuation noise of a control
+# step's speed and turn rate, and the step's odometry, compass and slope (tilt) readings.
 CHANNELS = {"range": 1, "bearing": 2, "velocity": 3, "move": 4, "rod-range": 5,
-            "rod-bearing": 6, "snap": 7, "gps": 8, "leader-gps": 9, "oracle-velocity": 10}
+            "rod-bearing": 6, "snap": 7, "gps": 8, "leader-gps": 9, "oracle-velocity": 10,
+            "speed": 11, "turn": 12, "odometry": 13, "compass": 14, "slope": 15}
 PHASES = {"pre": 0, "moved": 1, "settled": 2, "act": 3}
 
 
 def gaussian_scalar(seed: int, agent: int, tick: int, channel: str, phase: str,
-                    sigma: float) -> float:
+                    sigma: float, step: int | None = None) -> float:
     """One draw of :func:`gaussian` as a float (0.0 without touching a generator if sigma is 0)."""
-    return 0.0 if sigma == 0 else float(gaussian(seed, agent, tick, channel, phase, sigma)[0])
+    if sigma == 0:
+        return 0.0
+    return float(gaussian(seed, agent, tick, channel, phase, sigma, step=step)[0])
 
 
 def gaussian(
-    seed: int, agent: int, tick: int, channel: str, phase: str, sigma: float, size: int = 1
+    seed: int, agent: int, tick: int, channel: str, phase: str, sigma: float, size: int = 1,
+    step: int | None = None,
 ) -> np.ndarray:
-    """Draw ``size`` N(0, sigma²) values from the stream named by the key.
+    """Draw ``size`` N(0, sigma²) values from the stream named by the key (``step``, a control
+    step's index, extends the key; None leaves the key as it was before drive existed).
 
     Returns zeros (without touching a generator) when ``sigma`` is 0.
 
@@ -42,5 +49,10 @@ def gaussian(
         raise ValueError(f"sigma must be non-negative, got {sigma}")
     if sigma == 0:
         return np.zeros(size)
-    rng = np.random.default_rng([seed, agent, tick, CHANNELS[channel], PHASES[phase]])
+    key = [seed, agent, tick, CHANNELS[channel], PHASES[phase]]
+    if step is not None:
+        if step < 0:
+            raise ValueError(f"step must be non-negative, got {step}")
+        key.append(step)
+    rng = np.random.default_rng(key)
     return rng.normal(0.0, sigma, size)

@@ -22,6 +22,9 @@ TICK_COLUMNS = (
     "tick", "t", "agent", "estimator", "ideal_x", "ideal_y", "est_x", "est_y", "pos_x", "pos_y",
     "required_range", "stay_range", "persist_range", "lost", "formation_error",
     "persist_range_noise_free", "missed", "floor_range",
+    # --motion drive (SPEC §4, §7): the move phase's shortfall, the settled distance to the
+    # rod end driven onto, the arc length driven and the steps a limit bound, per tick
+    "reach_error", "snap_error", "path_length", "saturated_steps",
 )
 OBS_COLUMNS = ("tick", "agent", "estimator", "lost", "measurement", "prediction", "followed",
                "fallback")
@@ -71,13 +74,19 @@ class _FollowerMetrics:
     def __init__(self) -> None:
         self.required, self.squares = ExactSum(), ExactSum()
         self.stay, self.persist, self.persist_noise_free = ExactSum(), ExactSum(), ExactSum()
-        self.floor = ExactSum()
-        self.lost = self.missed = self.fallback = 0
+        self.floor, self.formation = ExactSum(), ExactSum()
+        self.reach, self.snap, self.path = ExactSum(), ExactSum(), ExactSum()
+        self.lost = self.missed = self.fallback = self.saturated = 0
         self.followed: dict[str, int] = {}
 
     def add_row(self, row: dict) -> None:
         self.lost += row.get("lost") or 0
         self.missed += row.get("missed") or 0
+        self.saturated += row.get("saturated_steps") or 0
+        for total, name in ((self.formation, "formation_error"), (self.reach, "reach_error"),
+                            (self.snap, "snap_error"), (self.path, "path_length")):
+            if row.get(name) is not None:
+                total.add(row[name])
         if row.get("required_range") is not None:
             self.required.add(row["required_range"])
             self.squares.add(row["required_range"] ** 2)
@@ -105,6 +114,16 @@ class _FollowerMetrics:
             "estimated_ticks": n - self.fallback,
             "fallback_ticks": self.fallback,
             "followed": _shares(self.followed),
+            "mean_formation_error": self.formation.mean(),
+        }
+
+    def drive_summary(self) -> dict:
+        """The ``--motion drive`` metrics (SPEC §7)."""
+        return {
+            "path_length": self.path.value(),
+            "mean_reach_error": self.reach.mean(),
+            "mean_snap_error": self.snap.mean(),
+            "saturated_steps": self.saturated,
         }
 
 
@@ -192,8 +211,10 @@ class RunRecorder:
     def summary(self, *, complete: bool, reason: str = "", wall_time: float = 0.0) -> dict:
         """The ``summary.json`` content (SPEC §7)."""
         cfg = self.config
+        drive = cfg.motion == "drive"
         return {
-            "followers": {str(k): m.summary() for k, m in self._metrics.items()},
+            "followers": {str(k): {**m.summary(), **(m.drive_summary() if drive else {})}
+                          for k, m in self._metrics.items()},
             "version": VERSION,
             "run_id": cfg.run_id,
             "seed": cfg.seed,
@@ -201,6 +222,7 @@ class RunRecorder:
             "estimator": cfg.estimator,
             "dictionary": cfg.dictionary,
             "comm_period": cfg.comm_period,
+            "motion": cfg.motion,
             "n_followers": cfg.followers,
             "ticks_completed": self.ticks_done,
             "ticks": cfg.ticks,
@@ -280,7 +302,7 @@ def read_ticks(path: str | Path) -> list[dict]:
             for key, value in raw.items():
                 if value == "" or key == "estimator":
                     row[key] = value or None
-                elif key in ("tick", "agent", "lost", "missed"):
+                elif key in ("tick", "agent", "lost", "missed", "saturated_steps"):
                     row[key] = int(value)
                 else:
                     row[key] = float(value)
