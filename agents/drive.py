@@ -12,39 +12,31 @@ A tick has two phases of control steps (each one round trip, :class:`Control`):
 2. **snap** (``snap_steps`` steps, the correction window): drive onto the rod end, re-read at
    every step (so the landing is as good as the last reading, not the dead reckoning).
 
-Control law: Corke's pose controller (P. Corke, *Robotics, Vision and Control*, §4.1.1.4,
-after Astolfi; in PythonRobotics as ``move_to_pose``), in the local frame. With ``ρ`` the
-distance to the goal, ``α`` the goal's bearing relative to the heading and ``β`` the goal
-heading relative to that bearing (both wrapped; a goal behind is driven to in reverse),
+Control law: **biarc pursuit**, re-planned at every step (receding horizon) from the dead
+reckoning and the latest readings, in the local frame. A biarc — two circular arcs with a
+common tangent — is the standard smooth path joining two poses (position and heading), and a
+control step of constant speed and turn rate *is* a circular arc, so on flat ground the plan
+is executed exactly and nothing needs tuning: the first arc's speed and turn rate are its
+length and turn over half the time left (the least constant speed that arrives when the
+window closes, so the limits bind as late as they can). Sideways offsets that no S-curve of
+the run's turn rate reaches within the time left are driven by point turns when they fit,
+else the reachable part is. The last steps turn onto the goal heading first: the heading a
+follower settles with sets the rod the follower behind it follows (SPEC §3), and an error of
+ε rad there moves that follower's ideal position by about ``d·ε``. Chart speed and turn
+become surface commands through the slope reading ``s = ∇F``: along a chart direction ``ĥ``
+one metre of chart is ``√(1 + (s·ĥ)²)`` metres of arc, and the turn is the angle between the
+two chart directions in the metric ``I + s sᵀ``. Then both are saturated at the run's limits
+(a step at a limit is counted by the world).
 
-    v = k_ρ ρ,   ω = k_α α − k_β β.
+Why not the usual laws: Corke's pose controller (``move_to_pose``; ρ, α, β in polar
+coordinates) is singular at the goal — exactly where the correction window works: with the
+goal a tenth of a millimetre away its bearing, and so its turn command, is arbitrary; and
+pure pursuit steers onto the goal position only, so a sideways correction swings the heading
+by up to π. Both also need gains; the biarc has none.
 
-The gains are not tuned; they follow from the time left ``τ`` (``m`` steps of ``δ``):
-
-- ``k_ρ = 1/τ``: the speed that arrives when the window closes (``v = ρ/τ``: the least constant
-  speed that gets there in time; the controller is "time-optimal" in that the limits bind as
-  late as they can);
-- ``k_α = A/τ``, ``k_β = B/τ`` with ``A = 5``, ``B = 4``: in the log time-to-go ``s = ln τ₀/τ``
-  the law's linearisation (Siegwart and Nourbakhsh's ``α̇ = (k_ρ − k_α)α − k_β β``,
-  ``β̇ = −k_ρ α``) becomes time-invariant, ``α' = (1 − A)α + Bβ``, ``β' = −α``, with the
-  double pole ``λ = −2`` for ``(A − 1)² = 4B``: heading errors decay like ``(τ/τ₀)²``, twice
-  as fast as the distance (``ρ ∝ τ/τ₀``), without overshoot;
-- the zero-order hold caps ``k_α δ`` at 1 (never turn more than the whole bearing error in one
-  step), ``k_β`` in proportion; the last step (``m = 1``) drives the circular arc through the
-  goal (turn ``2α``, length ``ρ α / sin α``), the one constant command that reaches it.
-
-The chart-to-surface conversion uses the slope reading ``s = ∇F``: along a heading of chart
-direction ``ĥ`` one metre of chart is ``√(1 + (s·ĥ)²)`` metres of arc, and a turn of the chart
-angle by ``dψ`` is a turn of ``dψ √(1 + |s|²) / (1 + (s·ĥ)²)`` in the metric. Speed and turn
-rate are then saturated at the run's limits (a step at a limit is counted by the world).
-
-Goal heading: the heading a follower settles with sets the rod the next follower follows
-(SPEC §3), and in ideal formation a follower moves along its heading (its velocity is
-g-orthogonal to its rod). Its path over a tick is thus a smooth curve tangent to its heading
-at both ends; the circular arc through the goal tangent to the heading at the tick's start
-gives the goal heading ``ψ* = ψ₀ + 2 (χ − ψ₀)`` (``χ`` the chord's direction, taken modulo π
-so a goal behind is reached reversing), exact for arcs. A short chord's direction is noise:
-the turn is shrunk by ``ρ² / (ρ² + σ²)``, ``σ²`` the declared variance of the chord.
+Goal heading: in ideal formation a follower moves along its heading (its velocity is
+g-orthogonal to its rod, as its heading is), so its path is tangent to its heading; the goal
+heading is estimated from the chord of this tick and of the last one (:func:`goal_heading`).
 """
 from __future__ import annotations
 
@@ -60,6 +52,8 @@ from protocol.sensing import reading_variance
 
 MAX_S_TURN = math.pi / 2
 """The sharpest turn of a sideways correction (an S-curve's first arc), radians."""
+MIN_MANOEUVRE = 1e-6
+"""The smallest sideways offset (m) worth a point-turn manoeuvre without sensor noise."""
 
 
 @dataclass(frozen=True)
@@ -81,7 +75,7 @@ class Limits:
         spread = math.sqrt(2.0 * reading_variance(settings.spacing, settings.noise_range,
                                                   settings.noise_bearing))
         return cls(settings.max_speed, settings.max_turn,
-                   settings.comm_period / settings.control_steps, spread)
+                   settings.comm_period / settings.control_steps, max(spread, MIN_MANOEUVRE))
 
 
 def wrap(angle: float) -> float:
@@ -105,12 +99,15 @@ def goal_heading(heading: float, chord: np.ndarray, previous: np.ndarray | None,
 
     In ideal formation a follower moves along its heading, so its path is tangent to its
     heading: the end tangent of a path through chords of constant turn is the chord's
-    direction plus half the turn between consecutive chords, ``χ + (χ − χ₋₁)/2`` (without a
-    previous chord, ``χ``). Chords are taken on the heading's side (a chord behind is driven
-    in reverse). The turn away from ``heading`` is shrunk by ``ρ²/(ρ² + variance)`` (``ρ`` the
-    chord's length, ``variance`` its declared variance): a short chord's direction is noise."""
+    direction plus half the turn between consecutive chords, ``χ + (χ − χ₋₁)/2``. Without a
+    previous chord, the end tangent of the circular arc tangent to ``heading``,
+    ``ψ₀ + 2(χ − ψ₀)`` (it passes the start heading's error on, with the opposite sign, so
+    it serves only until a previous chord is known). Chords are taken on the heading's side (a
+    chord behind is driven in reverse). A chord no longer than three times its declared spread
+    (``variance``: both coordinates together) cannot be told from standing still: the heading
+    is kept."""
     rho2 = float(chord @ chord)
-    if rho2 == 0.0:
+    if rho2 == 0.0 or rho2 <= 9.0 * variance:
         return heading
 
     def forward(vector: np.ndarray) -> float:  # its direction, on the heading's side
@@ -119,8 +116,10 @@ def goal_heading(heading: float, chord: np.ndarray, previous: np.ndarray | None,
 
     chi = forward(chord)
     if previous is not None and float(previous @ previous) > 0.0:
-        chi += 0.5 * wrap(chi - forward(previous))
-    return wrap(heading + wrap(chi - heading) * rho2 / (rho2 + variance))
+        end = chi + 0.5 * wrap(chi - forward(previous))
+    else:
+        end = chi + wrap(chi - heading)
+    return wrap(end)
 
 
 def _arc_to(position: np.ndarray, heading: float, point: np.ndarray) -> tuple[float, float]:
@@ -174,7 +173,7 @@ def pose_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: 
       the distance along it (the heading comes first: it sets the rod of the follower behind);
     - a goal an S-curve can reach (``|aside| <= ahead tan(θ/2)``, ``θ = min(π/2, ω_max τ/2)``,
       ``τ`` the time left) is driven to along a biarc: this step drives its first arc, timed
-      to end when half the steps left (rounded up) are done;
+      to end when half the time left is over;
     - a goal further aside is reached by turning to face it, driving to it and turning back
       (point turns), when the steps left allow the turns at the top turn rate; else the step
       drives the biarc towards the nearest point an S-curve can reach.
@@ -218,11 +217,25 @@ def pose_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: 
         speed, rate = _approach(position, heading, goal, goal_heading, ahead, aside, s_turn,
                                 steps_left, limits)
     along_slope = slope[0] * math.cos(heading) + slope[1] * math.sin(heading)
-    stretch = 1.0 + along_slope * along_slope
-    v = direction * speed * math.sqrt(stretch)
-    omega = rate * math.sqrt(1.0 + float(slope @ slope)) / stretch
+    v = direction * speed * math.sqrt(1.0 + along_slope * along_slope)
+    omega = metric_angle(slope, heading, heading + rate * limits.step) / limits.step
     return (float(np.clip(v, -limits.max_speed, limits.max_speed)),
             float(np.clip(omega, -limits.max_turn, limits.max_turn)))
+
+
+def metric_angle(slope: np.ndarray, start: float, end: float) -> float:
+    """The signed angle, in the metric ``g = I + s sᵀ`` of the slope ``s``, from the chart
+    direction ``start`` to the chart direction ``end`` (rad; the chart turn from one to the
+    other, taken in ``(−π, π]``, fixes the way round)."""
+    a, b = _unit(start), _unit(end)
+    sa, sb = float(slope @ a), float(slope @ b)
+    dot = float(a @ b) + sa * sb
+    cross = _cross(a, b) * math.sqrt(1.0 + float(slope @ slope))
+    angle = math.atan2(cross, dot)
+    turn = wrap(end - start)
+    if turn * angle < 0.0:  # the chart turn and the metric angle agree in sign
+        angle += math.copysign(2.0 * math.pi, turn)
+    return angle
 
 
 def _approach(position: np.ndarray, heading: float, goal: np.ndarray, goal_heading: float,
@@ -246,7 +259,7 @@ def _approach(position: np.ndarray, heading: float, goal: np.ndarray, goal_headi
     axis = _unit(goal_heading)
     target = position + ahead * axis + aside * np.array([-axis[1], axis[0]])
     length, turn, _, _ = biarc_first_arc(position, heading, target, goal_heading)
-    first = math.ceil(steps_left / 2) * step
+    first = steps_left / 2 * step  # the biarc's two arcs share the time left
     return length / first, turn / first
 
 

@@ -10,8 +10,8 @@ from protocol.cli import (
     EXPECTED_FAILURES, add_log_level_flag, bounded_interrupt, check_out_dir, describe,
     setup_logging,
 )
-from protocol.config import (DICTIONARIES, ESTIMATORS, MODES, SIDES, VELOCITY_VARIANTS, RunConfig,
-                             config_from_dict, config_from_file, read_toml)
+from protocol.config import (DICTIONARIES, ESTIMATORS, MODES, MOTIONS, SIDES, VELOCITY_VARIANTS,
+                             RunConfig, config_from_dict, config_from_file, read_toml)
 from protocol.session import add_credential_flags
 
 EXIT_NOTHING_ESTIMATED = 3
@@ -60,6 +60,20 @@ RUN_FLAGS: dict[str, tuple[str, dict]] = {
     "--time-scale": ("time_scale", {"type": float}),
     "--agent-timeout": ("agent_timeout", {"type": float}),
     "--run-id": ("run_id", {}),
+    # --motion drive (SPEC §4, docs/drive.md)
+    "--motion": ("motion", {"choices": MOTIONS,
+                            "help": "teleport (default: a move relocates) or drive (bounded "
+                                    "unicycle robots on the surface)"}),
+    "--max-speed": ("max_speed", {"type": float, "help": "drive: top speed, m of arc per time "
+                                                         "unit (default 2× the leader's; inf)"}),
+    "--max-turn": ("max_turn", {"type": float, "help": "drive: top turn rate, rad per time unit "
+                                                       "(default 2; inf)"}),
+    "--control-steps": ("control_steps", {"type": int, "help": "drive: control steps per comm "
+                                                               "interval (default 8)"}),
+    "--snap-steps": ("snap_steps", {"type": int, "help": "drive: control steps of the "
+                                                         "correction window (default 4)"}),
+    "--noise-speed": ("noise_speed", {"type": float, "help": "drive: σ of the speed per step"}),
+    "--noise-turn": ("noise_turn", {"type": float, "help": "drive: σ of the turn rate per step"}),
 }
 
 
@@ -138,6 +152,12 @@ def format_summary(summary: dict) -> str:
                 f"{name} {share:.0%}" for name, share in followed.items()))
     lines.append("persist: from the same (noisy) readings; persist*: its noise-free "
                  "counterfactual; /persist: required over persist")
+    if summary.get("motion") == "drive":
+        lines += [f"follower {k} drove {s['path_length']:.4g} m: reach error "
+                  f"{table_number(s['mean_reach_error'])}, snap error "
+                  f"{table_number(s['mean_snap_error'])}, formation error "
+                  f"{table_number(s['mean_formation_error'])}, {s['saturated_steps']} steps "
+                  "at a limit" for k, s in summary["followers"].items()]
     lines += shares
     state = "complete" if summary["complete"] else f"INCOMPLETE: {summary['reason']}"
     lines.append(f"surface {summary['surface']}, comm period {summary['comm_period']}, "

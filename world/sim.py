@@ -29,8 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol.config import RunConfig
-from protocol.messages import (ActResult, ActSensing, Control, Drive, Message, Move, Sensing,
-                               Snap)
+from protocol.messages import ActResult, ActSensing, Control, Drive, Message, Move, Sensing, Snap
 from protocol.sensing import reading_covariance
 from world import geometry, motion
 from world.noise import gaussian, gaussian_scalar
