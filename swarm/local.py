@@ -40,17 +40,19 @@ class LocalLink:
 
 def run_local(config: RunConfig, out_dir: str | Path | None = None,
               policy_factory: Callable[[AgentSettings], Policy] = make_policy,
+              link_factory: Callable[[WorldSim, int], LocalLink] = LocalLink,
               ) -> tuple[dict, list[dict]]:
     """Run ``config`` in this thread; return (summary, ticks rows). Writes results if ``out_dir``.
 
     ``policy_factory`` builds each follower's policy (default: the one the config names);
-    estimator studies pass their own.
+    estimator studies pass their own. ``link_factory`` builds each follower's link (one that
+    also notes what the world did, for figures of what happens within a tick).
     """
     config, surface = resolve_with_surface(config)
     sim = WorldSim(config, surface)
     settings = AgentSettings.from_config(config)
     policies = [policy_factory(settings) for _ in range(config.followers)]
-    links = [LocalLink(sim, k) for k in range(1, config.followers + 1)]
+    links = [link_factory(sim, k) for k in range(1, config.followers + 1)]
     recorder = RunRecorder(out_dir, config)
     if out_dir is not None:
         recorder.open()
