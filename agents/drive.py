@@ -71,7 +71,7 @@ class Limits:
     @classmethod
     def from_settings(cls, settings: AgentSettings) -> Limits:
         if settings.max_speed is None:
-            raise ValueError("settings.max_speed must be resolved (the world writes it)")
+            raise ValueError("settings.max_speed must be resolved (the world tells it on join)")
         spread = math.sqrt(2.0 * reading_variance(settings.spacing, settings.noise_range,
                                                   settings.noise_bearing))
         return cls(settings.max_speed, settings.max_turn,

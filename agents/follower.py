@@ -13,6 +13,7 @@ the replay log needs nothing more: a tick redone after a restart is driven again
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import sys
 from dataclasses import dataclass
@@ -95,10 +96,11 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
 
 
 def _restore(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Policy,
-             state_dir: str | Path | None) -> tuple[StateLog | None, int, int]:
+             state_dir: str | Path | None) -> tuple[StateLog | None, int, int, AgentSettings]:
     """Join the run, rebuild ``policy`` from the state log, roll back what the world has not
-    recorded; return the log (None without a state dir), the last tick the policy has seen and
-    the last tick the world has this agent through.
+    recorded; return the log (None without a state dir), the last tick the policy has seen,
+    the last tick the world has this agent through, and the settings with what the world
+    resolved (a drive run's top speed).
 
     The world says where this agent stands (the last tick it has the agent through, and up to
     which tick the agent may act now). Log entries past that point describe ticks the world
@@ -108,6 +110,8 @@ def _restore(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Po
     """
     joined = link.join(settings.start_timeout)
     through = joined.through
+    if joined.max_speed is not None:
+        settings = dataclasses.replace(settings, max_speed=joined.max_speed)
     state = None
     if state_dir:
         state, entries = StateLog.open(state_dir, settings.run_id, agent_id, joined.start)
@@ -127,7 +131,7 @@ def _restore(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Po
                      state.path)
     else:
         last = -1
-    return state, last, through
+    return state, last, through, settings
 
 
 def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
@@ -146,7 +150,7 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
     link = AgentLink.for_agent(session, settings, agent_id)
     state = None
     try:
-        state, last, tick = _restore(link, settings, agent_id, policy, state_dir)
+        state, last, tick, settings = _restore(link, settings, agent_id, policy, state_dir)
         timeout = settings.start_timeout
         while True:
             tick = link.wait_step(tick, timeout)

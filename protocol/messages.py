@@ -64,6 +64,15 @@ def _positive(name: str, value: Any) -> float:
     return value
 
 
+def _limit(name: str, value: Any) -> float:
+    """A bound: a positive number, infinity (unbounded) included."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ProtocolError(f"field {name!r} must be a number, got {type(value).__name__}")
+    if not value > 0:  # NaN fails too
+        raise ProtocolError(f"field {name!r} must be positive (or inf), got {value}")
+    return float(value)
+
+
 def check_count(name: str, value: Any, label: str = "field") -> int:
     """``value`` as an integer in [0, ``MAX_TICK``] (a tick, a count, an index), else a
     ProtocolError naming ``label`` and ``name``."""
@@ -148,6 +157,7 @@ _KINDS = {
     "text": check_text,
     "name": _name,
     "finite?": _optional(check_finite),
+    "limit?": _optional(_limit),
     "vec2": _vector(2),
     "vec2?": _optional(_vector(2)),
     "vec3?": _optional(_vector(3)),
@@ -299,7 +309,10 @@ class Joined(Message):
     else it must do ``tick`` next (whatever it did later is not recorded: it redoes it);
     ``ready``: it may act at ``tick`` now, and at every tick up to ``until`` (they have started
     and, for a follower, its predecessor is through them); ``world``: the newest tick the world
-    started; ``start``: the run's start nonce, which the agent's state file must carry."""
+    started; ``start``: the run's start nonce, which the agent's state file must carry;
+    ``max_speed``: a ``--motion drive`` run's top speed as the world resolved it (its default
+    is twice the leader's speed on the hidden surface, which no agent can work out), else
+    None (optional on the wire)."""
 
     TYPE: ClassVar[str] = "joined"
     settled: bool = _kind("flag", False)
@@ -307,6 +320,7 @@ class Joined(Message):
     until: int = _kind("count", 0)
     world: int = _kind("count", 0)
     start: str = _kind("text", "")
+    max_speed: float | None = field(default=None, metadata={"kind": "limit?", "optional": True})
 
     @property
     def through(self) -> int:
