@@ -328,6 +328,8 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         return 2
     if args.name == "terrain":
         return cmd_terrain(args)
+    if args.name == "drive":
+        return cmd_drive_study(args)
     if args.dem is not None:
         print("error: --dem applies only to `experiment terrain`", file=sys.stderr)
         return 2
@@ -473,6 +475,36 @@ def cmd_terrain(args: argparse.Namespace) -> int:
     return _print_experiment(result, f"wall time {result['wall_time']:.1f} s (runs)")
 
 
+def cmd_drive_study(args: argparse.Namespace) -> int:
+    """``experiment drive [--quick] [--dem PATH --leader-start X,Y,VX,VY]``: the study of
+    driving followers (:mod:`swarm.drive_study`)."""
+    from swarm.drive_study import DriveStudySpec, quick, run_drive_study
+
+    spec = DriveStudySpec()
+    if args.dem is not None:
+        if not args.leader_start or len(args.leader_start) != 1:
+            print("error: experiment drive --dem needs one --leader-start X,Y,VX,VY",
+                  file=sys.stderr)
+            return 2
+        try:
+            spec = DriveStudySpec(dem=args.dem, dem_start=parse_leader_start(args.leader_start[0]))
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    spec = quick(spec) if args.quick else spec
+    out = args.out or "runs/experiment-drive"
+    result, status = _run_grid(lambda: run_drive_study(
+        out, spec, workers=args.workers,
+        on_run=lambda done, total: print(f"\rrun {done}/{total}", end="", file=sys.stderr,
+                                         flush=True)), out)
+    print(file=sys.stderr)
+    if result is None:
+        return status
+    return _print_experiment({**result, "figure_problems": {}, "failed": []},
+                             f"wall time {result['wall_time']:.1f} s ({result['runs']} runs in "
+                             f"{result['runs_time']:.1f} s)")
+
+
 def cmd_dem_crop(args: argparse.Namespace) -> int:
     """``dem-crop IN OUT.tif [--bounds XMIN,YMIN,XMAX,YMAX]``: a rectangle of a DEM with data
     at every node."""
@@ -565,7 +597,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_log_level_flag(run)
     run.set_defaults(func=cmd_run, in_process=False)
     experiment = sub.add_parser("experiment", help="regenerate the paper's tables, figures and report")
-    experiment.add_argument("name", choices=("paper", "terrain"), help="which experiment")
+    experiment.add_argument("name", choices=("paper", "terrain", "drive"),
+                            help="which experiment")
     experiment.add_argument("--out", default=None,
                             help="output folder D: D/runs, D/tables, D/figures, D/report.md "
                                  "(default runs/experiment-<name>)")

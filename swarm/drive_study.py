@@ -206,7 +206,7 @@ def draw_study(rows: list[dict], spec: DriveStudySpec, path: Path) -> Path:
     """The study's figure: formation error (top) and required range (bottom) against the
     control steps, the top speed (at the base comm period) and the comm period (at the base
     top speed); colour the surface, marker the estimator; dotted: the teleporting column."""
-    from swarm.plots import ESTIMATOR_STYLE, _figure, _save, _styled
+    from swarm.plots import ESTIMATOR_STYLE, _figure, _log_y, _save, _styled
 
     @_styled
     def draw() -> Path:
@@ -236,8 +236,9 @@ def draw_study(rows: list[dict], spec: DriveStudySpec, path: Path) -> Path:
                         ax.plot(xs, [r[y_key] for r in mine], marker=marker, ms=5, lw=1,
                                 color=colours[surface],
                                 label=f"{surface}, {label}" if col == 0 else None)
-                ax.set_xscale("log", base=2)
-                ax.set_yscale("log")
+                if ax.dataLim.intervalx[0] > 0:
+                    ax.set_xscale("log", base=2)
+                _log_y(ax)
                 ax.set(xlabel=x_label, ylabel=f"mean {y_label} (length units)")
                 if x_key == "speed_factor":
                     ax.set_title(f"T_c = {fixed:g}, {spec.base_steps} control steps "
