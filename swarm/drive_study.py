@@ -105,26 +105,25 @@ def study_runs(spec: DriveStudySpec) -> list[StudyRun]:
     for surface in spec.surfaces:
         options, duration = _surface_options(surface, spec)
         speed = _leader_speed(options)
+        cases = [("teleport", period, {}) for period in spec.comm_periods]
+        cases += [("steps", spec.base_period,
+                   {"control_steps": steps, "snap_steps": max(1, steps // 2),
+                    "max_speed": spec.base_factor * speed})
+                  for steps in spec.control_steps]
+        cases += [("speed", period,
+                   {"control_steps": spec.base_steps, "snap_steps": max(1, spec.base_steps // 2),
+                    "max_speed": factor * speed})
+                  for period in spec.comm_periods for factor in spec.speed_factors]
         for label in spec.estimators:
-            def add(block: str, period: float, **drive) -> None:
-                ticks = max(int(round(duration / period)), 6)
-                config = RunConfig(run_id="drive-study", followers=spec.followers, ticks=ticks,
+            for block, period, drive in cases:
+                config = RunConfig(run_id="drive-study", followers=spec.followers,
+                                   ticks=max(int(round(duration / period)), 6),
                                    comm_period=period, **options, **estimator_options(label),
-                                   **drive)
-                factor = drive.get("max_speed", math.nan) / speed if drive else math.nan
-                key = (surface, label, period, config.control_steps, config.snap_steps,
-                       config.max_speed, config.motion)
+                                   **({"motion": "drive", **drive} if drive else {}))
+                factor = drive["max_speed"] / speed if drive else math.nan
+                key = (surface, label, block, period, config.motion, config.control_steps,
+                       config.snap_steps, config.max_speed)
                 runs.setdefault(key, StudyRun(surface, label, block, config, factor))
-
-            for period in spec.comm_periods:
-                add("teleport", period)
-            for steps in spec.control_steps:
-                add("steps", spec.base_period, motion="drive", control_steps=steps,
-                    snap_steps=max(1, steps // 2), max_speed=spec.base_factor * speed)
-            for period in spec.comm_periods:
-                for factor in spec.speed_factors:
-                    add("speed", period, motion="drive", control_steps=spec.base_steps,
-                        snap_steps=max(1, spec.base_steps // 2), max_speed=factor * speed)
     return list(runs.values())
 
 
