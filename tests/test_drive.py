@@ -307,3 +307,28 @@ def test_bad_drive_options_are_refused_in_one_line(tmp_path, capsys, flags, mess
     err = capsys.readouterr().err.strip()
     assert message in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()
+
+
+# --- the study ---------------------------------------------------------------------------------
+
+
+def test_the_drive_study_writes_its_table_figure_and_report(tmp_path, capsys):
+    """``experiment drive --quick``: every run of the reduced grid is in the table, with the
+    teleport reference; the minimum top speed is one of the speeds tried."""
+    from swarm.drive_study import QUICK, study_runs
+    from swarm.grid import read_table
+
+    out = tmp_path / "study"
+    assert swarm_main(["experiment", "drive", "--quick", "--out", str(out), "--workers",
+                       "1"]) == 0
+    rows = read_table(out / "tables" / "drive.csv")
+    assert len(rows) == len(study_runs(QUICK))
+    assert {r["block"] for r in rows} == {"teleport", "steps", "speed"}
+    assert all(r["complete"] == 1 for r in rows)
+    drive_rows = [r for r in rows if r["motion"] == "drive"]
+    assert all(r["mean_formation_error"] > 0 and r["path_length"] > 0 for r in drive_rows)
+    minimum = read_table(out / "tables" / "drive_min_speed.csv")
+    assert {m["surface"] for m in minimum} == {"wavy", "dem"}
+    assert all(m["min_speed_factor"] in QUICK.speed_factors for m in minimum)
+    assert (out / "figures" / "drive.png").stat().st_size > 10_000
+    assert "Minimum top speed" in (out / "report.md").read_text()
