@@ -341,8 +341,8 @@ class ActSensing(Sensing):
     """Reply of ``world/act/<id>`` to :class:`Move`, :class:`Control` and :class:`Snap`: the
     sensing right after the action (phase ``moved`` after a move or a control step,
     ``settled`` after a snap; SPEC §8), so a follower tick needs at most three round trips
-    (with ``--motion drive``, two more than its control steps). ``moved`` is False when a snap found no
-    visible rod end (a lost tick)."""
+    (with ``--motion drive``, two more than its control steps). ``moved`` is False when a
+    snap found no visible rod end (a lost tick)."""
 
     TYPE: ClassVar[str] = "acted-sensing"
     moved: bool = _kind("flag", True)

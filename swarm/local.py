@@ -14,8 +14,17 @@ from pathlib import Path
 from agents.follower import follower_tick
 from agents.policies import Policy, make_policy
 from protocol.config import AgentSettings, RunConfig
-from protocol.messages import (ActSensing, Control, Message, Move, Observation, Sensing, Snap,
-                               decode, encode)
+from protocol.messages import (
+    ActSensing,
+    Control,
+    Message,
+    Move,
+    Observation,
+    Sensing,
+    Snap,
+    decode,
+    encode,
+)
 from world.main import resolve_with_surface
 from world.results import RunRecorder
 from world.sim import RunEnded, WorldSim

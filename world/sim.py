@@ -525,7 +525,7 @@ class WorldSim:
     def _step_sensing(self, agent: int, tick: int, step: int, odometry: np.ndarray) -> Sensing:
         """What a driving follower's sensors read after control step ``step``: its leader
         and the rod end (range/bearing), compass, slope and the step's ``odometry``."""
-        cfg, state = self.config, self.agents[agent]
+        state = self.agents[agent]
         leader_pos = self.agents[agent - 1].settled[tick]
         r, theta = self._relative_reading(agent, tick, "moved", leader_pos, state.pos, step)
         offset = self._leader_rod(agent, tick)[0] - state.pos
