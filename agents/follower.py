@@ -4,9 +4,16 @@ One tick (SPEC §4): sense the leader (``pre``) and ask the policy for its estim
 ``init_ticks`` on, move there (the reply carries the ``moved`` sensing); snap onto the rod end
 if it is in range, else count a lost tick (the reply carries the ``settled`` sensing); record
 the measurement; publish the observation and the rod. Three round trips to the world per tick.
+
+With ``--motion drive`` the move and the snap are control steps (:mod:`agents.drive`: one
+round trip each, to the estimate — in the initial ticks to the rod end sensed at ``pre`` —
+then onto the rod end), and the snap request only settles the follower where it stands. The
+controller's state lives within the tick (its dead reckoning starts afresh at every tick), so
+the replay log needs nothing more: a tick redone after a restart is driven again from its start.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import sys
 from dataclasses import dataclass
@@ -17,6 +24,7 @@ import zenoh
 
 from agents.checkpoint import Entry, StateLog, replay
 from agents.cli import parser, run_cli
+from agents.drive import drive_tick
 from agents.link import AgentAbort, AgentLink, MarkedMissed, Rejoin, RunFinished
 from agents.policies import (NotReady, Policy, make_policy, move_variance, reading_variance,
                              relative)
@@ -40,8 +48,9 @@ def displacement(offset: np.ndarray, pre: Sensing, moved: Sensing,
                  settings: AgentSettings) -> np.ndarray:
     """Where the follower's ideal position was relative to where it stood before moving (the
     ``target`` its policy learns from), as well as the follower can tell: the offset it
-    commanded plus the rod end it read after the move (a noisy reading, SPEC §5), corrected for
-    the move's actuation noise.
+    commanded (a driving follower: the displacement its odometry summed) plus the rod end it
+    read after the move (a noisy reading, SPEC §5), corrected for the move's actuation noise
+    (a driving follower: its odometry's error).
 
     The move landed ``eta`` off the command (declared variance ``noise_move**2`` per
     coordinate), which would enter the target whole. The two readings of the leader around the
@@ -67,7 +76,12 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
         followed, fallback = proposal.followed, proposal.fallback
     except NotReady:
         offset, prediction, followed, fallback = np.zeros(2), None, "", False
-    if tick < settings.init_ticks:
+    if settings.motion == "drive":  # control steps to the estimate, then onto the rod end
+        goal = np.asarray(pre.rod) if tick < settings.init_ticks else offset
+        chord_variance = 2.0 * (reading_variance(settings) + move_variance(settings))
+        driven = drive_tick(link.act, pre, goal, settings, chord_variance)
+        offset, moved = driven.travelled, driven.moved
+    elif tick < settings.init_ticks:
         offset, moved = np.zeros(2), pre
     else:
         moved = link.act(Move(tick=tick, offset=(float(offset[0]), float(offset[1])))).sensing
@@ -82,10 +96,12 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
 
 
 def _join(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Policy, last: int,
-          state_dir: str | Path | None, again: bool) -> tuple[StateLog | None, Policy, int, int]:
+          state_dir: str | Path | None, again: bool
+          ) -> tuple[StateLog | None, Policy, int, int, AgentSettings]:
     """Join the run, or join it ``again`` after :class:`agents.link.Rejoin`; return the state
-    log (None without a state dir), the policy, the last tick it is through and the last tick
-    the world has this agent through. ``policy`` is through every tick up to ``last`` (-1:
+    log (None without a state dir), the policy, the last tick it is through, the last tick
+    the world has this agent through, and the settings with what the world resolved (a drive
+    run's top speed). ``policy`` is through every tick up to ``last`` (-1:
     none): it learnt from them, skipped them or missed them.
 
     The world says where this agent stands (the last tick it has the agent through, and up to
@@ -98,12 +114,14 @@ def _join(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Polic
     """
     joined = link.join(settings.start_timeout)
     through = joined.through
+    if joined.max_speed is not None:
+        settings = dataclasses.replace(settings, max_speed=joined.max_speed)
     if not state_dir:
         if last > through:
             raise AgentAbort(f"follower {agent_id} cannot rejoin: the world redoes tick "
                              f"{through + 1}, which its estimator has learnt from, and it keeps "
                              "no state dir to roll back to (see --state-dir)")
-        return None, policy, last, through
+        return None, policy, last, through, settings
     if again:  # the log holds what to learn from
         policy = make_policy(settings)
     state, entries = StateLog.open(state_dir, settings.run_id, agent_id, joined.start)
@@ -121,7 +139,7 @@ def _join(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Polic
     if entries:
         log.info("follower %d: restored %d ticks of history from %s", agent_id, len(kept),
                  state.path)
-    return state, policy, last, through
+    return state, policy, last, through, settings
 
 
 def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
@@ -142,8 +160,8 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
     state, last, again = None, -1, False
     try:
         while True:
-            state, policy, last, tick = _join(link, settings, agent_id, policy, last, state_dir,
-                                              again)
+            state, policy, last, tick, settings = _join(link, settings, agent_id, policy, last,
+                                                        state_dir, again)
             timeout = settings.start_timeout
             try:
                 while True:

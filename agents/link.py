@@ -24,8 +24,8 @@ import zenoh
 from protocol import keys
 from protocol.config import AgentSettings
 from protocol.messages import (
-    ActResult, ActSensing, Done, Drive, ErrorReply, Joined, JoinRequest, Message, Missed, Observation,
-    Move, ProtocolError, Rod, Sensing, SenseRequest, Snap, TickStart, decode, encode,
+    ActResult, ActSensing, Control, Done, Drive, ErrorReply, Joined, JoinRequest, Message, Missed,
+    Observation, Move, ProtocolError, Rod, Sensing, SenseRequest, Snap, TickStart, decode, encode,
 )
 from protocol.session import token_live, undeclare_all
 
@@ -342,8 +342,9 @@ class AgentLink:
     def sense(self, tick: int, phase: str) -> Sensing:
         return self._query(self._sense_key, SenseRequest(tick=tick, phase=phase), Sensing)
 
-    def act(self, request: Drive | Move | Snap) -> ActResult | ActSensing:
-        """Ask the world to act; a move or snap is answered with the sensing after it."""
+    def act(self, request: Drive | Move | Snap | Control) -> ActResult | ActSensing:
+        """Ask the world to act; a move, control step or snap is answered with the sensing
+        after it."""
         return self._query(self._act_key, request,
                            ActResult if isinstance(request, Drive) else ActSensing)
 

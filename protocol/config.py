@@ -43,6 +43,7 @@ GPS_DICTIONARIES = ("d", "e", "f", "g")
 VELOCITY_VARIANTS = ("oracle", "lagged", "estimated")
 SIDES = {"left": 1, "right": -1}
 MODES = ("lockstep", "realtime")
+MOTIONS = ("teleport", "drive")  # how a follower moves (design §4 "Motion")
 
 _EDMD = ("dictionary", "velocity", "online", "delays", "affine", "forget", "window", "ridge")
 _AUTO = ("arx_order", "arx_window", "gp_samples", "kalman_accel")  # its candidates' options
@@ -98,6 +99,7 @@ class Option:
     choices: tuple[str, ...] = ()
     agents: bool = False
     needs: tuple[str, Any] | None = None
+    value_type: type | None = None
     flag: str | None = ""
     metavar: str | None = None
     name: str = ""
@@ -105,7 +107,10 @@ class Option:
 
     @property
     def kind(self) -> type:
-        """The option's type: bool, int, float, str, tuple (leader start) or dict."""
+        """The option's type: bool, int, float, str, tuple (leader start) or dict; for an
+        option whose default is None (resolved by the world), ``value_type``."""
+        if self.value_type is not None:
+            return self.value_type
         return tuple if self.name == "leader_start" else type(self.default)
 
     @property
@@ -190,9 +195,9 @@ class RunConfig:
     noise_bearing: float = option(0.0, "σ of a bearing reading", unit="rad", low=0.0,
                                   high=10.0, agents=True)
     noise_velocity: float = option(0.0, "σ of a velocity (odometry) reading", unit="m/s",
-                                   low=0.0, high=1e3)
+                                   low=0.0, high=1e3, agents=True)
     noise_move: float = option(0.0, "σ of a move's actuation, per coordinate", unit="m",
-                               low=0.0, high=1e3, agents=True)
+                               low=0.0, high=1e3, agents=True, needs=("motion", "teleport"))
     noise_gps: float = option(0.0, "σ of a GPS reading, per coordinate", unit="m", low=0.0,
                               high=1e6, needs=("gps", True))
     seed: int = option(0, "seed of every noise stream", low=0, high=2**63 - 1)
@@ -217,6 +222,25 @@ class RunConfig:
                              "when --ros2 is given without it)", low=0, high=232,
                              needs=("ros2", True))
 
+    motion: str = option("teleport", "how a follower moves: teleport (relocated by the "
+                         "commanded offset) or drive (a unicycle robot on the surface, design §4)",
+                         choices=MOTIONS, agents=True)
+    max_speed: float | None = option(None, "drive: top forward speed along the surface",
+                                     value_type=float, unit="m/s", low=0.0, high=math.inf,
+                                     low_open=True, agents=True, needs=("motion", "drive"))
+    max_turn: float = option(2.0, "drive: top turn rate, in the surface's metric", unit="rad/s",
+                             low=0.0, high=math.inf, low_open=True, agents=True,
+                             needs=("motion", "drive"))
+    control_steps: int = option(8, "drive: control steps per comm interval (to the estimate)",
+                                unit="steps", low=1, high=10_000, agents=True,
+                                needs=("motion", "drive"))
+    snap_steps: int = option(4, "drive: control steps of the correction onto the sensed rod "
+                             "end", unit="steps", low=0, high=10_000, agents=True,
+                             needs=("motion", "drive"))
+    noise_speed: float = option(0.0, "drive: σ of the forward speed's actuation per control "
+                                "step", unit="m/s", low=0.0, high=1e3, needs=("motion", "drive"))
+    noise_turn: float = option(0.0, "drive: σ of the turn rate's actuation per control step",
+                               unit="rad/s", low=0.0, high=1e3, needs=("motion", "drive"))
     def __post_init__(self) -> None:
         check_run_id(self.run_id)
         if (not isinstance(self.surface, str) or not 0 < len(self.surface) <= MAX_SURFACE_NAME
@@ -553,6 +577,8 @@ def _check_declared(declared: Option, value: Any) -> None:
     """ValueError unless ``value`` is of the option's type and within its range or choices
     (run id, surface, leader start and surface parameters have checks of their own)."""
     name = declared.name
+    if value is None and declared.default is None:  # left to the world to resolve
+        return
     if declared.kind is bool:
         if not isinstance(value, bool):
             raise ValueError(f"{name} must be true or false, got {_show(value)}")

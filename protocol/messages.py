@@ -64,6 +64,15 @@ def _positive(name: str, value: Any) -> float:
     return value
 
 
+def _limit(name: str, value: Any) -> float:
+    """A bound: a positive number, infinity (unbounded) included."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ProtocolError(f"field {name!r} must be a number, got {type(value).__name__}")
+    if not value > 0:  # NaN fails too
+        raise ProtocolError(f"field {name!r} must be positive (or inf), got {value}")
+    return float(value)
+
+
 def check_count(name: str, value: Any, label: str = "field") -> int:
     """``value`` as an integer in [0, ``MAX_TICK``] (a tick, a count, an index), else a
     ProtocolError naming ``label`` and ``name``."""
@@ -146,6 +155,8 @@ _KINDS = {
     "flag": _flag,
     "text": check_text,
     "name": _name,
+    "finite?": _optional(check_finite),
+    "limit?": _optional(_limit),
     "vec2": _vector(2),
     "vec2?": _optional(_vector(2)),
     "vec3?": _optional(_vector(3)),
@@ -205,7 +216,12 @@ class Sensing(Message):
     ``oracle_velocity``: the velocity to the next ideal position, the paper's idealisation
     (only to dictionary c with ``velocity = "oracle"``; with velocity noise).
     ``gps``/``leader_gps``: absolute (x, y, z) of agent and leader (only with GPS enabled;
-    with GPS noise). Every field passes through its noise channel (SPEC §5).
+    with GPS noise).
+    ``compass``, ``slope``, ``odometry`` (``--motion drive`` only; optional on the wire): the
+    robot's compass heading (rad, the angle of its heading in the local frame), the slope of
+    the ground under it read by its tilt sensor (``(∂F/∂x, ∂F/∂y)`` in the local frame), and
+    in the reply to a :class:`Control` the displacement its odometry measured over that
+    control step (xy, local frame). Every field passes through its noise channel (SPEC §5).
     """
 
     TYPE: ClassVar[str] = "sensing"
@@ -216,6 +232,11 @@ class Sensing(Message):
     oracle_velocity: tuple[float, float] | None = _kind("vec2?", None)
     gps: tuple[float, float, float] | None = _kind("vec3?", None)
     leader_gps: tuple[float, float, float] | None = _kind("vec3?", None)
+    compass: float | None = field(default=None, metadata={"kind": "finite?", "optional": True})
+    slope: tuple[float, float] | None = field(default=None,
+                                              metadata={"kind": "vec2?", "optional": True})
+    odometry: tuple[float, float] | None = field(default=None,
+                                                 metadata={"kind": "vec2?", "optional": True})
 
 
 @dataclass(frozen=True)
@@ -239,12 +260,34 @@ class Move(Message):
 @dataclass(frozen=True)
 class Snap(Message):
     """Query to ``world/act/<id>`` (followers): move onto the leader's rod end if it is visible
-    and take the §3 heading; the reply is :class:`ActSensing` with the ``settled`` sensing."""
+    and take the §3 heading; the reply is :class:`ActSensing` with the ``settled`` sensing.
+    With ``--motion drive`` it ends the tick instead: the follower settles where its control
+    steps took it, with its own heading."""
 
     TYPE: ClassVar[str] = "snap"
 
 
-ACTIONS = (Drive, Move, Snap)
+@dataclass(frozen=True)
+class Control(Message):
+    """Query to ``world/act/<id>`` (followers, ``--motion drive``): drive at forward speed
+    ``speed`` (v: m of arc per time unit along the surface, negative reversing) turning at
+    ``turn`` (ω: rad per time unit, in the metric, positive to the left) for control step
+    ``step`` of the
+    tick (steps ``0 … control_steps-1`` drive to the estimate, the next ``snap_steps`` onto
+    the rod end). ``goal`` is given with step 0 only: where the move phase is heading, as an
+    offset (local frame) from where the follower stood when the tick began (the world records
+    it as the estimate and measures the shortfall against it, SPEC §7). The reply is
+    :class:`ActSensing` with the sensing after the step, its ``odometry`` included. A
+    :class:`Snap` after the last step settles the follower where it stands."""
+
+    TYPE: ClassVar[str] = "control"
+    step: int = _kind("count", 0)
+    speed: float = _kind("finite", 0.0)
+    turn: float = _kind("finite", 0.0)
+    goal: tuple[float, float] | None = _kind("vec2?", None)
+
+
+ACTIONS = (Drive, Move, Snap, Control)
 """The typed requests of ``world/act/<id>`` (besides :class:`JoinRequest`)."""
 
 
@@ -265,7 +308,10 @@ class Joined(Message):
     else it must do ``tick`` next (whatever it did later is not recorded: it redoes it);
     ``ready``: it may act at ``tick`` now, and at every tick up to ``until`` (they have started
     and, for a follower, its predecessor is through them); ``world``: the newest tick the world
-    started; ``start``: the run's start nonce, which the agent's state file must carry."""
+    started; ``start``: the run's start nonce, which the agent's state file must carry;
+    ``max_speed``: a ``--motion drive`` run's top speed as the world resolved it (its default
+    is twice the leader's speed on the hidden surface, which no agent can work out), else
+    None (optional on the wire)."""
 
     TYPE: ClassVar[str] = "joined"
     settled: bool = _kind("flag", False)
@@ -273,6 +319,7 @@ class Joined(Message):
     until: int = _kind("count", 0)
     world: int = _kind("count", 0)
     start: str = _kind("text", "")
+    max_speed: float | None = field(default=None, metadata={"kind": "limit?", "optional": True})
 
     @property
     def through(self) -> int:
@@ -290,10 +337,11 @@ class ActResult(Message):
 
 @dataclass(frozen=True)
 class ActSensing(Sensing):
-    """Reply of ``world/act/<id>`` to :class:`Move` and :class:`Snap`: the sensing right after
-    the action (phase ``moved`` after a move, ``settled`` after a snap; SPEC §8), so a
-    follower tick needs at most three round trips. ``moved`` is False when a snap found no
-    visible rod end (a lost tick)."""
+    """Reply of ``world/act/<id>`` to :class:`Move`, :class:`Control` and :class:`Snap`: the
+    sensing right after the action (phase ``moved`` after a move or a control step,
+    ``settled`` after a snap; SPEC §8), so a follower tick needs at most three round trips
+    (with ``--motion drive``, two more than its control steps). ``moved`` is False when a
+    snap found no visible rod end (a lost tick)."""
 
     TYPE: ClassVar[str] = "acted-sensing"
     moved: bool = _kind("flag", True)
@@ -364,7 +412,7 @@ class ErrorReply(Message):
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE: cls
     for cls in (TickStart, SenseRequest, Sensing, Drive, Move, Snap, JoinRequest, Joined,
-                ActResult, ActSensing, Rod, Observation, Missed, Done, ErrorReply)
+                ActResult, ActSensing, Rod, Observation, Missed, Done, ErrorReply, Control)
 }
 
 

@@ -17,10 +17,13 @@ TICK_COLUMNS = (
     "tick", "t", "agent", "estimator", "ideal_x", "ideal_y", "est_x", "est_y", "pos_x", "pos_y",
     "required_range", "stay_range", "persist_range", "lost", "formation_error",
     "persist_range_noise_free", "missed", "floor_range", "heading_x", "heading_y",
+    # --motion drive (design §4, §7): the move phase's shortfall, the settled distance to the
+    # rod end driven onto, the arc length driven and the steps a limit bound, per tick
+    "reach_error", "snap_error", "path_length", "saturated_steps",
 )
 OBS_COLUMNS = ("tick", "agent", "estimator", "lost", "measurement", "prediction", "followed",
                "fallback")
-INT_TICK_COLUMNS = ("tick", "agent", "lost", "missed")
+INT_TICK_COLUMNS = ("tick", "agent", "lost", "missed", "saturated_steps")
 MIN_COLUMNS = 3  # tick, and t or agent: a header this short is no results file
 TICKS_FILE, OBS_FILE, SUMMARY_FILE = "ticks.csv", "observations.csv", "summary.json"
 RESULT_FILES = (TICKS_FILE, OBS_FILE, SUMMARY_FILE)

@@ -33,7 +33,8 @@ def option_help(declared: Option) -> str:
     return f"{text} [default {default}{unit}]".replace("%", "%%")
 
 
-CLI_DEFAULTS = {"run_id": "a new one from the clock", "leader_start": "the surface's"}
+CLI_DEFAULTS = {"run_id": "a new one from the clock", "leader_start": "the surface's",
+                "max_speed": "twice the leader's speed"}
 """What ``swarm run`` takes for an option it is not given, where that is not the option's
 declared default."""
 
@@ -146,6 +147,12 @@ def format_summary(summary: dict) -> str:
                 f"{name} {share:.0%}" for name, share in followed.items()))
     lines.append("persist: from the same (noisy) readings; persist*: its noise-free "
                  "counterfactual; /persist: required over persist")
+    if summary.get("motion") == "drive":
+        lines += [f"follower {k} drove {s['path_length']:.4g} m: reach error "
+                  f"{table_number(s['mean_reach_error'])}, snap error "
+                  f"{table_number(s['mean_snap_error'])}, formation error "
+                  f"{table_number(s['mean_formation_error'])}, {s['saturated_steps']} steps "
+                  "at a limit" for k, s in summary["followers"].items()]
     lines += shares
     state = "complete" if summary["complete"] else f"INCOMPLETE: {summary['reason']}"
     lines.append(f"surface {summary['surface']}, comm period {summary['comm_period']}, "
@@ -304,6 +311,8 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         _check_workers(args.workers)
     if args.name == "terrain":
         return cmd_terrain(args)
+    if args.name == "drive":
+        return cmd_drive_study(args)
     for name in TERRAIN_ONLY:
         if getattr(args, name) is not None:
             refuse(f"--{name.replace('_', '-')} applies only to `experiment terrain`")
@@ -438,6 +447,33 @@ def cmd_terrain(args: argparse.Namespace) -> int:
     return _print_experiment(result, f"wall time {result['wall_time']:.1f} s (runs)")
 
 
+def cmd_drive_study(args: argparse.Namespace) -> int:
+    """``experiment drive [--quick] [--dem PATH --leader-start X,Y,VX,VY]``: the study of
+    driving followers (:mod:`swarm.drive_study`)."""
+    from swarm.drive_study import DriveStudySpec, quick, run_drive_study
+
+    for name in TERRAIN_ONLY:
+        if name not in ("dem", "leader_start") and getattr(args, name) is not None:
+            refuse(f"--{name.replace('_', '-')} applies only to `experiment terrain`")
+    spec = DriveStudySpec()
+    if args.dem is not None:
+        if not args.leader_start or len(args.leader_start) != 1:
+            refuse("experiment drive --dem needs one --leader-start X,Y,VX,VY")
+        with ends_with(REFUSED, ValueError):
+            spec = DriveStudySpec(dem=args.dem,
+                                  dem_start=parse_leader_start(args.leader_start[0]))
+    spec = quick(spec) if args.quick else spec
+    out = args.out or "runs/experiment-drive"
+    result = _run_grid(lambda: run_drive_study(
+        out, spec, workers=args.workers,
+        on_run=lambda done, total: print(f"\rrun {done}/{total}", end="", file=sys.stderr,
+                                         flush=True)), out)
+    print(file=sys.stderr)
+    return _print_experiment({**result, "figure_problems": {}, "failed": []},
+                             f"wall time {result['wall_time']:.1f} s ({result['runs']} runs in "
+                             f"{result['runs_time']:.1f} s)")
+
+
 def cmd_dem_crop(args: argparse.Namespace) -> int:
     """``dem-crop IN OUT.tif [--bounds XMIN,YMIN,XMAX,YMAX]``: a rectangle of a DEM with data
     at every node."""
@@ -535,7 +571,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_log_level_flag(run)
     run.set_defaults(func=cmd_run, in_process=False)
     experiment = sub.add_parser("experiment", help="regenerate the paper's tables, figures and report")
-    experiment.add_argument("name", choices=("paper", "terrain"), help="which experiment")
+    experiment.add_argument("name", choices=("paper", "terrain", "drive"),
+                            help="which experiment")
     experiment.add_argument("--out", default=None,
                             help="output folder D: D/runs, D/tables, D/figures, D/report.md "
                                  "(default runs/experiment-<name>)")

@@ -186,6 +186,9 @@ class _ThreadAgents:
         self.threads: list[threading.Thread] = []
 
     def start(self, service: WorldService) -> None:
+        # what the world resolved (e.g. a drive run's default top speed), as the processes
+        # read it from the config.toml the world wrote
+        self.settings = AgentSettings.from_config(service.config)
         bodies: list[Callable[[zenoh.Session], None]] = [
             lambda s: run_leader(s, self.settings)]
         bodies += [lambda s, k=k: run_follower(s, self.settings, k)

@@ -16,7 +16,7 @@ from agents.follower import follower_tick
 from agents.policies import Policy, make_policy
 from protocol.config import AgentSettings, RunConfig
 from protocol.folder import FolderLock
-from protocol.messages import (ActResult, ActSensing, Drive, Message, Move, Observation,
+from protocol.messages import (ActResult, ActSensing, Control, Drive, Message, Move, Observation,
                                SenseRequest, Sensing, Snap, decode, encode)
 from world.main import resolve_with_surface
 from world.results import RunRecorder
@@ -40,12 +40,13 @@ class LocalLink:
         request = self.wire(SenseRequest(tick=tick, phase=phase))
         return self.wire(self.sim.sense(self.agent, request.tick, request.phase))
 
-    def act(self, request: Drive | Move | Snap) -> ActResult | ActSensing:
+    def act(self, request: Drive | Move | Snap | Control) -> ActResult | ActSensing:
         return self.wire(self.sim.act(self.agent, self.wire(request)))
 
 
 def run_local(config: RunConfig, out_dir: str | Path | None = None,
               policy_factory: Callable[[AgentSettings], Policy] = make_policy,
+              link_factory: Callable[[WorldSim, int], LocalLink] = LocalLink,
               ) -> tuple[dict, list[dict]]:
     """Run ``config`` in this thread; return (summary, ticks rows). Writes results if ``out_dir``.
 
@@ -54,23 +55,26 @@ def run_local(config: RunConfig, out_dir: str | Path | None = None,
     may, and then every agent that may begin its next tick does it (pipelined, agent ``k``
     does tick ``s - k`` in step ``s``; unpipelined, one agent at a time).
     ``policy_factory`` builds each follower's policy (default: the one the config names);
-    estimator studies pass their own. ``out_dir``'s one-writer lock is held meanwhile
-    (:class:`protocol.folder.FolderLock`).
+    estimator studies pass their own. ``link_factory`` builds each follower's link (one that
+    also notes what the world did, for figures of what happens within a tick). ``out_dir``'s
+    one-writer lock is held meanwhile (:class:`protocol.folder.FolderLock`).
     """
     if out_dir is None:
-        return _simulate(config, None, policy_factory)
+        return _simulate(config, None, policy_factory, link_factory)
     with FolderLock(out_dir, config.run_id):
-        return _simulate(config, out_dir, policy_factory)
+        return _simulate(config, out_dir, policy_factory, link_factory)
 
 
 def _simulate(config: RunConfig, out_dir: str | Path | None,
-              policy_factory: Callable[[AgentSettings], Policy]) -> tuple[dict, list[dict]]:
+              policy_factory: Callable[[AgentSettings], Policy],
+              link_factory: Callable[[WorldSim, int], LocalLink]) -> tuple[dict, list[dict]]:
     """:func:`run_local`'s run (its folder locked by the caller)."""
     config, surface = resolve_with_surface(config)
     sim = WorldSim(config, surface)
     settings = AgentSettings.from_config(config)
     policies = [policy_factory(settings) for _ in range(config.followers)]
-    links = [LocalLink(sim, k) for k in range(config.followers + 1)]
+    links = [LocalLink(sim, 0)] + [link_factory(sim, k)
+                                   for k in range(1, config.followers + 1)]
     recorder = RunRecorder(out_dir, config)
     if out_dir is not None:
         recorder.open()

@@ -301,8 +301,79 @@ def plot_required_range(run_dir: str | Path, path: str | Path) -> Path:
     return _save(fig, path)
 
 
+def driven_paths(config: RunConfig, ticks: int) -> dict[int, np.ndarray]:
+    """Where each driving follower was after every control step of ticks ``0 … ticks-1``
+    (absolute xy, shape (steps, 2) per follower), from a run of ``config`` in memory: the
+    results are a function of the configuration and seed, so this is the recorded run."""
+    from swarm.local import LocalLink, run_local
+
+    paths: dict[int, list] = {k: [] for k in range(1, config.followers + 1)}
+
+    class PathLink(LocalLink):
+        def act(self, request):
+            reply = super().act(request)
+            paths[self.agent].append(self.sim.agents[self.agent].pos.copy())
+            return reply
+
+    run_local(config.replace(ticks=max(ticks, config.init_ticks)), link_factory=PathLink)
+    return {k: np.array(p) for k, p in paths.items()}
+
+
+@_styled
+def plot_driven_paths(run_dir: str | Path, path: str | Path) -> Path:
+    """A drive run's paths: every follower's path control step by control step (blue) over
+    the terrain, against its ideal positions (red), with the leader (black)."""
+    run_dir = Path(run_dir)
+    rows = read_ticks(run_dir / "ticks.csv")
+    config = load_config(run_dir / "config.toml")
+    if config.motion != "drive":
+        raise ValueError(f"run_dir {run_dir} is not a drive run (motion {config.motion!r})")
+    ticks = 1 + max(r["tick"] for r in rows)
+    paths = driven_paths(config, ticks)
+    settled = {(r["tick"], r["agent"]): (r["pos_x"], r["pos_y"]) for r in rows}
+    for k, steps in paths.items():  # the replay must be the recorded run
+        per_tick = len(steps) // max(ticks, config.init_ticks)
+        for j in range(ticks):
+            end = steps[(j + 1) * per_tick - 1] if per_tick else None
+            if end is not None and not np.allclose(end, settled[(j, k)], rtol=0, atol=1e-9):
+                lost = any(r["lost"] for r in rows if r["agent"] == k)
+                if not lost:
+                    raise ValueError(f"{run_dir}: the replayed run differs from the recorded "
+                                     f"one (follower {k}, tick {j})")
+    fig = _figure(13.0, 6.5)
+    ax = fig.add_subplot()
+    positions = np.array([(r[f"{c}_x"], r[f"{c}_y"]) for r in rows for c in ("pos", "ideal")
+                          if r.get(f"{c}_x") is not None])
+    low, high = _box(positions, margin=config.spacing, aspect=2.0)
+    surface = make_surface(config.surface, config.surface_params)
+    length = f"({DEM_UNITS[0]})" if isinstance(surface, DemSurface) else LENGTH
+    contours = _surface_contours(ax, surface, low, high)
+    fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {length}")
+    lead = sorted((r for r in rows if r["agent"] == 0), key=lambda r: r["tick"])
+    ax.plot([r["pos_x"] for r in lead], [r["pos_y"] for r in lead], "k.-", lw=1, ms=4,
+            label="leader")
+    for k in range(1, config.followers + 1):
+        mine = sorted((r for r in rows if r["agent"] == k), key=lambda r: r["tick"])
+        ax.plot([r["ideal_x"] for r in mine], [r["ideal_y"] for r in mine], "o",
+                color=IDEAL_COLOR, ms=3.5, label="ideal positions" if k == 1 else None)
+        start = np.array([[mine[0]["pos_x"], mine[0]["pos_y"]]])
+        steps = np.concatenate([start, paths[k]])
+        ax.plot(steps[:, 0], steps[:, 1], "-", color=ESTIMATE_COLOR, lw=0.8,
+                label="driven paths" if k == 1 else None)
+        ax.plot([r["pos_x"] for r in mine], [r["pos_y"] for r in mine], "x",
+                color=ESTIMATE_COLOR, ms=4, mew=1, label="settled" if k == 1 else None)
+    ax.set(xlim=(low[0], high[0]), ylim=(low[1], high[1]), aspect="equal",
+           xlabel=f"x {length}", ylabel=f"y {length}")
+    ax.legend(loc="best", framealpha=0.9)
+    fig.suptitle(f"{config.surface}: driving followers ({config.control_steps} control + "
+                 f"{config.snap_steps} correction steps per T_c = {config.comm_period:g}, top "
+                 f"speed {config.max_speed:.3g}, estimator {_estimator_label(config)})")
+    return _save(fig, path)
+
+
 def plot_run(run_dir: str | Path, force: bool = False) -> list[Path]:
-    """Draw one run's figures into ``run_dir/figures``; return their paths.
+    """Draw one run's figures into ``run_dir/figures``; return their paths (a drive run's
+    driven paths too).
 
     Raises ValueError if ``run_dir`` is not a results folder, or holds the figures already
     (unless ``force``: draw them anew).
@@ -311,12 +382,14 @@ def plot_run(run_dir: str | Path, force: bool = False) -> list[Path]:
     missing = [n for n in ("config.toml", "ticks.csv", "summary.json") if not (run_dir / n).is_file()]
     if missing:
         raise ValueError(f"run_dir {run_dir} is not a results folder (missing {', '.join(missing)})")
-    effectiveness, required = (run_dir / "figures" / f"{name}.png"
-                               for name in ("effectiveness", "required_range"))
+    out = run_dir / "figures"
+    effectiveness, required = (out / f"{name}.png" for name in ("effectiveness", "required_range"))
     if not force and (effectiveness.exists() or required.exists()):
-        raise ValueError(f"{run_dir / 'figures'} holds the run's figures already; draw them "
-                         "anew with --force")
-    return [plot_effectiveness(run_dir, effectiveness), plot_required_range(run_dir, required)]
+        raise ValueError(f"{out} holds the run's figures already; draw them anew with --force")
+    figures = [plot_effectiveness(run_dir, effectiveness), plot_required_range(run_dir, required)]
+    if load_config(run_dir / "config.toml").motion == "drive":
+        figures.append(plot_driven_paths(run_dir, out / "driven_paths.png"))
+    return figures
 
 
 def _estimator_label(config) -> str:

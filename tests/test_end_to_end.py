@@ -21,7 +21,7 @@ from tests.boundaries import check_imports
 ROOT = Path(__file__).resolve().parents[1]
 SUMMARY_KEYS = {"mean_required_range", "rmse", "mean_stay_range", "mean_persist_range",
                 "mean_persist_range_noise_free", "mean_floor_range", "lost_ticks", "missed_ticks",
-                "estimated_ticks", "fallback_ticks", "followed"}
+                "estimated_ticks", "fallback_ticks", "followed", "mean_formation_error"}
 
 
 def _numbers(run_dir: Path) -> tuple[str, dict]:

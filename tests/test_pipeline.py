@@ -1,6 +1,6 @@
 """Pipelined lockstep (SPEC §4): the column advances as a wavefront, and the numbers are
 byte-identical to the unpipelined order, with noise, for 1, 3 and 10 followers, in memory,
-in-process over Zenoh and as processes."""
+in-process over Zenoh and as processes; for driving followers (``--motion drive``) too."""
 from __future__ import annotations
 
 import dataclasses
@@ -20,6 +20,13 @@ def _config(followers: int, pipelined: bool) -> RunConfig:
                      estimator="auto", noise_range=0.01,
                      noise_bearing=0.005, noise_velocity=0.02, noise_move=0.01, seed=5,
                      agent_timeout=30.0, pipelined=pipelined)
+
+
+def _drive_config(pipelined: bool) -> RunConfig:
+    """Three driving followers with every drive noise (no teleport actuation noise)."""
+    return dataclasses.replace(_config(3, pipelined), run_id="pipedrive", motion="drive",
+                               noise_move=0.0, noise_speed=0.02, noise_turn=0.02,
+                               control_steps=6, snap_steps=3)
 
 
 def _same(out: Path, reference: Path) -> None:
@@ -50,6 +57,27 @@ def test_pipelined_run_matches_unpipelined(tmp_path, unpipelined, followers, in_
     summary = launch(_config(followers, pipelined=True), tmp_path / "run", in_process=in_process)
     assert summary["complete"], summary["reason"]
     _same(tmp_path / "run", unpipelined[followers])
+
+
+@pytest.fixture(scope="module")
+def drive_unpipelined(tmp_path_factory):
+    ref = tmp_path_factory.mktemp("drive-ref")
+    run_local(_drive_config(pipelined=False), ref)
+    return ref
+
+
+@pytest.mark.parametrize("layout", ["in-memory", "in-process", "processes"])
+def test_drive_column_matches_in_every_layout(tmp_path, drive_unpipelined, layout):
+    """Control steps, odometry and the driven poses: the same bytes pipelined or not, in
+    memory, in-process over Zenoh and as processes."""
+    config = _drive_config(pipelined=True)
+    if layout == "in-memory":
+        run_local(config, tmp_path)
+        _same(tmp_path, drive_unpipelined)
+        return
+    summary = launch(config, tmp_path / "run", in_process=layout == "in-process")
+    assert summary["complete"], summary["reason"]
+    _same(tmp_path / "run", drive_unpipelined)
 
 
 def test_unpipelined_over_zenoh_matches(tmp_path, unpipelined):

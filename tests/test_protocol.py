@@ -9,9 +9,9 @@ import pytest
 from protocol import keys
 from protocol.config import RunConfig, config_from_dict, dump_config, load_agent_settings, load_config
 from protocol.messages import (
-    MESSAGE_TYPES, ActResult, ActSensing, Done, Drive, ErrorReply, Joined, JoinRequest, Missed,
-    Move, Observation, ProtocolError, Rod, SenseRequest, Sensing, Snap, TickStart, decode, encode,
-    from_body, to_body,
+    MESSAGE_TYPES, ActResult, ActSensing, Control, Done, Drive, ErrorReply, Joined, JoinRequest,
+    Missed, Move, Observation, ProtocolError, Rod, SenseRequest, Sensing, Snap, TickStart, decode,
+    encode, from_body, to_body,
 )
 from protocol.session import free_tcp_endpoint, zenoh_config
 
@@ -33,6 +33,12 @@ SAMPLES = [
     Missed(tick=3, agent=2),
     JoinRequest(tick=0),
     Joined(tick=12, settled=False, ready=True, until=14, world=15, start="9f3a"),
+    Joined(tick=0, settled=False, ready=False, until=0, world=0, start="9f3a",
+           max_speed=math.inf),
+    Control(tick=6, step=0, speed=1.5, turn=-0.25, goal=(1.2, 0.1)),
+    Control(tick=6, step=7, speed=-0.5, turn=2.0, goal=None),
+    ActSensing(tick=6, r=3.5, theta=0.3, rod=(0.1, 0.0), compass=-3.1, slope=(3.3, -0.6),
+               odometry=(0.16, 0.01), moved=True),
 ]
 
 
@@ -190,3 +196,22 @@ def test_credentials_from_flags_or_file(tmp_path):
         credentials(p.parse_args(["--password-file", str(tmp_path / "missing")]))
     with pytest.raises(SystemExit):  # both at once is refused by argparse
         p.parse_args(["--password", "a", "--password-file", "b"])
+
+
+@pytest.mark.parametrize("body, fragment", [
+    ({"step": 0, "speed": math.nan, "turn": 0.0, "goal": None}, "'speed' must be finite"),
+    ({"step": 0, "speed": 1.0, "turn": math.inf, "goal": None}, "'turn' must be finite"),
+    ({"step": -1, "speed": 1.0, "turn": 0.0, "goal": None}, "'step' must be in"),
+    ({"step": 0, "speed": 1.0, "turn": 0.0, "goal": [1.0]}, "'goal' must have length 2"),
+    ({"step": 0, "speed": "fast", "turn": 0.0, "goal": None}, "'speed' must be a number"),
+])
+def test_malformed_control_rejected(body, fragment):
+    with pytest.raises(ProtocolError, match=fragment):
+        decode(_raw(v=1, type="control", tick=5, **body), Control)
+
+
+@pytest.mark.parametrize("value", [0.0, -2.0, math.nan, "2"])
+def test_a_joined_top_speed_must_be_positive(value):
+    with pytest.raises(ProtocolError, match="max_speed"):
+        decode(_raw(v=1, type="joined", tick=0, settled=False, ready=False, until=0, world=0,
+                    start="ab", max_speed=value), Joined)

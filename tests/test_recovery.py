@@ -118,9 +118,10 @@ class Run:
         return "\n".join(f"--- {p.name}\n{p.read_text()[-1500:]}" for p in sorted(self.logs.iterdir()))
 
 
-def _draws(kind: str) -> list[tuple[str, int, list[tuple[int, float, int]]]]:
-    """Per run: (surface, seed, [(after tick T, extra delay s, which agent)])."""
-    rng = random.Random(f"{SEED}-{kind}")
+def _draws(kind: str, stream: str = "") -> list[tuple[str, int, list[tuple[int, float, int]]]]:
+    """Per run: (surface, seed, [(after tick T, extra delay s, which agent)]), from the random
+    stream of ``kind`` (or of ``stream``, when given)."""
+    rng = random.Random(f"{SEED}-{stream or kind}")
     runs = []
     for i in range(RUNS_PER_KIND):
         surface = SURFACES[i % len(SURFACES)]
@@ -142,54 +143,79 @@ def test_any_process_killed_at_random_moments_changes_nothing(tmp_path, kind):
                            estimator="auto", agent_timeout=30.0, start_timeout=60.0)
         print(f"run {n}: {surface} seed {seed}, {kind} killed after ticks "
               f"{[(t, round(d, 4), a) for t, d, a in kills]}")
-        reference = tmp_path / f"ref-{n}"
-        run_local(config, reference)
-        folder = tmp_path / f"run-{n}"
-        folder.mkdir()
-        dump_config(config, folder / "config.toml")
-        out = folder / "results"
-        run = Run(out, folder / "config.toml")
-        finished = False
-        gone_after_end: set[int] = set()
-        try:
-            run.start_world(resume=False)
-            for agent in range(3):
+        _kill_and_compare(tmp_path, n, config, kind, kills)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("kind", ["follower", "leader", "world"])
+def test_a_drive_run_killed_at_random_moments_changes_nothing(tmp_path, kind):
+    """Driving followers (``--motion drive``): a kill lands anywhere in a tick's control
+    steps; the world's checkpoint (poses with the robots' own headings) and the followers'
+    replay logs restore it, and the results are byte-identical."""
+    print(f"FAULT_SEED={SEED} (rerun with this environment variable to replay)")
+    surface, seed, kills = _draws(kind, f"drive-{kind}")[0]
+    config = RunConfig(run_id=f"kill-drive-{kind}", surface=surface, followers=2, ticks=TICKS,
+                       seed=seed, noise_range=0.01, noise_bearing=0.005, noise_velocity=0.01,
+                       noise_speed=0.02, noise_turn=0.02, motion="drive", estimator="auto",
+                       agent_timeout=30.0, start_timeout=60.0)
+    print(f"drive run: {surface} seed {seed}, {kind} killed after ticks "
+          f"{[(t, round(d, 4), a) for t, d, a in kills]}")
+    _kill_and_compare(tmp_path, 0, config, kind, kills)
+
+
+def _kill_and_compare(tmp_path: Path, n: int, config: RunConfig, kind: str,
+                      kills: list[tuple[int, float, int]]) -> None:
+    """Run ``config`` by hand, SIGKILL the ``kind`` of process at each of ``kills`` and
+    restart it as documented; the results must equal an uninterrupted in-memory run's."""
+    reference = tmp_path / f"ref-{n}"
+    run_local(config, reference)
+    folder = tmp_path / f"run-{n}"
+    folder.mkdir()
+    dump_config(config, folder / "config.toml")
+    out = folder / "results"
+    run = Run(out, folder / "config.toml")
+    finished = False
+    gone_after_end: set[int] = set()
+    try:
+        run.start_world(resume=False)
+        for agent in range(3):
+            run.start_agent(agent)
+        for after, delay, agent in kills:
+            deadline = time.monotonic() + WAIT_S
+            while _ticks_recorded(out) < after and run.world.poll() is None:
+                assert time.monotonic() < deadline, f"no tick {after}:\n{run.failure_logs()}"
+                time.sleep(0.001)
+            time.sleep(delay)
+            if kind == "world":
+                if not run.kill(run.world):
+                    break
+                run.wait_agents_exit()  # they see the world vanish and exit
+                if _complete(out) and not (out / "world_state.json").exists():
+                    finished = True  # killed after it completed and cleaned up
+                    break
+                run.start_world(resume=True)
+                for k in range(3):
+                    run.start_agent(k)
+            else:
+                if not run.kill(run.agents[agent]):
+                    break
+                if _complete(out):  # pipelined, the run may end within the kill window:
+                    gone_after_end.add(agent)  # there is nothing left to rejoin
+                    break
                 run.start_agent(agent)
-            for after, delay, agent in kills:
-                deadline = time.monotonic() + WAIT_S
-                while _ticks_recorded(out) < after and run.world.poll() is None:
-                    assert time.monotonic() < deadline, f"no tick {after}:\n{run.failure_logs()}"
-                    time.sleep(0.001)
-                time.sleep(delay)
-                if kind == "world":
-                    if not run.kill(run.world):
-                        break
-                    run.wait_agents_exit()  # they see the world vanish and exit
-                    if _complete(out) and not (out / "world_state.json").exists():
-                        finished = True  # killed after it completed and cleaned up
-                        break
-                    run.start_world(resume=True)
-                    for k in range(3):
-                        run.start_agent(k)
-                else:
-                    if not run.kill(run.agents[agent]):
-                        break
-                    if _complete(out):  # pipelined, the run may end within the kill window:
-                        gone_after_end.add(agent)  # there is nothing left to rejoin
-                        break
-                    run.start_agent(agent)
-            if not finished:
-                assert run.world.wait(timeout=WAIT_S * 2) == 0, run.failure_logs()
-                for k, proc in enumerate(run.agents):
-                    if k not in gone_after_end:
-                        assert proc.wait(timeout=WAIT_S) == 0, run.failure_logs()
-        finally:
-            run.close()
-        for name in ("ticks.csv", "observations.csv"):
-            assert (out / name).read_bytes() == (reference / name).read_bytes(), \
-                f"{name} differs after killing the {kind} (run {n}):\n{run.failure_logs()}"
-        summary = json.loads((out / "summary.json").read_text())
-        expected = json.loads((reference / "summary.json").read_text())
-        assert summary["complete"] and summary["followers"] == expected["followers"]
-        assert not (out / "world_state.json").exists()
-        assert not list((folder / "state").glob("agent-*.state")), "state kept after completion"
+        if not finished:
+            assert run.world.wait(timeout=WAIT_S * 2) == 0, run.failure_logs()
+            for k, proc in enumerate(run.agents):
+                if k not in gone_after_end:
+                    assert proc.wait(timeout=WAIT_S) == 0, run.failure_logs()
+    finally:
+        run.close()
+    for name in ("ticks.csv", "observations.csv"):
+        assert (out / name).read_bytes() == (reference / name).read_bytes(), \
+            f"{name} differs after killing the {kind} (run {n}):\n{run.failure_logs()}"
+    summary = json.loads((out / "summary.json").read_text())
+    expected = json.loads((reference / "summary.json").read_text())
+    assert summary["complete"] and summary["followers"] == expected["followers"]
+    assert not (out / "world_state.json").exists()
+    assert not list((folder / "state").glob("agent-*.state")), "state kept after completion"

@@ -20,7 +20,7 @@ from protocol.ros2 import domain_from_env
 from protocol.session import add_connection_flags, connection_config
 from world import checkpoint
 from world.service import WorldService
-from world.sim import resolve_leader_start
+from world.sim import default_max_speed, resolve_leader_start
 from world.surfaces import Surface, make_surface, require_surface_extra
 
 
@@ -29,9 +29,13 @@ DEFAULT_LISTEN = ("tcp/127.0.0.1:7447",)
 
 
 def resolve_with_surface(config: RunConfig) -> tuple[RunConfig, Surface]:
-    """Build the run's surface and fill in what the config leaves to it (the leader start)."""
+    """Build the run's surface and fill in what the config leaves to it (the leader start,
+    and with ``motion = "drive"`` the default top speed)."""
     surface = make_surface(config.surface, config.surface_params)
-    return config.replace(leader_start=resolve_leader_start(config, surface)), surface
+    config = config.replace(leader_start=resolve_leader_start(config, surface))
+    if config.motion == "drive" and config.max_speed is None:
+        config = config.replace(max_speed=default_max_speed(config, surface))
+    return config, surface
 
 
 def resolve(config: RunConfig) -> RunConfig:

@@ -76,13 +76,19 @@ class _FollowerMetrics:
     def __init__(self) -> None:
         self.required, self.squares = ExactSum(), ExactSum()
         self.stay, self.persist, self.persist_noise_free = ExactSum(), ExactSum(), ExactSum()
-        self.floor = ExactSum()
-        self.lost = self.missed = self.fallback = 0
+        self.floor, self.formation = ExactSum(), ExactSum()
+        self.reach, self.snap, self.path = ExactSum(), ExactSum(), ExactSum()
+        self.lost = self.missed = self.fallback = self.saturated = 0
         self.followed: dict[str, int] = {}
 
     def add_row(self, row: dict) -> None:
         self.lost += row.get("lost") or 0
         self.missed += row.get("missed") or 0
+        self.saturated += row.get("saturated_steps") or 0
+        for total, name in ((self.formation, "formation_error"), (self.reach, "reach_error"),
+                            (self.snap, "snap_error"), (self.path, "path_length")):
+            if row.get(name) is not None:
+                total.add(row[name])
         if row.get("required_range") is not None:
             self.required.add(row["required_range"])
             self.squares.add(row["required_range"] ** 2)
@@ -110,6 +116,16 @@ class _FollowerMetrics:
             "estimated_ticks": n - self.fallback,
             "fallback_ticks": self.fallback,
             "followed": _shares(self.followed),
+            "mean_formation_error": self.formation.mean(),
+        }
+
+    def drive_summary(self) -> dict:
+        """The ``--motion drive`` metrics (SPEC §7)."""
+        return {
+            "path_length": self.path.value(),
+            "mean_reach_error": self.reach.mean(),
+            "mean_snap_error": self.snap.mean(),
+            "saturated_steps": self.saturated,
         }
 
 
@@ -238,8 +254,10 @@ class RunRecorder:
     def summary(self, *, complete: bool, reason: str = "", wall_time: float = 0.0) -> dict:
         """The ``summary.json`` content (SPEC §7)."""
         cfg = self.config
+        drive = cfg.motion == "drive"
         return {
-            "followers": {str(k): m.summary() for k, m in self._metrics.items()},
+            "followers": {str(k): {**m.summary(), **(m.drive_summary() if drive else {})}
+                          for k, m in self._metrics.items()},
             "version": version(),
             "run_id": cfg.run_id,
             "seed": cfg.seed,
@@ -247,6 +265,7 @@ class RunRecorder:
             "estimator": cfg.estimator,
             "dictionary": cfg.dictionary,
             "comm_period": cfg.comm_period,
+            "motion": cfg.motion,
             "n_followers": cfg.followers,
             "ticks_completed": self.ticks_done,
             "ticks": cfg.ticks,

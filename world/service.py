@@ -218,14 +218,15 @@ class WorldService:
             raise RequestError(f"unknown agent id {agent} (this run has agents "
                                f"0..{self.sim.n_agents - 1})")
         opened, through = self.sim.tick, self._through[agent]
+        run = {"start": self.start, "max_speed": self.config.max_speed}
         if opened < 0:
-            return Joined(tick=0, settled=False, ready=False, until=0, world=0, start=self.start)
+            return Joined(tick=0, settled=False, ready=False, until=0, world=0, **run)
         if through >= opened:
             return Joined(tick=opened, settled=True, ready=False, until=opened, world=opened,
-                          start=self.start)
+                          **run)
         until = opened if agent == 0 else self._through[agent - 1]
         return Joined(tick=through + 1, settled=False, ready=until > through, until=max(until, 0),
-                      world=opened, start=self.start)
+                      world=opened, **run)
 
     def _on_act(self, query: zenoh.Query) -> None:
         def handle(agent: int, payload: bytes) -> bytes:

@@ -14,6 +14,12 @@ Sensing is honest (SPEC §5): every reading an agent gets passes through its own
 (:mod:`world.noise`) — the leader's range and bearing, the rod end's range and bearing, odometry,
 GPS — and every move, the snap included, through actuation noise. With every σ = 0 each noise
 term is an exact zero, so the numbers are the noise-free ones bit for bit.
+
+With ``motion = "drive"`` (SPEC §4) a follower is a unicycle robot (:mod:`world.motion`): it
+sends :meth:`control` steps (speed and turn rate, within the run's limits, with actuation noise
+on both) and a final :meth:`snap` that settles it where it stands, with its own heading. Each
+step is answered with what its sensors read after it: the range/bearing readings, its compass,
+the slope under it and its odometry over the step (see :meth:`control` for the noise).
 """
 from __future__ import annotations
 
@@ -23,9 +29,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol.config import RunConfig
-from protocol.messages import ActResult, ActSensing, Drive, Message, Move, Sensing, Snap
+from protocol.messages import ActResult, ActSensing, Control, Drive, Message, Move, Sensing, Snap
 from protocol.sensing import reading_precision
-from world import geometry
+from world import geometry, motion
 from world.noise import gaussian, gaussian_scalar
 from world.surfaces import Surface, surface_leader_start
 
@@ -53,6 +59,32 @@ class TickRecord:
     estimate: np.ndarray | None
     lost: bool
     missed: bool
+    drive: DriveRecord | None = None
+
+
+@dataclass(frozen=True)
+class DriveRecord:
+    """What a driving follower's control steps did in one tick (SPEC §7, ``--motion drive``):
+    the shortfall of its move phase (None in the initial ticks, which estimate nothing), the
+    distance from where it settled to the rod end it drove onto (None when lost), the arc
+    length it drove and how many steps a speed or turn limit bound."""
+
+    reach_error: float | None
+    snap_error: float | None
+    path_length: float
+    saturated_steps: int
+
+
+@dataclass
+class DriveTick:
+    """A driving follower's control steps in the tick it is in (world-private)."""
+
+    step: int = 0  # the next control step expected
+    goal: np.ndarray | None = None  # where the move phase is heading (absolute xy)
+    reach_error: float | None = None
+    sees_rod: bool = True  # whether the rod end is in range after the move phase
+    path_length: float = 0.0
+    saturated: int = 0
 
 
 @dataclass
@@ -74,6 +106,12 @@ class AgentState:
     acted: str = ""
     lost: bool = False
     missed: bool = False
+    drive: DriveTick = field(default_factory=DriveTick)
+
+    def reset_tick(self) -> None:
+        """Forget what the agent did in the tick it is in."""
+        self.estimate, self.acted, self.lost, self.missed = None, "", False, False
+        self.drive = DriveTick()
 
 
 def resolve_leader_start(config: RunConfig, surface: Surface) -> tuple[float, float, float, float]:
@@ -86,6 +124,24 @@ def resolve_leader_start(config: RunConfig, surface: Surface) -> tuple[float, fl
             f"surface {config.surface!r} has no default leader start: give leader_start"
         )
     return tuple(float(x) for x in start)  # type: ignore[return-value]
+
+
+DEFAULT_SPEED_FACTOR = 2.0
+"""``--max-speed``'s default: this many times the leader's speed at its start (SPEC §4)."""
+
+
+def leader_speed(config: RunConfig, surface: Surface) -> float:
+    """The leader's speed along the surface at its start, ``|v|_g`` (m of arc per time unit;
+    constant along its geodesic)."""
+    start = np.asarray(resolve_leader_start(config, surface), dtype=float)
+    velocity = start[2:]
+    return float(math.sqrt(velocity @ geometry.metric(surface, start[:2]) @ velocity))
+
+
+def default_max_speed(config: RunConfig, surface: Surface) -> float:
+    """The default top speed of a driving follower: :data:`DEFAULT_SPEED_FACTOR` times the
+    leader's speed."""
+    return DEFAULT_SPEED_FACTOR * leader_speed(config, surface)
 
 
 class WorldSim:
@@ -102,6 +158,8 @@ class WorldSim:
     def __init__(self, config: RunConfig, surface: Surface) -> None:
         if config.leader_start is None:
             raise ValueError("config.leader_start must be resolved before building the world")
+        if config.motion == "drive" and config.max_speed is None:
+            raise ValueError("config.max_speed must be resolved before building a drive world")
         self.config = config
         self.surface = surface
         self.side = config.side_sign
@@ -155,7 +213,7 @@ class WorldSim:
         if state.tick != tick - 1 or (tick > 0 and tick - 1 not in state.settled):
             raise RequestError(f"agent {agent} has not settled at tick {tick - 1}")
         state.tick = tick
-        state.estimate, state.acted, state.lost, state.missed = None, "", False, False
+        state.reset_tick()
         state.begun = (state.pos.copy(), state.heading.copy())
         if agent == 0:
             state.begun += (self.leader_velocity.copy(), self.leader_time)
@@ -174,7 +232,7 @@ class WorldSim:
             self._leader_at.pop(tick, None)
         for record in (state.settled, state.headings, state.records):
             record.pop(tick, None)
-        state.estimate, state.acted, state.lost, state.missed = None, "", False, False
+        state.reset_tick()
         state.tick = tick - 1
         self._rod_cache.pop((agent + 1, tick), None)
 
@@ -185,7 +243,12 @@ class WorldSim:
         state = self.agents[agent]
         state.settled[tick] = state.pos.copy()
         state.headings[tick] = state.heading.copy()
-        state.records[tick] = TickRecord(state.estimate, state.lost, state.missed)
+        drive = None
+        if self.config.motion == "drive" and agent > 0 and not state.missed:
+            d = state.drive
+            snap_error = None if state.lost else _dist(state.pos, self._leader_rod(agent, tick)[0])
+            drive = DriveRecord(d.reach_error, snap_error, d.path_length, d.saturated)
+        state.records[tick] = TickRecord(state.estimate, state.lost, state.missed, drive)
         if agent == 0:
             self._leader_at[tick] = (self.leader_velocity.copy(), self.leader_time)
 
@@ -229,6 +292,11 @@ class WorldSim:
                 if record.estimate is not None:
                     row.update(est_x=record.estimate[0], est_y=record.estimate[1],
                                required_range=_dist(record.estimate, ideal))
+                if record.drive is not None:
+                    row.update(reach_error=record.drive.reach_error,
+                               snap_error=record.drive.snap_error,
+                               path_length=record.drive.path_length,
+                               saturated_steps=record.drive.saturated_steps)
             rows.append(row)
         self.complete = j
         for state in self.agents:  # keep only what velocities and baselines still need
@@ -326,33 +394,39 @@ class WorldSim:
         self._settle(0, tick)
 
     def _relative_reading(self, agent: int, tick: int, phase: str, leader_pos: np.ndarray,
-                          own_pos: np.ndarray) -> tuple[float, float]:
+                          own_pos: np.ndarray, step: int | None = None) -> tuple[float, float]:
         """The noisy (range, bearing) reading ``agent`` gets of a leader at ``leader_pos``
-        from ``own_pos`` in ``phase`` of ``tick`` (noise keyed, so it can be re-derived)."""
+        from ``own_pos`` in ``phase`` of ``tick`` (after control step ``step`` if given; noise
+        keyed, so it can be re-derived)."""
         cfg = self.config
         (lx, ly), (fx, fy) = leader_pos.tolist(), own_pos.tolist()
         r = math.hypot(lx - fx, ly - fy) + gaussian_scalar(
-            cfg.seed, agent, tick, "range", phase, cfg.noise_range)
+            cfg.seed, agent, tick, "range", phase, cfg.noise_range, step)
         theta = math.atan2(ly - fy, lx - fx) + gaussian_scalar(
-            cfg.seed, agent, tick, "bearing", phase, cfg.noise_bearing)
+            cfg.seed, agent, tick, "bearing", phase, cfg.noise_bearing, step)
         return r, math.atan2(math.sin(theta), math.cos(theta))
 
     def _reading_error(self, agent: int, tick: int, phase: str, offset: np.ndarray,
-                       channels: tuple[str, str] = ("range", "bearing")) -> np.ndarray:
+                       channels: tuple[str, str] = ("range", "bearing"),
+                       step: int | None = None) -> np.ndarray:
         """The error (xy, local frame) of the range/bearing reading ``agent`` gets in ``phase``
-        of ``tick`` of a point at the true local ``offset``, on the noise ``channels`` (range,
-        bearing): ``polar(r + n_r, theta + n_theta) - polar(r, theta)``, an exact zero when
-        both draws are."""
+        of ``tick`` (after control step ``step`` if given) of a point at the true local
+        ``offset``, on the noise ``channels`` (range, bearing):
+        ``polar(r + n_r, theta + n_theta) - polar(r, theta)``, an exact zero when both draws
+        are."""
         cfg = self.config
         r, theta = math.hypot(float(offset[0]), float(offset[1])), math.atan2(offset[1], offset[0])
-        n_r = gaussian_scalar(cfg.seed, agent, tick, channels[0], phase, cfg.noise_range)
-        n_theta = gaussian_scalar(cfg.seed, agent, tick, channels[1], phase, cfg.noise_bearing)
+        n_r = gaussian_scalar(cfg.seed, agent, tick, channels[0], phase, cfg.noise_range, step)
+        n_theta = gaussian_scalar(cfg.seed, agent, tick, channels[1], phase, cfg.noise_bearing,
+                                  step)
         return _polar(r + n_r, theta + n_theta) - _polar(r, theta)
 
-    def _rod_error(self, agent: int, tick: int, phase: str, offset: np.ndarray) -> np.ndarray:
+    def _rod_error(self, agent: int, tick: int, phase: str, offset: np.ndarray,
+                   step: int | None = None) -> np.ndarray:
         """The error of ``agent``'s reading of its leader's rod end at the true local
         ``offset``: the same range/bearing sensor as the leader reading, channels of its own."""
-        return self._reading_error(agent, tick, phase, offset, ("rod-range", "rod-bearing"))
+        return self._reading_error(agent, tick, phase, offset, ("rod-range", "rod-bearing"),
+                                   step)
 
     def _move_noise(self, agent: int, tick: int) -> np.ndarray:
         """The actuation noise of ``agent``'s move to its estimate at ``tick``."""
@@ -426,10 +500,41 @@ class WorldSim:
         if cfg.gps:
             gps = self._gps(agent, tick, phase, "gps", state.pos)
             leader_gps = self._gps(agent, tick, phase, "leader-gps", leader_pos)
+        compass = slope = None
+        if cfg.motion == "drive":
+            compass, slope = self._attitude(agent, tick, phase)
         return Sensing(
             tick=tick, r=r, theta=theta, rod=rod, velocity=velocity, oracle_velocity=_tup(oracle),
-            gps=gps, leader_gps=leader_gps,
+            gps=gps, leader_gps=leader_gps, compass=compass, slope=slope,
         )
+
+    def _attitude(self, agent: int, tick: int, phase: str,
+                  step: int | None = None) -> tuple[float, tuple[float, float]]:
+        """A driving robot's compass and tilt readings: the angle of its heading in the local
+        frame, and the slope ``(∂F/∂x, ∂F/∂y)`` under it read as two tilt angles
+        (``atan ∂F/∂x``, ``atan ∂F/∂y``); each angle with the bearing sensor's σ (the compass
+        is what bearings are referenced to)."""
+        cfg, state = self.config, self.agents[agent]
+        sigma = cfg.noise_bearing
+        angle = math.atan2(state.heading[1], state.heading[0]) + gaussian_scalar(
+            cfg.seed, agent, tick, "compass", phase, sigma, step)
+        tilt = np.arctan(np.asarray(self.surface.gradient(state.pos), dtype=float))
+        tilt = tilt + gaussian(cfg.seed, agent, tick, "slope", phase, sigma, 2, step=step)
+        return math.atan2(math.sin(angle), math.cos(angle)), _tup(np.tan(tilt))
+
+    def _step_sensing(self, agent: int, tick: int, step: int, odometry: np.ndarray) -> Sensing:
+        """What a driving follower's sensors read after control step ``step``: its leader
+        and the rod end (range/bearing), compass, slope and the step's ``odometry``."""
+        state = self.agents[agent]
+        leader_pos = self.agents[agent - 1].settled[tick]
+        r, theta = self._relative_reading(agent, tick, "moved", leader_pos, state.pos, step)
+        offset = self._leader_rod(agent, tick)[0] - state.pos
+        rod = None
+        if self._sees_rod(tick, _norm(offset)):
+            rod = _tup(offset + self._rod_error(agent, tick, "moved", offset, step))
+        compass, slope = self._attitude(agent, tick, "moved", step)
+        return Sensing(tick=tick, r=r, theta=theta, rod=rod, compass=compass, slope=slope,
+                       odometry=_tup(odometry))
 
     def _sends_oracle(self) -> bool:
         """The oracle velocity is sent only to dictionary c's ``oracle`` variant (SPEC §5)."""
@@ -444,6 +549,8 @@ class WorldSim:
         step = np.asarray(offset, dtype=float)
         if step.shape != (2,) or not np.all(np.isfinite(step)) or _norm(step) > MAX_OFFSET:
             raise RequestError(f"move offset must be two finite numbers of size <= {MAX_OFFSET:g}")
+        if cfg.motion == "drive":
+            raise RequestError("this run's motion is 'drive': send Control steps, not a move")
         if tick < cfg.init_ticks:
             raise RequestError(f"tick {tick} is an initial tick: followers only snap")
         if state.acted:
@@ -463,6 +570,8 @@ class WorldSim:
         self._check_request(agent, tick)
         self._check_follower_turn(agent, tick)
         state, cfg = self.agents[agent], self.config
+        if cfg.motion == "drive":
+            return self._settle_driven(agent, tick)
         if tick >= cfg.init_ticks and state.acted != "move":
             raise RequestError(f"agent {agent} must move to its estimate before snapping")
         end, u = self._leader_rod(agent, tick)
@@ -477,14 +586,102 @@ class WorldSim:
         self._settle(agent, tick)
         return seen
 
+    @property
+    def control_period(self) -> float:
+        """Duration of one control step (``--motion drive``): ``T_c / control_steps``."""
+        return self.config.comm_period / self.config.control_steps
+
+    def _phase_steps(self, state: AgentState) -> int:
+        """How many control steps the tick takes: the move phase's, and the correction
+        window's when the rod end is in range after it."""
+        cfg = self.config
+        return cfg.control_steps + (cfg.snap_steps if state.drive.sees_rod else 0)
+
+    def control(self, agent: int, request: Control) -> Sensing:
+        """One control step of a driving follower (SPEC §4 "Motion"): it drives at
+        ``request.speed`` turning at ``request.turn`` for ``T_c / control_steps``, each with
+        actuation noise (σ ``noise_speed``, ``noise_turn``), on the surface
+        (:func:`world.motion.drive`); returns what its sensors read after the step.
+
+        Its odometry reads the step's displacement (local frame) with noise of σ
+        ``noise_velocity · √(δ T_c)`` per coordinate (δ the step's duration): a random walk
+        whose spread over a comm interval is that of the odometry of SPEC §5 over one interval
+        (``noise_velocity · T_c``). The first step carries the move phase's goal, which the
+        world records as the estimate (from tick ``init_ticks`` on); after the move phase's
+        last step the world notes how far the follower is from that goal (``reach_error``) and
+        whether the rod end is in range (else the correction window is skipped: a lost tick).
+        """
+        tick, step = request.tick, request.step
+        self._check_request(agent, tick)
+        self._check_follower_turn(agent, tick)
+        state, cfg = self.agents[agent], self.config
+        if cfg.motion != "drive":
+            raise RequestError("this run's motion is 'teleport': Control steps need motion "
+                               "'drive'")
+        drive = state.drive
+        if step != drive.step:
+            raise RequestError(f"control step {step} out of order: step {drive.step} is next")
+        if step >= self._phase_steps(state):
+            raise RequestError(f"control step {step} is past the tick's "
+                               f"{self._phase_steps(state)} steps: settle (snap) now")
+        if abs(request.speed) > cfg.max_speed or abs(request.turn) > cfg.max_turn:
+            raise RequestError(f"control (speed {request.speed:g}, turn {request.turn:g}) "
+                               f"exceeds the limits (max speed {cfg.max_speed:g}, max turn "
+                               f"{cfg.max_turn:g})")
+        if (request.goal is not None) != (step == 0):
+            raise RequestError("the goal is given with the first control step, and only then")
+        if step == 0:
+            drive.goal = state.pos + np.asarray(request.goal, dtype=float)
+            if tick >= cfg.init_ticks:
+                state.estimate = drive.goal.copy()
+        noise = [gaussian_scalar(cfg.seed, agent, tick, channel, "act", sigma, step)
+                 for channel, sigma in (("speed", cfg.noise_speed), ("turn", cfg.noise_turn))]
+        v, omega = request.speed + noise[0], request.turn + noise[1]
+        duration = self.control_period
+        start = state.pos
+        try:
+            pos, heading = motion.drive(self.surface, start, state.heading, v, omega, duration)
+        except motion.SurfaceDomainError as exc:
+            raise self._end(tick, f"agent {agent} drove off the surface's domain: {exc}") from None
+        state.pos, state.heading = pos, heading
+        state.acted = "control"
+        drive.step += 1
+        drive.path_length += abs(v) * duration
+        drive.saturated += (abs(request.speed) >= cfg.max_speed
+                            or abs(request.turn) >= cfg.max_turn)
+        if drive.step == cfg.control_steps:
+            if tick >= cfg.init_ticks:
+                drive.reach_error = _dist(pos, drive.goal)
+            drive.sees_rod = self._sees_rod(tick, _dist(self._leader_rod(agent, tick)[0], pos))
+        sigma = cfg.noise_velocity * math.sqrt(duration * cfg.comm_period)
+        odometry = pos - start + gaussian(cfg.seed, agent, tick, "odometry", "moved", sigma, 2,
+                                          step=step)
+        return self._step_sensing(agent, tick, step, odometry)
+
+    def _settle_driven(self, agent: int, tick: int) -> bool:
+        """A driving follower ends its tick where its control steps took it, keeping its own
+        heading (its rod normal comes from it, SPEC §3); returns False (lost) if the rod end
+        was out of range after the move phase."""
+        state = self.agents[agent]
+        if state.drive.step != self._phase_steps(state):
+            raise RequestError(f"agent {agent} has done {state.drive.step} of the tick's "
+                               f"{self._phase_steps(state)} control steps: it cannot settle yet")
+        state.lost = not state.drive.sees_rod
+        self._settle(agent, tick)
+        return not state.lost
+
     def act(self, agent: int, request: Message) -> ActResult | ActSensing:
         """Carry out one typed action of ``agent`` and say how it went (SPEC §8): a
-        :class:`Drive` is answered with :class:`ActResult`; a :class:`Move` with the ``moved``
-        sensing and a :class:`Snap` with the ``settled`` sensing, both as :class:`ActSensing`.
+        :class:`Drive` is answered with :class:`ActResult`; a :class:`Move` or a
+        :class:`Control` step with the ``moved`` sensing and a :class:`Snap` with the
+        ``settled`` sensing, all as :class:`ActSensing`.
         The one dispatch of the Zenoh service and of the in-memory layout."""
         if isinstance(request, Drive):
             self.drive(agent, request.tick, request.t)
             return ActResult(tick=request.tick, moved=True)
+        if isinstance(request, Control):
+            sensing = self.control(agent, request)
+            return ActSensing(**{**sensing.__dict__, "moved": True})
         if isinstance(request, Move):
             self.move(agent, request.tick, request.offset)
             moved, phase = True, "moved"

@@ -1,0 +1,351 @@
+"""``python -m swarm experiment drive``: what driving robots cost the column (docs/drive.md).
+
+The paper names its second practical difficulty (§4.3: a robot reaches its estimate by
+iterating on its own odometry, and the discrepancy accumulates) and never measures it. This
+study does, with followers that drive (``--motion drive``): the required sensing range and the
+formation error against
+
+- the **control steps** per comm interval (2 … 64; the correction window kept at half a comm
+  period, ``snap_steps = control_steps / 2``, so only the granularity of control changes),
+- the **top speed**, as a multiple of the leader's speed (from just above it to unbounded),
+- the **comm period**, crossed with the top speed (the minimum top speed per surface and
+  comm period comes from this block),
+
+on the paper's three surfaces and a DEM, for ``persist``, EDMD on dictionary b and ``auto``,
+with the teleporting column of the same setup as the reference. Runs are noise-free: the
+shortfalls measured are those of driving, not of sensing. Every run is the in-memory layout
+(:mod:`swarm.local`, the same code and numbers as a Zenoh run), in a process pool.
+
+The **minimum top speed** of a column (surface, comm period, estimator) is the smallest top
+speed tried whose mean formation error is within :data:`TOLERANCE` (10 %) of the best top speed
+tried, the unbounded robot included (same control steps and comm period). The best is not
+always the unbounded robot: one that follows a wild estimate all the way can break the column
+where a slower one only lags.
+"""
+from __future__ import annotations
+
+import math
+import multiprocessing
+import os
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from protocol.config import RunConfig, write_atomic
+from swarm.grid import estimator_options, is_nan, table_number, write_table
+
+TOLERANCE = 0.10
+"""A top speed suffices when the formation error is within this fraction of the best top
+speed's."""
+REPO_DEM = Path(__file__).resolve().parents[1] / "tests" / "data" / "hills.tif"
+REPO_DEM_START = (6.0, 8.0, 1.0, 0.0)  # the test terrain's leader start (tests/make_dem_data.py)
+COLUMNS = ("surface", "estimator", "block", "motion", "comm_period", "control_steps",
+           "snap_steps", "speed_factor", "max_speed", "ticks", "mean_required_range",
+           "mean_formation_error", "last_formation_error", "mean_reach_error",
+           "mean_snap_error", "saturated_steps", "path_length", "complete")
+MIN_SPEED_COLUMNS = ("surface", "comm_period", "estimator", "min_speed_factor", "min_speed",
+                     "formation_at_min", "best_speed_factor", "formation_best",
+                     "formation_unbounded")
+
+
+@dataclass(frozen=True)
+class DriveStudySpec:
+    """The study's grid (defaults: the full study)."""
+
+    surfaces: tuple[str, ...] = ("elliptic", "hyperbolic", "wavy", "dem")
+    estimators: tuple[str, ...] = ("persist", "edmd-b", "auto")
+    control_steps: tuple[int, ...] = (2, 4, 8, 16, 32, 64)
+    speed_factors: tuple[float, ...] = (1.02, 1.05, 1.1, 1.25, 1.5, 2.0, 3.0, math.inf)
+    comm_periods: tuple[float, ...] = (0.64, 1.28, 2.56)
+    base_steps: int = 8  # the defaults: 8 control steps, twice the leader's speed, T_c 1.28
+    base_factor: float = 2.0
+    base_period: float = 1.28
+    followers: int = 3
+    duration: float = 51.2  # time units per run on a preset (the paper's 40 ticks of 1.28)
+    dem: str = str(REPO_DEM)
+    dem_start: tuple[float, float, float, float] = REPO_DEM_START
+    dem_duration: float = 30.0  # the leader's 30 m stay inside the test terrain
+
+
+QUICK = DriveStudySpec(surfaces=("wavy", "dem"), estimators=("persist",),
+                       control_steps=(2, 8), speed_factors=(1.25, math.inf),
+                       comm_periods=(1.28,), followers=2, duration=12.8, dem_duration=12.8)
+"""A reduced grid to check the pipeline (``--quick``)."""
+
+
+@dataclass(frozen=True)
+class StudyRun:
+    """One run of the study and the labels of its table row."""
+
+    surface: str
+    estimator: str
+    block: str  # "steps", "speed" or "teleport"
+    config: RunConfig
+    speed_factor: float
+
+
+def _surface_options(surface: str, spec: DriveStudySpec) -> tuple[dict, float]:
+    if surface == "dem":
+        return {"surface": f"dem:{spec.dem}", "leader_start": spec.dem_start}, spec.dem_duration
+    return {"surface": surface}, spec.duration
+
+
+def _leader_speed(options: dict) -> float:
+    from world.main import resolve_with_surface
+    from world.sim import leader_speed
+
+    config, surface = resolve_with_surface(RunConfig(**options))
+    return leader_speed(config, surface)
+
+
+def study_runs(spec: DriveStudySpec) -> list[StudyRun]:
+    """Every run of the study (no duplicates)."""
+    runs: dict[tuple, StudyRun] = {}
+    for surface in spec.surfaces:
+        options, duration = _surface_options(surface, spec)
+        speed = _leader_speed(options)
+        cases = [("teleport", period, {}) for period in spec.comm_periods]
+        cases += [("steps", spec.base_period,
+                   {"control_steps": steps, "snap_steps": max(1, steps // 2),
+                    "max_speed": spec.base_factor * speed})
+                  for steps in spec.control_steps]
+        cases += [("speed", period,
+                   {"control_steps": spec.base_steps, "snap_steps": max(1, spec.base_steps // 2),
+                    "max_speed": factor * speed})
+                  for period in spec.comm_periods for factor in spec.speed_factors]
+        for label in spec.estimators:
+            for block, period, drive in cases:
+                config = RunConfig(run_id="drive-study", followers=spec.followers,
+                                   ticks=max(int(round(duration / period)), 6),
+                                   comm_period=period, **options, **estimator_options(label),
+                                   **({"motion": "drive", **drive} if drive else {}))
+                factor = drive["max_speed"] / speed if drive else math.nan
+                key = (surface, label, block, period, config.motion, config.control_steps,
+                       config.snap_steps, config.max_speed)
+                runs.setdefault(key, StudyRun(surface, label, block, config, factor))
+    return list(runs.values())
+
+
+def _execute(run: StudyRun) -> dict:
+    """Run one study run in memory; its table row."""
+    from swarm.local import run_local
+
+    summary, _ = run_local(run.config)
+    followers = [summary["followers"][str(k)] for k in range(1, run.config.followers + 1)]
+
+    def mean(key: str) -> float:
+        values = [f[key] for f in followers if f.get(key) is not None]
+        return float(np.mean(values)) if values else math.nan
+
+    cfg = run.config
+    return {
+        "surface": run.surface, "estimator": run.estimator, "block": run.block,
+        "motion": cfg.motion, "comm_period": cfg.comm_period,
+        "control_steps": cfg.control_steps if cfg.motion == "drive" else math.nan,
+        "snap_steps": cfg.snap_steps if cfg.motion == "drive" else math.nan,
+        "speed_factor": run.speed_factor,
+        "max_speed": cfg.max_speed if cfg.max_speed is not None else math.nan,
+        "ticks": summary["ticks_completed"],
+        "mean_required_range": mean("mean_required_range"),
+        "mean_formation_error": mean("mean_formation_error"),
+        "last_formation_error": _number(followers[-1].get("mean_formation_error")),
+        "mean_reach_error": mean("mean_reach_error"),
+        "mean_snap_error": mean("mean_snap_error"),
+        "saturated_steps": sum(f.get("saturated_steps", 0) for f in followers),
+        "path_length": mean("path_length"),
+        "complete": int(summary["complete"]),
+    }
+
+
+def _number(value) -> float:
+    return math.nan if value is None else float(value)
+
+
+def run_study(spec: DriveStudySpec, workers: int | None = None,
+              on_run: Callable[[int, int], None] | None = None) -> list[dict]:
+    """Every run's table row, in the order of :func:`study_runs` (a pool of ``workers``
+    processes, default ``min(2, CPU count)``)."""
+    runs = study_runs(spec)
+    workers = workers or min(2, os.cpu_count() or 1)
+    rows: list[dict] = []
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        for done, row in enumerate(pool.map(_execute, runs, chunksize=1), start=1):
+            rows.append(row)
+            if on_run is not None:
+                on_run(done, len(runs))
+    return rows
+
+
+def minimum_speeds(rows: list[dict], spec: DriveStudySpec) -> list[dict]:
+    """Per surface, comm period and estimator: the smallest top speed tried whose mean
+    formation error is within :data:`TOLERANCE` of the best top speed tried."""
+    out = []
+    for surface in spec.surfaces:
+        for period in spec.comm_periods:
+            for label in spec.estimators:
+                tried = sorted((r for r in rows if r["block"] == "speed"
+                                and r["surface"] == surface and r["estimator"] == label
+                                and r["comm_period"] == period), key=lambda r: r["speed_factor"])
+                if not tried:
+                    continue
+                best = min(tried, key=lambda r: r["mean_formation_error"])
+                limit = (1.0 + TOLERANCE) * best["mean_formation_error"]
+                enough = next(r for r in tried if r["mean_formation_error"] <= limit)
+                unbounded = [r["mean_formation_error"] for r in tried
+                             if math.isinf(r["speed_factor"])]
+                out.append({"surface": surface, "comm_period": period, "estimator": label,
+                            "min_speed_factor": enough["speed_factor"],
+                            "min_speed": enough["max_speed"],
+                            "formation_at_min": enough["mean_formation_error"],
+                            "best_speed_factor": best["speed_factor"],
+                            "formation_best": best["mean_formation_error"],
+                            "formation_unbounded": unbounded[0] if unbounded else math.nan})
+    return out
+
+
+def draw_study(rows: list[dict], spec: DriveStudySpec, path: Path) -> Path:
+    """The study's figure: formation error (top) and required range (bottom) against the
+    control steps, the top speed (at the base comm period) and the comm period (at the base
+    top speed); colour the surface, marker the estimator; dotted: the teleporting column."""
+    from swarm.plots import ESTIMATOR_STYLE, _figure, _log_y, _save, _styled
+
+    @_styled
+    def draw() -> Path:
+        fig = _figure(15.0, 8.5)
+        axes = fig.subplots(2, 3, squeeze=False)
+        colours = dict(zip(spec.surfaces, ("tab:blue", "tab:orange", "tab:green", "tab:brown"),
+                           strict=False))
+        panels = (("steps", "control_steps", "control steps per comm interval", None),
+                  ("speed", "speed_factor", "top speed / leader's speed", spec.base_period),
+                  ("speed", "comm_period", "comm period T_c", spec.base_factor))
+        for col, (block, x_key, x_label, fixed) in enumerate(panels):
+            for row, (y_key, y_label) in enumerate((("mean_formation_error", "formation error"),
+                                                    ("mean_required_range",
+                                                     "required sensing range"))):
+                ax = axes[row][col]
+                for surface in spec.surfaces:
+                    for label in spec.estimators:
+                        mine = [r for r in rows if r["block"] == block
+                                and r["surface"] == surface and r["estimator"] == label]
+                        if x_key == "speed_factor":
+                            mine = [r for r in mine if r["comm_period"] == fixed]
+                        if x_key == "comm_period":
+                            mine = [r for r in mine if r["speed_factor"] == fixed]
+                        mine.sort(key=lambda r: r[x_key])
+                        xs = [_plotted(r[x_key]) for r in mine]
+                        marker = ESTIMATOR_STYLE.get(label, ("k", "o"))[1]
+                        ax.plot(xs, [r[y_key] for r in mine], marker=marker, ms=5, lw=1,
+                                color=colours[surface],
+                                label=f"{surface}, {label}" if col == 0 else None)
+                if ax.dataLim.intervalx[0] > 0:
+                    ax.set_xscale("log", base=2)
+                _log_y(ax)
+                ax.set(xlabel=x_label, ylabel=f"mean {y_label} (length units)")
+                if x_key == "speed_factor":
+                    ax.set_title(f"T_c = {fixed:g}, {spec.base_steps} control steps "
+                                 "(rightmost: unbounded)")
+                elif x_key == "comm_period":
+                    ax.set_title(f"top speed {fixed:g}× the leader's, {spec.base_steps} steps")
+                else:
+                    ax.set_title(f"T_c = {spec.base_period:g}, top speed "
+                                 f"{spec.base_factor:g}× the leader's")
+        axes[0][0].legend(fontsize=7, ncol=2, loc="best")
+        fig.suptitle("driving followers (--motion drive), noise-free: mean over the column's "
+                     f"{spec.followers} followers")
+        return _save(fig, path)
+
+    return draw()
+
+
+UNBOUNDED_PLOT = 8.0  # where "unbounded" is drawn on the top-speed axis
+
+
+def _plotted(x: float) -> float:
+    return UNBOUNDED_PLOT if math.isinf(x) else x
+
+
+def write_report(out_dir: Path, rows: list[dict], minimum: list[dict], spec: DriveStudySpec,
+                 wall_time: float) -> Path:
+    """``report.md``: the headline numbers of the study."""
+    lines = ["# Driving followers: the study", "",
+             f"`python -m swarm experiment drive`; {len(rows)} runs, {wall_time:.0f} s wall "
+             f"time. Noise-free; {spec.followers} followers; table `tables/drive.csv`, figure "
+             "`figures/drive.png`.", "",
+             "## Minimum top speed (multiple of the leader's speed)", "",
+             f"The smallest top speed tried ({', '.join(_factor(f) for f in spec.speed_factors)}"
+             f" × the leader's) whose mean formation error is within {TOLERANCE:.0%} of the "
+             f"best top speed's ({spec.base_steps} control steps); in brackets the best when "
+             "it is not the unbounded robot.", ""]
+    head = ["surface", "T_c", *spec.estimators]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for surface in spec.surfaces:
+        for period in spec.comm_periods:
+            cells = []
+            for label in spec.estimators:
+                match = [m for m in minimum if m["surface"] == surface
+                         and m["comm_period"] == period and m["estimator"] == label]
+                if not match:
+                    cells.append("-")
+                    continue
+                best = match[0]["best_speed_factor"]
+                cells.append(_factor(match[0]["min_speed_factor"])
+                             + ("" if math.isinf(best) else f" ({_factor(best)})"))
+            lines.append(f"| {surface} | {period:g} | " + " | ".join(cells) + " |")
+    lines += ["", "## Formation error against control steps", "",
+              f"T_c = {spec.base_period:g}, top speed {spec.base_factor:g}× the leader's, "
+              "correction window half a comm period; teleport: the same column teleporting.",
+              ""]
+    head = ["surface", "estimator", *[str(n) for n in spec.control_steps], "teleport"]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for surface in spec.surfaces:
+        for label in spec.estimators:
+            cells = []
+            for steps in spec.control_steps:
+                match = [r for r in rows if r["block"] == "steps" and r["surface"] == surface
+                         and r["estimator"] == label and r["control_steps"] == steps]
+                cells.append(table_number(match[0]["mean_formation_error"]) if match else "-")
+            tele = [r for r in rows if r["block"] == "teleport" and r["surface"] == surface
+                    and r["estimator"] == label and r["comm_period"] == spec.base_period]
+            cells.append(table_number(tele[0]["mean_formation_error"]) if tele else "-")
+            lines.append(f"| {surface} | {label} | " + " | ".join(cells) + " |")
+    incomplete = [r for r in rows if not r["complete"]]
+    lines += ["", f"Runs that ended early: {len(incomplete)}."]
+    path = out_dir / "report.md"
+    write_atomic(path, "\n".join(lines) + "\n")
+    return path
+
+
+def _factor(x: float) -> str:
+    return "unbounded" if math.isinf(x) else f"{x:g}"
+
+
+def run_drive_study(out_dir: str | Path, spec: DriveStudySpec = DriveStudySpec(),
+                    workers: int | None = None,
+                    on_run: Callable[[int, int], None] | None = None) -> dict:
+    """Run the study and write ``tables/drive.csv``, ``tables/drive_min_speed.csv``,
+    ``figures/drive.png`` and ``report.md`` into ``out_dir``; return their paths and the
+    wall time."""
+    out = Path(out_dir)
+    start = time.monotonic()
+    rows = run_study(spec, workers, on_run)
+    runs_time = time.monotonic() - start
+    minimum = minimum_speeds(rows, spec)
+    tables = {"drive": out / "tables" / "drive.csv",
+              "drive_min_speed": out / "tables" / "drive_min_speed.csv"}
+    write_table(tables["drive"], COLUMNS, rows)
+    write_table(tables["drive_min_speed"], MIN_SPEED_COLUMNS, minimum)
+    figure = draw_study(rows, spec, out / "figures" / "drive.png")
+    wall = time.monotonic() - start
+    report = write_report(out, rows, minimum, spec, wall)
+    return {"tables": tables, "figures": {"drive": figure}, "report": report,
+            "runs": len(rows), "runs_time": runs_time, "wall_time": wall,
+            "incomplete": sum(1 for r in rows if not r["complete"] or is_nan(r["ticks"]))}
+
+
+def quick(spec: DriveStudySpec) -> DriveStudySpec:
+    """The reduced grid keeping ``spec``'s DEM."""
+    return replace(QUICK, dem=spec.dem, dem_start=spec.dem_start)

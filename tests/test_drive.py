@@ -1,0 +1,334 @@
+"""``--motion drive`` (SPEC §4 "Motion"): the unicycle on the surface, the control protocol, the
+follower's controller, what is measured, honest noise, refusals, and convergence to the
+teleport run as the control steps grow."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from agents.drive import Limits, biarc_first_arc, goal_heading, metric_angle, pose_command
+from agents.follower import follower_tick
+from agents.policies import make_policy
+from protocol.config import AgentSettings, RunConfig
+from protocol.messages import Control, Move, Snap
+from swarm.cli import main as swarm_main
+from swarm.local import LocalLink, run_local
+from tests.make_dem_data import HILLS, HILLS_LEADER_START
+from world import geometry, motion
+from world.main import resolve_with_surface
+from world.sim import RequestError, WorldSim
+from world.surfaces import make_surface
+
+NOISE = dict(noise_range=0.01, noise_bearing=0.005, noise_velocity=0.01, noise_speed=0.02,
+             noise_turn=0.02)
+
+
+def _pos(rows, agent=None):
+    return {(r["tick"], r["agent"]): np.array([r["pos_x"], r["pos_y"]]) for r in rows
+            if agent is None or r["agent"] == agent}
+
+
+# --- the unicycle ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["elliptic", "hyperbolic", "wavy"])
+def test_driving_straight_is_the_geodesic(name):
+    surface = make_surface(name)
+    start = np.array([30.0, 5.0])
+    heading = motion.unit_heading(surface, start, [-1.0, 0.3])
+    end, h = motion.drive(surface, start, heading, 2.5, 0.0, 1.28)
+    exact, velocity = geometry.integrate_geodesic(surface, start, 2.5 * heading, 1.28)
+    assert np.abs(end - exact).max() < 1e-9
+    assert np.abs(h - velocity / 2.5).max() < 1e-9
+
+
+def test_on_flat_ground_a_constant_command_is_a_circle():
+    plane = make_surface("plane", {"a": 0.0, "b": 0.0})
+    end, h = motion.drive(plane, [0.0, 0.0], [1.0, 0.0], 1.0, 0.5, 2 * math.pi)  # half a turn
+    assert np.abs(end - [0.0, 4.0]).max() < 1e-9  # radius v/ω = 2
+    assert np.abs(h - [-1.0, 0.0]).max() < 1e-9
+
+
+def test_the_turn_rate_is_measured_in_the_metric():
+    """On a tilted plane (constant metric, no transport) turning in place by ω t rotates the
+    heading by ω t in g: g(h0, h1) = cos(ω t), with the positive orientation."""
+    plane = make_surface("plane", {"a": 1.5, "b": -0.5})
+    g = geometry.metric(plane, [0.0, 0.0])
+    h0 = motion.unit_heading(plane, [0.0, 0.0], [1.0, 0.2])
+    _, h1 = motion.drive(plane, [0.0, 0.0], h0, 0.0, 0.7, 1.0)
+    assert h1 @ g @ h1 == pytest.approx(1.0, abs=1e-12)
+    assert h0 @ g @ h1 == pytest.approx(math.cos(0.7), abs=1e-8)
+    assert h0[0] * h1[1] - h0[1] * h1[0] > 0
+    # the controller's conversion of a chart turn to the metric angle agrees
+    chart = math.atan2(h1[1], h1[0]) - math.atan2(h0[1], h0[0])
+    psi = math.atan2(h0[1], h0[0])
+    assert metric_angle(np.array([1.5, -0.5]), psi, psi + chart) == pytest.approx(0.7, abs=1e-8)
+
+
+DEM_RUN = dict(surface=f"dem:{HILLS}", leader_start=HILLS_LEADER_START, ticks=24)
+
+
+@pytest.mark.parametrize("surface", ["elliptic", "wavy", "dem"])
+def test_halving_the_substeps_moves_a_run_by_less_than_a_micrometre(monkeypatch, surface):
+    base = DEM_RUN if surface == "dem" else dict(surface=surface, ticks=30)
+    config = RunConfig(followers=2, motion="drive", estimator="persist", seed=4, **base,
+                       **NOISE)
+    _, rows = run_local(config)
+    monkeypatch.setattr(motion, "ARC_STEP", motion.ARC_STEP / 2)
+    monkeypatch.setattr(motion, "TURN_STEP", motion.TURN_STEP / 2)
+    _, finer = run_local(config)
+    coarse, fine = _pos(rows), _pos(finer)
+    assert coarse.keys() == fine.keys() and len(coarse) >= 3 * 20
+    worst = max(float(np.linalg.norm(coarse[key] - fine[key])) for key in coarse)
+    assert worst < 1e-6
+    assert worst > 0  # the refinement did change the integration
+
+
+# --- the controller (pure, flat ground) --------------------------------------------------------
+
+
+def test_a_biarc_joins_two_poses():
+    """Drive the biarc's two arcs on flat ground: the robot ends at the goal with the goal
+    heading."""
+    plane = make_surface("plane", {"a": 0.0, "b": 0.0})
+    goal, goal_psi = np.array([1.0, 0.4]), 0.3
+    l1, t1, l2, t2 = biarc_first_arc(np.zeros(2), 0.0, goal, goal_psi)
+    p, h = motion.drive(plane, [0.0, 0.0], [1.0, 0.0], l1, t1, 1.0)
+    p, h = motion.drive(plane, p, h, l2, t2, 1.0)
+    assert np.abs(p - goal).max() < 1e-9
+    assert math.atan2(h[1], h[0]) == pytest.approx(goal_psi, abs=1e-9)
+
+
+def test_the_controller_stays_within_the_limits_and_reverses_to_a_goal_behind():
+    limits = Limits(max_speed=1.0, max_turn=0.5, step=0.16)
+    v, omega = pose_command(np.zeros(2), 0.0, np.zeros(2), np.array([5.0, 1.0]), 0.0, 2, limits)
+    assert abs(v) == 1.0 and abs(omega) <= 0.5
+    v, _ = pose_command(np.zeros(2), 0.0, np.zeros(2), np.array([-0.05, 0.0]), 0.0, 3,
+                        Limits(10.0, 10.0, 0.16))
+    assert v < 0
+
+
+def test_the_goal_heading_follows_the_chords():
+    """Chords of a circle turning 0.2 rad per chord: the end tangent of the last one is its
+    direction plus half the turn; a chord lost in noise keeps the heading."""
+    chord, previous = np.array([math.cos(0.3), math.sin(0.3)]), np.array([math.cos(0.1),
+                                                                          math.sin(0.1)])
+    assert goal_heading(0.2, chord, previous, 0.0) == pytest.approx(0.4)
+    assert goal_heading(0.2, chord, None, 0.0) == pytest.approx(0.4)  # the arc from 0.2
+    assert goal_heading(0.2, 0.01 * chord, previous, 1e-4) == 0.2
+
+
+# --- the protocol at the world -----------------------------------------------------------------
+
+
+def _drive_world(**options) -> tuple[WorldSim, RunConfig]:
+    config, surface = resolve_with_surface(RunConfig(motion="drive", **options))
+    sim = WorldSim(config, surface)
+    sim.start_tick(0)
+    sim.drive(0, 0, 0.0)
+    return sim, config
+
+
+def test_control_steps_are_validated():
+    sim, config = _drive_world()
+    with pytest.raises(RequestError, match="goal is given with the first"):
+        sim.act(1, Control(tick=0, step=0, speed=0.0, turn=0.0))
+    with pytest.raises(RequestError, match="out of order"):
+        sim.act(1, Control(tick=0, step=1, speed=0.0, turn=0.0))
+    with pytest.raises(RequestError, match="exceeds the limits"):
+        sim.act(1, Control(tick=0, step=0, speed=config.max_speed * 1.01, turn=0.0,
+                           goal=(0.0, 0.0)))
+    with pytest.raises(RequestError, match="exceeds the limits"):
+        sim.act(1, Control(tick=0, step=0, speed=0.0, turn=-2.5, goal=(0.0, 0.0)))
+    with pytest.raises(RequestError, match="send Control steps"):
+        sim.act(1, Move(tick=0, offset=(0.1, 0.0)))
+    with pytest.raises(RequestError, match="cannot settle yet"):
+        sim.act(1, Snap(tick=0))
+    reply = sim.act(1, Control(tick=0, step=0, speed=0.5, turn=0.1, goal=(0.0, 0.0)))
+    assert reply.odometry is not None and reply.compass is not None and reply.slope is not None
+    with pytest.raises(RequestError, match="goal is given with the first"):
+        sim.act(1, Control(tick=0, step=1, speed=0.0, turn=0.0, goal=(0.0, 0.0)))
+    for step in range(1, config.control_steps + config.snap_steps):
+        sim.act(1, Control(tick=0, step=step, speed=0.0, turn=0.0))
+    with pytest.raises(RequestError, match="past the tick"):
+        sim.act(1, Control(tick=0, step=config.control_steps + config.snap_steps, speed=0.0,
+                           turn=0.0))
+    assert sim.act(1, Snap(tick=0)).moved
+
+
+def test_teleport_refuses_control_steps():
+    config, surface = resolve_with_surface(RunConfig())
+    sim = WorldSim(config, surface)
+    sim.start_tick(0)
+    sim.drive(0, 0, 0.0)
+    with pytest.raises(RequestError, match="need motion 'drive'"):
+        sim.act(1, Control(tick=0, step=0, speed=0.0, turn=0.0, goal=(0.0, 0.0)))
+
+
+def test_a_lost_tick_skips_the_correction_window():
+    """Beyond the sensing range after the move phase the follower settles at once (lost)."""
+    _, rows = run_local(RunConfig(motion="drive", surface="wavy", estimator="stay",
+                                  sensing_range=0.05, ticks=8))
+    lost = [r for r in rows if r["agent"] == 1 and r["lost"]]
+    assert lost and all(r["snap_error"] is None for r in lost)
+
+
+def test_the_default_top_speed_is_twice_the_leaders():
+    config, surface = resolve_with_surface(RunConfig(motion="drive", surface="wavy"))
+    start = np.array(config.leader_start)
+    speed = math.sqrt(start[2:] @ geometry.metric(surface, start[:2]) @ start[2:])
+    assert config.max_speed == pytest.approx(2 * speed)
+
+
+# --- honest sensing ----------------------------------------------------------------------------
+
+
+class TruthLink(LocalLink):
+    """Notes every reading a driving follower gets beside the exact value."""
+
+    def __init__(self, sim, agent, seen):
+        super().__init__(sim, agent)
+        self.seen = seen
+
+    def act(self, request):
+        state = self.sim.agents[self.agent]
+        before = state.pos.copy()
+        reply = super().act(request)
+        if isinstance(request, Control):
+            end = self.sim._leader_rod(self.agent, request.tick)[0]
+            leader = self.sim.agents[self.agent - 1].settled[request.tick]
+            rel = leader - state.pos
+            self.seen.append({
+                "odometry": (reply.odometry, state.pos - before),
+                "compass": (reply.compass, math.atan2(state.heading[1], state.heading[0])),
+                "slope": (reply.slope, self.sim.surface.gradient(state.pos)),
+                "rod": (reply.rod, end - state.pos),
+                "r": (reply.r, math.hypot(*rel)),
+                "theta": (reply.theta, math.atan2(rel[1], rel[0])),
+            })
+        return reply
+
+
+def test_with_every_sigma_positive_no_drive_reading_is_exact():
+    config, surface = resolve_with_surface(RunConfig(motion="drive", surface="wavy", ticks=8,
+                                                     followers=2, seed=2, **NOISE))
+    sim, settings = WorldSim(config, surface), AgentSettings.from_config(config)
+    seen: list = []
+    links = [TruthLink(sim, k, seen) for k in (1, 2)]
+    policies = [make_policy(settings) for _ in links]
+    for tick in range(config.ticks):
+        sim.start_tick(tick)
+        sim.drive(0, tick, sim.time_of(tick))
+        for link, policy in zip(links, policies, strict=True):
+            follower_tick(link, policy, settings, tick)
+        sim.finish_tick(tick)
+    assert len(seen) == 8 * 2 * 12
+    for readings in seen:
+        for name, (got, exact) in readings.items():
+            assert got is not None, name
+            assert np.all(np.asarray(got, dtype=float) != np.asarray(exact, dtype=float)), name
+
+
+def test_without_noise_the_readings_are_exact_and_the_actuation_too():
+    """σ = 0: the world drives exactly the commanded (v, ω) (the arc length driven is the
+    commanded speeds times the step duration)."""
+    config = RunConfig(motion="drive", surface="hyperbolic", ticks=6)
+    summary, rows = run_local(config)
+    assert summary["followers"]["1"]["path_length"] == pytest.approx(
+        sum(r["path_length"] for r in rows if r["agent"] == 1), rel=1e-12)
+
+
+# --- what is measured --------------------------------------------------------------------------
+
+
+def test_a_slow_robot_falls_short_and_says_so():
+    base = dict(motion="drive", surface="wavy", followers=2, estimator="persist", ticks=20)
+    fast, _ = run_local(RunConfig(**base))
+    config, _ = resolve_with_surface(RunConfig(**base))
+    slow, rows = run_local(RunConfig(**base, max_speed=config.max_speed / 2.6))
+    for k in ("1", "2"):
+        assert slow["followers"][k]["saturated_steps"] > fast["followers"][k]["saturated_steps"]
+        assert slow["followers"][k]["mean_reach_error"] > 3 * fast["followers"][k][
+            "mean_reach_error"]
+        assert set(fast["followers"][k]) >= {"path_length", "mean_reach_error",
+                                             "mean_snap_error", "saturated_steps",
+                                             "mean_formation_error"}
+    estimated = [r for r in rows if r["agent"] == 1 and r["tick"] >= 4]
+    assert all(r["reach_error"] is not None for r in estimated)
+    assert all(r["reach_error"] is None for r in rows if r["agent"] == 1 and r["tick"] < 4)
+
+
+def test_the_leader_is_not_bounded():
+    base = dict(surface="elliptic", ticks=10, estimator="persist")
+    _, teleport = run_local(RunConfig(**base))
+    _, drive = run_local(RunConfig(**base, motion="drive", max_speed=0.5, max_turn=0.1))
+    leader_teleport, leader_drive = _pos(teleport, 0), _pos(drive, 0)
+    assert leader_teleport.keys() == leader_drive.keys()
+    assert all(np.array_equal(leader_teleport[key], leader_drive[key]) for key in leader_drive)
+
+
+@pytest.mark.parametrize("surface", ["elliptic", "hyperbolic", "wavy"])
+def test_settled_positions_converge_to_the_teleport_run(surface):
+    """No noise, unbounded limits: follower 1's settled positions approach the teleport run's
+    (where it stands on its leader's rod end) as the control steps grow, the correction window
+    keeping half a comm period."""
+    base = dict(surface=surface, ticks=20, estimator="persist")
+    _, teleport = run_local(RunConfig(**base))
+    reference = _pos(teleport, 1)
+    worst = []
+    for steps in (4, 16, 64):
+        _, rows = run_local(RunConfig(**base, motion="drive", max_speed=math.inf,
+                                      max_turn=math.inf, control_steps=steps,
+                                      snap_steps=steps // 2))
+        got = _pos(rows, 1)
+        worst.append(max(float(np.linalg.norm(got[key] - reference[key])) for key in got))
+    assert worst[0] > worst[1] > worst[2]
+    assert worst[2] < 2e-5
+
+
+# --- refusals ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--max-turn", "3"], "max_turn applies only to motion 'drive'"),
+    (["--snap-steps", "2"], "snap_steps applies only to motion 'drive'"),
+    (["--motion", "drive", "--noise-move", "0.1"], "noise_move applies only to motion"),
+    (["--motion", "drive", "--control-steps", "0"], "control_steps must be an integer"),
+    (["--motion", "drive", "--max-speed", "-1"], "max_speed must be in"),
+    (["--motion", "drive", "--max-turn", "nan"], "max_turn must be in"),
+    (["--motion", "walk"], "invalid choice"),
+])
+def test_bad_drive_options_are_refused_in_one_line(tmp_path, capsys, flags, message):
+    with pytest.raises(SystemExit) as exit_info:
+        raise SystemExit(swarm_main(["run", *flags, "--out", str(tmp_path / "out")]))
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+# --- the study ---------------------------------------------------------------------------------
+
+
+def test_the_drive_study_writes_its_table_figure_and_report(tmp_path, capsys):
+    """``experiment drive --quick``: every run of the reduced grid is in the table, with the
+    teleport reference; the minimum top speed is one of the speeds tried."""
+    from swarm.drive_study import QUICK, study_runs
+    from swarm.grid import read_table
+
+    out = tmp_path / "study"
+    assert swarm_main(["experiment", "drive", "--quick", "--out", str(out), "--workers",
+                       "1"]) == 0
+    rows = read_table(out / "tables" / "drive.csv")
+    assert len(rows) == len(study_runs(QUICK))
+    assert {r["block"] for r in rows} == {"teleport", "steps", "speed"}
+    assert all(r["complete"] == 1 for r in rows)
+    drive_rows = [r for r in rows if r["motion"] == "drive"]
+    assert all(r["mean_formation_error"] > 0 and r["path_length"] > 0 for r in drive_rows)
+    minimum = read_table(out / "tables" / "drive_min_speed.csv")
+    assert {m["surface"] for m in minimum} == {"wavy", "dem"}
+    assert all(m["min_speed_factor"] in QUICK.speed_factors for m in minimum)
+    assert (out / "figures" / "drive.png").stat().st_size > 10_000
+    assert "Minimum top speed" in (out / "report.md").read_text()
