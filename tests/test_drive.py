@@ -292,9 +292,9 @@ def test_settled_positions_converge_to_the_teleport_run(surface):
 
 
 @pytest.mark.parametrize("flags, message", [
-    (["--max-turn", "3"], "max_turn applies only to motion 'drive'"),
-    (["--snap-steps", "2"], "snap_steps applies only to motion 'drive'"),
-    (["--motion", "drive", "--noise-move", "0.1"], "noise_move applies only to motion"),
+    (["--max-turn", "3"], 'max_turn = 3.0 does nothing with motion = "teleport"'),
+    (["--snap-steps", "2"], 'snap_steps = 2 does nothing with motion = "teleport"'),
+    (["--motion", "drive", "--noise-move", "0.1"], 'noise_move = 0.1 does nothing with motion'),
     (["--motion", "drive", "--control-steps", "0"], "control_steps must be an integer"),
     (["--motion", "drive", "--max-speed", "-1"], "max_speed must be in"),
     (["--motion", "drive", "--max-turn", "nan"], "max_turn must be in"),

@@ -19,6 +19,7 @@ import yaml
 from protocol import ros2
 from protocol.config import RunConfig
 from protocol.distribution import missing_extra_message
+from protocol.folder import LOCK_FILE
 from swarm.cli import main as swarm_main
 from swarm.launch import launch
 from swarm.ros2_export import export_run
@@ -208,7 +209,8 @@ def test_refusals(run_dir, bag, tmp_path, capsys):
     assert capsys.readouterr().out.strip() == f"bag: {bag}"
     assert (bag / "metadata.yaml").stat().st_mtime_ns != before
     assert sorted(p.name for p in bag.iterdir()) == ["bag.mcap", "metadata.yaml"]
-    assert not [p for p in run_dir.iterdir() if p.name.startswith(".")]
+    # no temporary file left (the folder's lock file is the run's own)
+    assert not [p for p in run_dir.iterdir() if p.name.startswith(".") and p.name != LOCK_FILE]
 
 
 _WITHOUT_ROS = """
