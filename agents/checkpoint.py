@@ -7,7 +7,7 @@ settled sensing it recorded, the target, and how many ticks it skipped before �
 restarted follower rebuilds its policy by replaying the lines. Nothing in the file is code:
 it is JSON, every sensing map is validated by the protocol codec, and nothing is ever
 unpickled. Replaying also lets the follower roll back to any earlier tick, which is what
-transparent recovery needs when the world restarts a tick (SPEC §4).
+transparent recovery needs when the world restarts a tick (design §4).
 
 The file is JSON lines. The first line is the header ``{"schema", "run_id", "agent",
 "start"}``; ``start`` is the world's per-start nonce, so a file from another start of the same

@@ -1,6 +1,6 @@
-"""A driving follower's controller (SPEC §4 "Motion", ``--motion drive``): pure numpy.
+"""A driving follower's controller (design §4 "Motion", ``--motion drive``): pure numpy.
 
-The robot is a unicycle on the surface; it knows only what its sensors read (SPEC §5): its
+The robot is a unicycle on the surface; it knows only what its sensors read (design §5): its
 odometry (the displacement of each control step in its local compass frame), its compass
 heading, the slope under it (tilt sensor) and the range/bearing readings of its leader and of
 the rod end. It never knows its absolute position: within a tick it dead-reckons in the frame
@@ -21,7 +21,7 @@ length and turn over half the time left (the least constant speed that arrives w
 window closes, so the limits bind as late as they can). Sideways offsets that no S-curve of
 the run's turn rate reaches within the time left are driven by point turns when they fit,
 else the reachable part is. The last steps turn onto the goal heading first: the heading a
-follower settles with sets the rod the follower behind it follows (SPEC §3), and an error of
+follower settles with sets the rod the follower behind it follows (design §3), and an error of
 ε rad there moves that follower's ideal position by about ``d·ε``. Chart speed and turn
 become surface commands through the slope reading ``s = ∇F``: along a chart direction ``ĥ``
 one metre of chart is ``√(1 + (s·ĥ)²)`` metres of arc, and the turn is the angle between the

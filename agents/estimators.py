@@ -2,7 +2,7 @@
 
 `StreamingEDMD` implements the paper's Algorithm 1 (batch pseudoinverse refitted at every
 step) and an online variant with rank-one (Sherman–Morrison) updates, plus the options of
-SPEC §6 beyond the paper: time-delay lifting, an affine observable, exponential forgetting,
+design §6 beyond the paper: time-delay lifting, an affine observable, exponential forgetting,
 a sliding window and Tikhonov regularisation. `delay_embed` is the time-delay (Hankel)
 lifting of a whole measurement history.
 """

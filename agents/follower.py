@@ -1,6 +1,6 @@
 """A follower: estimates its leader's rod end, moves there, snaps on it (``python -m agents.follower``).
 
-One tick (SPEC §4): sense the leader (``pre``) and ask the policy for its estimate; from tick
+One tick (design §4): sense the leader (``pre``) and ask the policy for its estimate; from tick
 ``init_ticks`` on, move there (the reply carries the ``moved`` sensing); snap onto the rod end
 if it is in range, else count a lost tick (the reply carries the ``settled`` sensing); record
 the measurement; publish the observation and the rod. Three round trips to the world per tick.
@@ -49,7 +49,7 @@ def displacement(offset: np.ndarray, pre: Sensing, moved: Sensing,
     """Where the follower's ideal position was relative to where it stood before moving (the
     ``target`` its policy learns from), as well as the follower can tell: the offset it
     commanded (a driving follower: the displacement its odometry summed) plus the rod end it
-    read after the move (a noisy reading, SPEC §5), corrected for the move's actuation noise
+    read after the move (a noisy reading, design §5), corrected for the move's actuation noise
     (a driving follower: its odometry's error).
 
     The move landed ``eta`` off the command (declared variance ``noise_move**2`` per

@@ -5,7 +5,7 @@ leader's rod, the world's liveliness), holds the agent's liveliness token, and o
 blocking waits that end with :class:`AgentAbort` on timeout, on ``world/done`` or when the
 world disappears, so no agent ever hangs.
 
-A stall is not a death (SPEC §4). When this process (or the world) is paused for longer than
+A stall is not a death (design §4). When this process (or the world) is paused for longer than
 Zenoh's lease (SIGSTOP, a long garbage collection, a slow disk), the router drops its session;
 the session reconnects by itself once the process runs again, and the world may meanwhile have
 rolled this agent's tick back. The link sees it as the world's liveliness token going and
@@ -171,7 +171,7 @@ class AgentLink:
 
     def _predecessor_through(self, tick: int, sample: zenoh.Sample) -> None:
         """The predecessor got through ``tick``. A tick more than one ahead of the world's
-        newest is not believed (SPEC §8) until the world announces it: in a pipelined run the
+        newest is not believed (design §8) until the world announces it: in a pipelined run the
         predecessor's rods may overtake the world's announcements (they are not dropped, or
         the agent would wait for them in vain)."""
         with self._cond:

@@ -2,7 +2,7 @@
 
 1. The bound: a bare zenoh ``get`` round trip (agent process -> world process, median), and a
    drive tick's least cost, ``(control steps + snap steps + 2) x`` that: one round trip per
-   control step, plus the ``pre`` sensing and the settling (SPEC §8).
+   control step, plus the ``pre`` sensing and the settling (design §8).
 2. A column of ``--followers`` driving follower processes (the paper's default case, 40
    ticks, pipelined lockstep, world as embedded router in this process): ms per tick and per
    follower-tick (first to last completed tick: start-up excluded), and the ratio of the

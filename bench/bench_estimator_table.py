@@ -115,7 +115,7 @@ def noisy(surfaces, levels, seeds, noise_move: float = 0.0, comm_period: float =
           names=None, base: dict | None = None) -> dict:
     """Per (surface, level): each estimator's mean required range, and ``floor``: the sensing
     floor of ``auto``'s runs (an estimator that knows the formation's true motion and suffers
-    only the readings' and the move's noise; SPEC §7)."""
+    only the readings' and the move's noise; design §7)."""
     names = names or [n for n in ESTIMATORS if n != "stay"]
     table = {}
     for s in surfaces:

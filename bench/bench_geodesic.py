@@ -5,7 +5,7 @@ warm-up, cycling through random start points near the leader's start and random 
 scipy's ``solve_ivp(method="DOP853")`` integrates the same rods from the same rod normals. All
 errors are the largest xy distance (max norm) to a ``solve_ivp`` DOP853 reference at
 ``rtol = atol = 1e-13``. scipy is timed at two tolerances taken from a ladder
-``1e-8 … 1e-12`` (1e-13 is the reference itself): the loosest that meets the SPEC's 1e-8 bound
+``1e-8 … 1e-12`` (1e-13 is the reference itself): the loosest that meets the design's 1e-8 bound
 ("contract"), and the loosest that is at least as accurate as ``rod_end`` ("matched"; 1e-12
 when none is). The first-call times are measured in
 fresh interpreters: with an empty numba cache (compilation) and with the cache just written.

@@ -1,4 +1,4 @@
-"""How long a stall takes to be noticed and recovered from (SPEC §4: a stall is not a death).
+"""How long a stall takes to be noticed and recovered from (design §4: a stall is not a death).
 
 ``swarm run --processes`` with two followers; once the run has recorded 30 ticks, follower 1
 is paused with SIGSTOP for ``--pause`` seconds (longer than Zenoh's 10 s lease), then

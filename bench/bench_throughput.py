@@ -3,7 +3,7 @@
 1. The bound: a bare zenoh ``get`` round trip (agent process -> world process), median, and
    ``3 x`` that, the least a follower tick can cost with three round trips.
 2. Chains of 10 and 50 follower processes (paper default case, 40 ticks, world as embedded
-   router in this process), in four variants: unpipelined or pipelined lockstep (SPEC §4),
+   router in this process), in four variants: unpipelined or pipelined lockstep (design §4),
    times five round trips per follower tick (the earlier protocol, emulated by
    ``bench/five_trips_follower.py``) or three (``act`` replies carry the sensing). Printed:
    ms per tick and per follower-tick (first to last completed tick: start-up excluded), the

@@ -1,6 +1,6 @@
 """Command-line plumbing every process shares: the ``--log-level`` flag, the results-folder
 check, the one line that describes a failure (never a traceback, never a Rust source path) and
-the exit status of every command (SPEC §9: 0 done, 1 failed or incomplete, 2 refused before
+the exit status of every command (design §9: 0 done, 1 failed or incomplete, 2 refused before
 anything ran, 130/143 after Ctrl-C/SIGTERM), given in one place (:func:`run_command`).
 """
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The run configuration shared by every process (SPEC §9): each option declared once.
+"""The run configuration shared by every process (design §9): each option declared once.
 
 Every option of a run is one field of :class:`RunConfig`, declared with :func:`option`: its
 name (the TOML key; the CLI flag is derived from it), type and default (the field's), unit,
@@ -31,11 +31,11 @@ from typing import Any
 from protocol.folder import write_atomic
 from protocol.keys import check_run_id
 
-CLASSICAL = ("cv", "kalman", "arx", "gp")  # the classical tracking baselines (SPEC §6)
+CLASSICAL = ("cv", "kalman", "arx", "gp")  # the classical tracking baselines (design §6)
 OWN_MOTION = ("gp-motion", "gp-ratio")  # extrapolations of the follower's own displacement
 AUTO = ("auto", "auto-mix")  # candidates side by side: the lowest score, or their mixture
 ESTIMATORS = ("edmd", "stay", "persist", *AUTO, *CLASSICAL, *OWN_MOTION)
-# Your own estimator (SPEC §6): imported by the follower process only, never checked here
+# Your own estimator (design §6): imported by the follower process only, never checked here
 # beyond its shape.
 PLUGIN_ESTIMATOR = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$")
 DICTIONARIES = ("a", "b", "c", "d", "e", "f", "g")
@@ -135,7 +135,7 @@ def option(default: Any, meaning: str, **declaration: Any) -> Any:
 
 @dataclass(frozen=True)
 class RunConfig:
-    """Every option of a run; defaults are the paper's type I case (SPEC §4, §9).
+    """Every option of a run; defaults are the paper's type I case (design §4, §9).
 
     Lengths are in the surface's unit (metres on a DEM), times in seconds.
     """

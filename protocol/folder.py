@@ -1,4 +1,4 @@
-"""Writing inside a results folder (SPEC §7): one writer, no symlink followed, whole rows only.
+"""Writing inside a results folder (design §7): one writer, no symlink followed, whole rows only.
 
 Every file a run writes goes through this module:
 
@@ -211,7 +211,7 @@ def refuse_symlinks(folder: str | os.PathLike[str], depth: int = SCAN_DEPTH) -> 
 
 
 class FolderLock:
-    """The one-writer lock of a results folder (SPEC §7).
+    """The one-writer lock of a results folder (design §7).
 
     :meth:`acquire` takes an exclusive ``flock`` on ``folder/.swarm.lock`` without waiting and
     writes who holds it (run id, process id, host) into the file; a second writer gets

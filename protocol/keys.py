@@ -1,4 +1,4 @@
-"""Zenoh key expressions of one run (SPEC §8).
+"""Zenoh key expressions of one run (design §8).
 
 Every key lives under ``swarm/<run>/``; agent ids are integers, 0 being the leader.
 """

@@ -1,4 +1,4 @@
-"""Every bound the protocol puts on what it accepts (SPEC §8 limits), in one place.
+"""Every bound the protocol puts on what it accepts (design §8 limits), in one place.
 
 The codec (:mod:`protocol.messages`) refuses a payload larger than :data:`MAX_PAYLOAD_BYTES`
 before decoding it, then decodes with msgpack's own length bounds and checks the nesting

@@ -1,4 +1,4 @@
-"""Typed messages and the one msgpack codec that validates them (SPEC §8).
+"""Typed messages and the one msgpack codec that validates them (design §8).
 
 Every payload is a msgpack map ``{"v": 1, "type": <name>, "tick": j, ...}``. Each message is a
 small frozen dataclass whose fields carry a *kind* (see ``_KINDS``); :func:`decode` refuses a
@@ -221,7 +221,7 @@ class Sensing(Message):
     robot's compass heading (rad, the angle of its heading in the local frame), the slope of
     the ground under it read by its tilt sensor (``(∂F/∂x, ∂F/∂y)`` in the local frame), and
     in the reply to a :class:`Control` the displacement its odometry measured over that
-    control step (xy, local frame). Every field passes through its noise channel (SPEC §5).
+    control step (xy, local frame). Every field passes through its noise channel (design §5).
     """
 
     TYPE: ClassVar[str] = "sensing"
@@ -276,7 +276,7 @@ class Control(Message):
     tick (steps ``0 … control_steps-1`` drive to the estimate, the next ``snap_steps`` onto
     the rod end). ``goal`` is given with step 0 only: where the move phase is heading, as an
     offset (local frame) from where the follower stood when the tick began (the world records
-    it as the estimate and measures the shortfall against it, SPEC §7). The reply is
+    it as the estimate and measures the shortfall against it, design §7). The reply is
     :class:`ActSensing` with the sensing after the step, its ``odometry`` included. A
     :class:`Snap` after the last step settles the follower where it stands."""
 
@@ -339,7 +339,7 @@ class ActResult(Message):
 class ActSensing(Sensing):
     """Reply of ``world/act/<id>`` to :class:`Move`, :class:`Control` and :class:`Snap`: the
     sensing right after the action (phase ``moved`` after a move or a control step,
-    ``settled`` after a snap; SPEC §8), so a follower tick needs at most three round trips
+    ``settled`` after a snap; design §8), so a follower tick needs at most three round trips
     (with ``--motion drive``, two more than its control steps). ``moved`` is False when a
     snap found no visible rod end (a lost tick)."""
 

@@ -1,4 +1,4 @@
-"""A run's record as files (SPEC §7): their names, the columns of ``ticks.csv`` and
+"""A run's record as files (design §7): their names, the columns of ``ticks.csv`` and
 ``observations.csv``, and the one way to read them back.
 
 The world writes them (:mod:`world.results`); ``swarm plot``, ``swarm replay``, the reports and

@@ -1,4 +1,4 @@
-"""ROS 2 naming on Zenoh, as rmw_zenoh writes it (SPEC §10): the one owner of every key
+"""ROS 2 naming on Zenoh, as rmw_zenoh writes it (design §10): the one owner of every key
 expression, liveliness token, QoS string, GID and attachment this project shows ROS 2.
 
 The layout follows ``rmw_zenoh_cpp`` of ROS 2 Jazzy, release 0.2.5 (jazzy branch, June 2025;
@@ -291,7 +291,7 @@ def parse_attachment(data: bytes) -> tuple[int, int, bytes]:
     return sequence, stamp, source
 
 
-# --- the run's topics (SPEC §10) --------------------------------------------------------------
+# --- the run's topics (design §10) --------------------------------------------------------------
 
 CLOCK = ("/clock", "rosgraph_msgs/msg/Clock")
 TF = ("/tf", "tf2_msgs/msg/TFMessage")

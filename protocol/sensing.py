@@ -1,4 +1,4 @@
-"""The declared range/bearing sensor model (SPEC §5), shared by the world, which applies it,
+"""The declared range/bearing sensor model (design §5), shared by the world, which applies it,
 and the agents, which know their sensor's datasheet but never its draws.
 
 A reading of a point at range ``r`` and bearing ``theta`` carries independent Gaussian noise

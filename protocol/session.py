@@ -13,7 +13,7 @@ import zenoh
 MODES = ("peer", "client", "router")
 
 # Largest Zenoh message a link accepts, in bytes (`transport/link/rx/max_message_size`, Zenoh's
-# default 1 GiB). Every message of the protocol is far smaller (SPEC §8); a larger one is
+# default 1 GiB). Every message of the protocol is far smaller (design §8); a larger one is
 # dropped by the receiving link before anything decodes it.
 MAX_MESSAGE_SIZE = 1 << 20
 MAX_MESSAGE_SIZE_KEY = "transport/link/rx/max_message_size"

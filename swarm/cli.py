@@ -1,4 +1,4 @@
-"""``python -m swarm``: run one case (``run``), and more subcommands as they come (SPEC §9)."""
+"""``python -m swarm``: run one case (``run``), and more subcommands as they come (design §9)."""
 from __future__ import annotations
 
 import argparse

@@ -131,7 +131,7 @@ def access_control(run_id: str, followers: int, *, cert_names: bool = False,
     ]
     ros_data, ros_graph = ros2.graph_keys(ros_domain)
     rules += [
-        # --- ROS 2 (SPEC §10): the world's topics and graph entities, as rmw_zenoh names them
+        # --- ROS 2 (design §10): the world's topics and graph entities, as rmw_zenoh names them
         _rule("world-ros2-publish", "ingress", ["put"],
               ros2.world_keys(ros_domain, followers, ros2.any_hash)),
         _rule("world-ros2-tokens", "ingress", ["liveliness_token"],
@@ -299,7 +299,7 @@ def _yaml(value, indent: int = 0) -> list[str]:
 def _run_toml(config: RunConfig) -> str:
     return (
         "# Run configuration of the deployment (written by `python -m swarm deploy`; mounted\n"
-        f"# read-only at {RUN_TOML_IN_CONTAINER}). Any option of `python -m swarm run` (SPEC §9)\n"
+        f"# read-only at {RUN_TOML_IN_CONTAINER}). Any option of `python -m swarm run` (design §9)\n"
         "# may be added; run_id and followers must stay as generated: the router's rules are\n"
         "# written for exactly this run id and these agents.\n"
         f"run_id = {json.dumps(config.run_id)}\n"

@@ -13,7 +13,7 @@ Tables (key columns first, then the metrics, then the run folders behind each ro
 
 - ``sensing_range``: surface, follower (1–3), estimator (stay, persist, edmd-b, auto);
 - ``dictionaries``: surface, dictionary a–g in the paper's idealised case (oracle velocity for
-  c, GPS for d–g), plus the two baselines as rows ``stay`` and ``persist`` (SPEC §6);
+  c, GPS for d–g), plus the two baselines as rows ``stay`` and ``persist`` (design §6);
 - ``practical``: surface, variant (b, c-lagged, c-estimated, and the baselines), noise on the
   velocity with a fixed actuation noise, mean RMSE over the seeds;
 - ``comm_period``: surface, T_c, estimator.

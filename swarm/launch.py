@@ -136,7 +136,7 @@ class _ProcessAgents:
 
     def _watch(self, service: WorldService) -> None:
         """End the run when an agent fails; in realtime an agent killed by a signal is only
-        reported: the world records its ticks as missed and the run goes on (SPEC §4)."""
+        reported: the world records its ticks as missed and the run goes on (design §4)."""
         dead: set[int] = set()
         while not self._stop.wait(POLL_S):
             for k, proc in enumerate(self.procs):

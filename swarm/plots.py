@@ -113,7 +113,7 @@ def leader_relative(rows: list[dict], follower: int) -> dict[str, np.ndarray]:
 
     Seen from the ideal position (what the follower measures once it has snapped) and from the
     estimated position (what its estimate predicted it would measure), in the local frame of
-    SPEC §5.
+    design §5.
 
     Parameters
     ----------

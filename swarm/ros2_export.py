@@ -1,5 +1,5 @@
 """``python -m swarm export RUN_DIR [--out BAG_DIR] [--force]``: a finished run as a rosbag2
-bag in MCAP storage (SPEC §10), written with ``rosbags`` (types, CDR, RIHS01 hashes and the
+bag in MCAP storage (design §10), written with ``rosbags`` (types, CDR, RIHS01 hashes and the
 embedded message definitions all from its Jazzy type store).
 
 The bag holds the topics of :func:`protocol.ros2.run_topics`, one message per agent per tick

@@ -128,6 +128,6 @@ def format_means(means: list[dict], keys: tuple[str, ...]) -> str:
     lines.append("-" * len(lines[0]))
     lines += ["  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in body]
     lines.append("ratio = required / persist, persist computed from the same noisy readings "
-                 "(SPEC §6); below 1 beats persist")
+                 "(design §6); below 1 beats persist")
     return "\n".join(lines)
 

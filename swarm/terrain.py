@@ -18,7 +18,7 @@ dictionary b; any other name is passed as ``--estimator``), so adding one is one
 ``python -m swarm dem-from-npz OUT.tif`` writes matplotlib's sample DEM (USGS, Jacksboro
 fault, Tennessee; public domain) as a GeoTIFF, the DEM of the committed study.
 ``python -m swarm dem-crop IN OUT.tif`` (:func:`crop_dem`) keeps a rectangle of a DEM without
-no-data nodes, which ``dem:`` refuses (SPEC §3).
+no-data nodes, which ``dem:`` refuses (design §3).
 """
 from __future__ import annotations
 
@@ -400,7 +400,7 @@ def dem_from_npz(out: str | Path, npz: str | Path | None = None, force: bool = F
 class Crop:
     """What :func:`crop_dem` wrote. Indices count nodes of the source from the south-west
     (columns east, rows north), inclusive; ``origin`` is the crop's south-west node in the
-    source's SPEC frame (m), so a point ``p`` of the source is ``p - origin`` in the crop's."""
+    source's design frame (m), so a point ``p`` of the source is ``p - origin`` in the crop's."""
 
     path: Path
     columns: tuple[int, int]
@@ -428,7 +428,7 @@ def crop_dem(source: str | Path, out: str | Path,
     Parameters
     ----------
     bounds : (xmin, ymin, xmax, ymax), optional
-        The nodes to keep, in the source's SPEC frame (m, origin at its south-west node). By
+        The nodes to keep, in the source's design frame (m, origin at its south-west node). By
         default the largest rectangle (most nodes) of at least 4 × 4 nodes holding data.
     force : bool
         Replace ``out`` if it exists (default: refuse).

@@ -1,4 +1,4 @@
-"""Test support: a package must not import certain others (SPEC §2: agents never import the
+"""Test support: a package must not import certain others (design §2: agents never import the
 world; the live view's observer never needs it either)."""
 from __future__ import annotations
 

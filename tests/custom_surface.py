@@ -1,4 +1,4 @@
-"""A user-defined surface, loaded by the tests as ``tests.custom_surface:...`` (SPEC §3)."""
+"""A user-defined surface, loaded by the tests as ``tests.custom_surface:...`` (design §3)."""
 from __future__ import annotations
 
 import numpy as np

@@ -22,7 +22,7 @@ HILLS_LEADER_START = (6.0, 8.0, 1.0, 0.0)
 
 
 def hills_function(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Height (m) at SPEC-frame coordinates ``x``, ``y`` (m) of the test terrain."""
+    """Height (m) at design-frame coordinates ``x``, ``y`` (m) of the test terrain."""
     return (4.0 * np.exp(-((x - 20.0) ** 2 + (y - 18.0) ** 2) / 150.0) + 0.05 * x
             + 1.5 * np.sin(x / 9.0) * np.cos(y / 11.0))
 

@@ -254,7 +254,7 @@ def _ros_pose_key(domain: int, agent: int) -> str:
 
 def test_world_publishes_its_ros2_keys_an_agent_cannot_and_the_observer_subscribes(
         deployment, router):
-    """SPEC §10: the world may put on exactly its topics' keys; an agent may not (not even on
+    """design §10: the world may put on exactly its topics' keys; an agent may not (not even on
     the world's keys); the observer, subscribed as a ROS 2 subscriber would (the domain's
     wildcard), receives the world's samples."""
     domain = load_config(deployment.folder / "run.toml").ros_domain

@@ -1,4 +1,4 @@
-"""DEM surfaces (SPEC §3 "Real terrain"): loading, the frame, the spline, compiled evaluation,
+"""DEM surfaces (design §3 "Real terrain"): loading, the frame, the spline, compiled evaluation,
 geodesics across knots, errors, figures, and end-to-end runs over Zenoh."""
 from __future__ import annotations
 
@@ -165,7 +165,7 @@ def test_rod_ends_across_knot_lines_match_a_restarted_reference():
         end, _ = rod_end(dem, p, heading, SPACING)
         reference, crossings = reference_rod_end(dem, p, n, SPACING)
         crossed += crossings
-        assert np.max(np.abs(end - reference)) < 1e-8  # SPEC: 1e-6 on a DEM, 1e-8 in general
+        assert np.max(np.abs(end - reference)) < 1e-8  # design: 1e-6 on a DEM, 1e-8 in general
     assert crossed >= 8  # the rods do cross knot lines
 
 

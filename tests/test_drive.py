@@ -1,4 +1,4 @@
-"""``--motion drive`` (SPEC §4 "Motion"): the unicycle on the surface, the control protocol, the
+"""``--motion drive`` (design §4 "Motion"): the unicycle on the surface, the control protocol, the
 follower's controller, what is measured, honest noise, refusals, and convergence to the
 teleport run as the control steps grow."""
 from __future__ import annotations

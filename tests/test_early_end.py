@@ -1,4 +1,4 @@
-"""A run that ends early (SPEC §7): it keeps the ticks before the earliest one at which an agent
+"""A run that ends early (design §7): it keeps the ticks before the earliest one at which an agent
 met the end (the leader leaving a DEM, a follower's rod leaving it), the same ticks, rows and
 numbers whatever the layout, the pipelining or the repeat."""
 from __future__ import annotations

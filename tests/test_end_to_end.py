@@ -61,7 +61,7 @@ def test_results_folder(in_process_run, chain_config):
 
 def test_ground_truth(in_process_run, chain_config):
     """The leader drives the ideal formation's geodesic exactly; a follower settles near its
-    place in the ideal formation (under noise a snap is a move by the sensed offset, SPEC §4),
+    place in the ideal formation (under noise a snap is a move by the sensed offset, design §4),
     and every range is measured from where it really is."""
     out, _ = in_process_run
     rows = read_ticks(out / "ticks.csv")

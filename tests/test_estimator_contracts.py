@@ -1,4 +1,4 @@
-"""Contracts of the estimators (SPEC §6, issue 10): pure ``propose`` and replayable state,
+"""Contracts of the estimators (design §6, issue 10): pure ``propose`` and replayable state,
 fallback to persist, honest baselines from the same noisy readings, the classical baselines,
 transparency of ``auto``. Run through the in-memory layout (same code as over Zenoh)."""
 from __future__ import annotations

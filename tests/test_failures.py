@@ -330,7 +330,7 @@ def test_swarm_run_reports_a_failing_results_disk(tmp_path, monkeypatch, capsys,
 
 def test_swarm_run_with_nothing_estimated_is_not_a_plain_success(tmp_path, capsys):
     """A run in which a follower estimated nothing did not do what was asked: status 1
-    (SPEC §9 has no other), with the warning that says why."""
+    (design §9 has no other), with the warning that says why."""
     assert _swarm("--ticks", "4", "--init-ticks", "4", "--out", str(tmp_path / "r")) == 1
     err = capsys.readouterr().err
     assert "warning: follower 1 estimated no tick: estimation starts at tick 4 and the run has " \

@@ -1,4 +1,4 @@
-"""Surfaces and Riemannian geometry (SPEC §3) against analytic and independent ground truth."""
+"""Surfaces and Riemannian geometry (design §3) against analytic and independent ground truth."""
 from __future__ import annotations
 
 import math

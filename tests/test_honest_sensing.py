@@ -1,4 +1,4 @@
-"""Honest sensing (SPEC §5): under noise nothing an agent receives is exact, the snap is a move
+"""Honest sensing (design §5): under noise nothing an agent receives is exact, the snap is a move
 by the sensed offset, and with every σ = 0 the numbers are the noise-free ones bit for bit."""
 from __future__ import annotations
 

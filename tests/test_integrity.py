@@ -1,4 +1,4 @@
-"""A run's record cannot be corrupted (SPEC §7): one writer per results folder, whole rows only
+"""A run's record cannot be corrupted (design §7): one writer per results folder, whole rows only
 (a full disk included), readers and ``--resume`` that refuse a damaged record, nothing written
 through a symbolic link.
 

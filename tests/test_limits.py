@@ -1,4 +1,4 @@
-"""Bounded inputs (SPEC §8 limits): payloads over 4 KiB refused before decoding, bounded msgpack
+"""Bounded inputs (design §8 limits): payloads over 4 KiB refused before decoding, bounded msgpack
 lengths and nesting, text that cannot carry control characters or spreadsheet formulas, the
 observers' view payloads under their own bounds, and a live run under a barrage of 8-10 MB and
 deeply nested payloads whose numbers do not change."""

@@ -1,7 +1,7 @@
 """Each run option is declared once (protocol.config): the flags, ``--help``, the TOML keys,
 the agents' settings, the refusal of options that do nothing and the options table of
 docs/options.md all come from that declaration; and every command ends the same way (one
-line, SPEC §9's exit statuses)."""
+line, design §9's exit statuses)."""
 from __future__ import annotations
 
 import argparse

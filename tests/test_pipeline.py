@@ -1,4 +1,4 @@
-"""Pipelined lockstep (SPEC §4): the column advances as a wavefront, and the numbers are
+"""Pipelined lockstep (design §4): the column advances as a wavefront, and the numbers are
 byte-identical to the unpipelined order, with noise, for 1, 3 and 10 followers, in memory,
 in-process over Zenoh and as processes; for driving followers (``--motion drive``) too."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""``--estimator package.module:Name`` (SPEC §6): loaded by the follower process only, run over
+"""``--estimator package.module:Name`` (design §6): loaded by the follower process only, run over
 Zenoh with agents as processes, its name recorded, its not-ready ticks counted as fallbacks."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""A plug-in estimator that fails (SPEC §6): a factory that raises, or a method that raises
+"""A plug-in estimator that fails (design §6): a factory that raises, or a method that raises
 mid-run, ends the run with one line naming the estimator, the tick and the error, in every
 layout and mode; no traceback, no wait for a timeout, no misleading warning after it."""
 from __future__ import annotations

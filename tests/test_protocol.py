@@ -116,7 +116,7 @@ def test_bad_choice_and_tick_order():
 
 
 def test_an_act_reply_carries_the_sensing():
-    """A move or snap reply is the sensing after the action plus whether it moved (SPEC §8)."""
+    """A move or snap reply is the sensing after the action plus whether it moved (design §8)."""
     reply = ActSensing(tick=4, r=3.5, theta=0.1, rod=(0.2, 0.3), velocity=None,
                        oracle_velocity=None, gps=None, leader_gps=None, moved=False)
     sensing = decode(encode(reply), ActSensing).sensing

@@ -1,4 +1,4 @@
-"""Bounded rasters (SPEC §8): a DEM whose header claims more cells than the limit is refused
+"""Bounded rasters (design §8): a DEM whose header claims more cells than the limit is refused
 before any of its data is read, in one line naming its size and dem-crop, with exit status 2,
 and its memory never taken; ``surface_params.max_cells`` moves the limit."""
 from __future__ import annotations

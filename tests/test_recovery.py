@@ -1,4 +1,4 @@
-"""Transparent recovery in lockstep (SPEC §4): any process SIGKILLed at a random moment and
+"""Transparent recovery in lockstep (design §4): any process SIGKILLed at a random moment and
 restarted as documented, and the run's results are byte-identical to an uninterrupted run.
 
 Every kill moment is drawn from a seeded generator; the seed is printed (and can be given with

@@ -1,4 +1,4 @@
-"""ROS 2 naming without ROS (SPEC §10): key expressions, liveliness tokens, QoS chunks, GIDs,
+"""ROS 2 naming without ROS (design §10): key expressions, liveliness tokens, QoS chunks, GIDs,
 attachments and type hashes, against literals from rmw_zenoh's ``docs/design.md`` (jazzy),
 rosbags' RIHS01 hashes, zenoh-ext's serializer and the system's libxxhash; the pose frame."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""``python -m swarm export``: a finished run as a rosbag2/MCAP bag (SPEC §10), read back with
+"""``python -m swarm export``: a finished run as a rosbag2/MCAP bag (design §10), read back with
 rosbags and, independently, with ``mcap`` + ``mcap-ros2-support``; refusals; the [ros] extra
 missing; ``ros2 topic echo`` where a ROS 2 installation exists."""
 from __future__ import annotations

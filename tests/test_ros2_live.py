@@ -1,5 +1,5 @@
 """``--ros2``: the world publishes the run's topics on its own Zenoh session as rmw_zenoh would
-(SPEC §10). A plain Zenoh client, joining the run's router as its observer, listens the way a
+(design §10). A plain Zenoh client, joining the run's router as its observer, listens the way a
 ROS 2 subscriber does and decodes every pose with rosbags; the graph is visible through a
 liveliness query; a run with ``--ros2`` records byte-identical results; ``ros2 topic echo``
 where ROS 2 is installed."""

@@ -1,4 +1,4 @@
-"""A stall is not a death (SPEC §4): a follower paused with SIGSTOP for longer than Zenoh's
+"""A stall is not a death (design §4): a follower paused with SIGSTOP for longer than Zenoh's
 lease, then continued, joins again and the run goes on: in lockstep with the numbers of an
 undisturbed run, in realtime without its successor missing a tick because of it. A follower
 killed in realtime is recorded and the run goes on.

@@ -1,4 +1,4 @@
-"""State files are data (SPEC §4): the follower's replay log and the world's checkpoint refuse
+"""State files are data (design §4): the follower's replay log and the world's checkpoint refuse
 anything corrupt, truncated, foreign or crafted with one line naming the file and why, and a
 planted pickle never runs."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The world's checkpoint: ``world_state.json``, describing only complete ticks (SPEC §4).
+"""The world's checkpoint: ``world_state.json``, describing only complete ticks (design §4).
 
 After every complete tick the world first appends the tick to ``ticks.csv`` and
 ``observations.csv``, then replaces this file atomically. It holds the simulation state after

@@ -1,10 +1,10 @@
-"""Real terrain: a digital elevation model (DEM) as a surface, ``dem:PATH`` (SPEC §3).
+"""Real terrain: a digital elevation model (DEM) as a surface, ``dem:PATH`` (design §3).
 
 Loading
 -------
 :func:`read_dem` reads band 1 of any raster GDAL opens through ``rasterio`` — a GeoTIFF or an
 ESRI ASCII grid (``.asc``, with an optional ``.prj`` beside it) — and returns the grid in the
-SPEC's frame: metres, x east, y north, origin at the centre of the south-west cell, node
+the design's frame: metres, x east, y north, origin at the centre of the south-west cell, node
 ``(i, j)`` the centre of cell (column i, row j counted from the south).
 
 - A projected raster whose linear unit is the metre is used as is.
@@ -74,7 +74,7 @@ class RasterTooLarge(Refused):
 
 def read_dem(path: str | Path,
              max_cells: int = MAX_CELLS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Read a DEM raster into the SPEC §3 frame: :func:`read_grid`, no-data cells refused.
+    """Read a DEM raster into the design §3 frame: :func:`read_grid`, no-data cells refused.
 
     Raises
     ------
@@ -95,7 +95,7 @@ def read_dem(path: str | Path,
 def read_grid(path: str | Path, max_cells: int = MAX_CELLS,
               limit: str = "surface_params.max_cells") -> tuple[np.ndarray, np.ndarray,
                                                                   np.ndarray]:
-    """Read a DEM raster into the SPEC §3 frame, no-data cells as NaN.
+    """Read a DEM raster into the design §3 frame, no-data cells as NaN.
 
     Parameters
     ----------
@@ -192,7 +192,7 @@ def check_size(path: str | Path, width: int, height: int, max_cells: int, limit:
 
 
 class DemSurface:
-    """Bicubic interpolating (or smoothing) spline through a DEM's nodes (SPEC §3).
+    """Bicubic interpolating (or smoothing) spline through a DEM's nodes (design §3).
 
     Parameters
     ----------

@@ -1,6 +1,6 @@
 """Riemannian geometry of a graph surface: metric, geodesics, rods and the ideal formation.
 
-All functions are pure and take the surface first (SPEC §3). Points ``p`` and vectors are xy
+All functions are pure and take the surface first (design §3). Points ``p`` and vectors are xy
 coordinates, shape (2,). For ``z = F(x, y)`` the metric is
 ``g = I + ∇F ∇Fᵀ`` and geodesics solve ``ẍ = −∇F (ẋᵀ H ẋ) / (1 + |∇F|²)``.
 

@@ -1,4 +1,4 @@
-"""A unicycle robot on the surface: the world's model of a driving follower (SPEC §4 "Motion").
+"""A unicycle robot on the surface: the world's model of a driving follower (design §4 "Motion").
 
 The robot's state is its position ``p = (x, y)`` and its heading ``h``, a tangent vector of
 unit length in the metric ``g = I + ∇F ∇Fᵀ``. It is commanded by a forward speed ``v``

@@ -1,4 +1,4 @@
-"""Sensor and actuation noise streams keyed by (seed, agent, tick, channel, phase) (SPEC §5).
+"""Sensor and actuation noise streams keyed by (seed, agent, tick, channel, phase) (design §5).
 
 Every draw of one agent in one tick comes from one block of standard normals drawn by a
 ``numpy.random.Generator`` seeded with ``(seed, agent, tick)`` (a driving follower's control
@@ -15,9 +15,9 @@ import functools
 import numpy as np
 
 # The leader reading's range and bearing, odometry, the move's actuation; then (added with the
-# honest rod-end reading, SPEC §5) the rod end's own range and bearing, the snap's actuation,
+# honest rod-end reading, design §5) the rod end's own range and bearing, the snap's actuation,
 # GPS of the follower and of its leader, the oracle velocity. Numbers are part of the streams'
-# keys: never renumber one. Then (``--motion drive``, SPEC §4) the actuation noise of a control
+# keys: never renumber one. Then (``--motion drive``, design §4) the actuation noise of a control
 # step's speed and turn rate, and the step's odometry, compass and slope (tilt) readings.
 CHANNELS = {"range": 1, "bearing": 2, "velocity": 3, "move": 4, "rod-range": 5,
             "rod-bearing": 6, "snap": 7, "gps": 8, "leader-gps": 9, "oracle-velocity": 10,

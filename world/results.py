@@ -1,4 +1,4 @@
-"""The run's results folder (SPEC §7): append-only CSVs and an atomic summary.
+"""The run's results folder (design §7): append-only CSVs and an atomic summary.
 
 A run folder holds ``config.toml`` (written by whoever starts the run), ``ticks.csv``,
 ``observations.csv`` and ``summary.json``. The recorder appends each complete tick to the two
@@ -120,7 +120,7 @@ class _FollowerMetrics:
         }
 
     def drive_summary(self) -> dict:
-        """The ``--motion drive`` metrics (SPEC §7)."""
+        """The ``--motion drive`` metrics (design §7)."""
         return {
             "path_length": self.path.value(),
             "mean_reach_error": self.reach.mean(),
@@ -252,7 +252,7 @@ class RunRecorder:
             self._count_observation(row)
 
     def summary(self, *, complete: bool, reason: str = "", wall_time: float = 0.0) -> dict:
-        """The ``summary.json`` content (SPEC §7)."""
+        """The ``summary.json`` content (design §7)."""
         cfg = self.config
         drive = cfg.motion == "drive"
         return {

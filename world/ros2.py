@@ -1,4 +1,4 @@
-"""A run as ROS 2 messages (SPEC §10): built from the world's tick rows, published live on the
+"""A run as ROS 2 messages (design §10): built from the world's tick rows, published live on the
 run's Zenoh session the way rmw_zenoh does, or written to a bag (``swarm/ros2_export.py``).
 
 :class:`RosScene` turns each completed tick's rows (``WorldSim.finish_tick``, or ``ticks.csv``

@@ -1,4 +1,4 @@
-"""The lockstep tick order (SPEC §4), one owner for every layout.
+"""The lockstep tick order (design §4), one owner for every layout.
 
 The Zenoh service (:mod:`world.service`) and the in-memory layout (:mod:`swarm.local`) ask
 these two functions when a tick may open and when an agent may begin a tick, so their orders

@@ -1,4 +1,4 @@
-"""The world process on Zenoh: queryables, the lockstep tick loop, results (SPEC §4, §8).
+"""The world process on Zenoh: queryables, the lockstep tick loop, results (design §4, §8).
 
 :class:`WorldService` wraps a :class:`world.sim.WorldSim` behind the ``world/sense/<id>`` and
 ``world/act/<id>`` queryables, publishes ``world/tick``, collects ``agent/<id>/rod`` and
@@ -114,7 +114,7 @@ class WorldService:
             self._save_state(0.0)  # a world killed before tick 0 completes resumes from here
         self.on_tick = on_tick
         self.view = ViewPublisher(session, config, surface, self.sim.ideal, out_dir)
-        self.ros2 = None  # the run's ROS 2 topics (SPEC §10), with --ros2
+        self.ros2 = None  # the run's ROS 2 topics (design §10), with --ros2
         if config.ros2:
             from world.ros2 import Ros2Publisher
 
@@ -268,7 +268,7 @@ class WorldService:
 
     def _check_report(self, what: str, agent: int, tick: int) -> None:
         """(Lock held.) A rod or observation is for the tick after the last one the world has
-        the agent through, and the agent settled at it (SPEC §8: one per agent and tick)."""
+        the agent through, and the agent settled at it (design §8: one per agent and tick)."""
         expected = self._through[agent] + 1
         if tick != expected or tick > self.sim.tick:
             raise ValueError(f"{what} for tick {tick} while the world has agent {agent} at tick "
@@ -293,7 +293,7 @@ class WorldService:
             msg = decode(sample.payload, Observation)
             if not 1 <= agent < self.sim.n_agents:
                 raise ValueError(f"unknown follower id {agent}")
-            with self._cond:  # one per follower and tick, for its tick in progress (SPEC §8)
+            with self._cond:  # one per follower and tick, for its tick in progress (design §8)
                 self._check_report("observation", agent, msg.tick)
                 if agent in self._obs.setdefault(msg.tick, {}):
                     raise ValueError(f"follower {agent} already reported tick {msg.tick}")
@@ -324,7 +324,7 @@ class WorldService:
                 if 0 <= tick <= self.sim.tick:
                     if self.config.mode == "realtime":
                         self._mark_missed(agent, "its process vanished")
-                    else:  # lockstep: it redoes the tick when it is back (SPEC §4)
+                    else:  # lockstep: it redoes the tick when it is back (design §4)
                         log.warning("world: agent %d vanished during tick %d; its tick is rolled "
                                     "back until it is back", agent, tick)
                         self._roll_back(agent)
@@ -415,7 +415,7 @@ class WorldService:
     def _run_lockstep(self) -> str | None:
         """Run every remaining tick in lockstep; return why the run must end, or None.
 
-        Unpipelined, tick j+1 opens once every agent is through j; pipelined (SPEC §4), once the
+        Unpipelined, tick j+1 opens once every agent is through j; pipelined (design §4), once the
         leader is through j, and each agent begins j+1 as soon as the world has it through j and
         its predecessor through j+1 (:meth:`_check_turn`), so the column moves as a wavefront.
         Ticks complete, and are written, in order. A restarted agent rejoins through

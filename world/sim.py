@@ -1,21 +1,21 @@
-"""The world's physics and bookkeeping, free of any transport (SPEC §3–§5, §7).
+"""The world's physics and bookkeeping, free of any transport (design §3–§5, §7).
 
 :class:`WorldSim` owns the hidden surface and every agent's absolute pose. The Zenoh service
 (``world.service``) and the in-memory layout (``swarm.local``) turn requests into calls of
 :meth:`sense` and :meth:`act` (:meth:`drive`, :meth:`move`, :meth:`snap`), and tick events
 into :meth:`open_tick` (or :meth:`start_tick`) and :meth:`finish_tick`. Agents may be at
-different ticks (pipelined lockstep, SPEC §4); each begins a tick with its first request for
+different ticks (pipelined lockstep, design §4); each begins a tick with its first request for
 it. Requests that break the protocol's rules raise :class:`RequestError` (answered as an
 error reply); conditions that end the run (leaving the surface's domain) raise
 :class:`RunEnded`, and the run then ends at the earliest tick such a condition met, whatever
-the order in which agents got there (:attr:`WorldSim.end_tick`, SPEC §7).
+the order in which agents got there (:attr:`WorldSim.end_tick`, design §7).
 
-Sensing is honest (SPEC §5): every reading an agent gets passes through its own noise channel
+Sensing is honest (design §5): every reading an agent gets passes through its own noise channel
 (:mod:`world.noise`) — the leader's range and bearing, the rod end's range and bearing, odometry,
 GPS — and every move, the snap included, through actuation noise. With every σ = 0 each noise
 term is an exact zero, so the numbers are the noise-free ones bit for bit.
 
-With ``motion = "drive"`` (SPEC §4) a follower is a unicycle robot (:mod:`world.motion`): it
+With ``motion = "drive"`` (design §4) a follower is a unicycle robot (:mod:`world.motion`): it
 sends :meth:`control` steps (speed and turn rate, within the run's limits, with actuation noise
 on both) and a final :meth:`snap` that settles it where it stands, with its own heading. Each
 step is answered with what its sensors read after it: the range/bearing readings, its compass,
@@ -64,7 +64,7 @@ class TickRecord:
 
 @dataclass(frozen=True)
 class DriveRecord:
-    """What a driving follower's control steps did in one tick (SPEC §7, ``--motion drive``):
+    """What a driving follower's control steps did in one tick (design §7, ``--motion drive``):
     the shortfall of its move phase (None in the initial ticks, which estimate nothing), the
     distance from where it settled to the rod end it drove onto (None when lost), the arc
     length it drove and how many steps a speed or turn limit bound."""
@@ -127,7 +127,7 @@ def resolve_leader_start(config: RunConfig, surface: Surface) -> tuple[float, fl
 
 
 DEFAULT_SPEED_FACTOR = 2.0
-"""``--max-speed``'s default: this many times the leader's speed at its start (SPEC §4)."""
+"""``--max-speed``'s default: this many times the leader's speed at its start (design §4)."""
 
 
 def leader_speed(config: RunConfig, surface: Surface) -> float:
@@ -261,7 +261,7 @@ class WorldSim:
 
     def finish_tick(self, tick: int) -> list[dict]:
         """Ground-truth rows of tick ``tick`` (the one after the last complete tick; every
-        agent must have settled at it), one per agent (SPEC §7 columns)."""
+        agent must have settled at it), one per agent (design §7 columns)."""
         j, cfg = tick, self.config
         if j != self.complete + 1:
             raise RuntimeError(f"tick {j} cannot be finished after tick {self.complete}")
@@ -434,7 +434,7 @@ class WorldSim:
 
     def _counterfactuals(self, agent: int, tick: int) -> tuple[np.ndarray, np.ndarray]:
         """Where ``persist`` and the *sensing floor* would have put follower ``agent`` at
-        ``tick`` (``j``), from the same noisy readings and actuation the follower had (SPEC §6,
+        ``tick`` (``j``), from the same noisy readings and actuation the follower had (design §6,
         §7). Both start where the follower settled at ``j - 1`` (``prev``) and suffer its
         actuation noise of the move.
 
@@ -478,7 +478,7 @@ class WorldSim:
         return np.linalg.solve(sum(precisions), sum(p @ e for p, e in zip(precisions, errors)))
 
     def sense(self, agent: int, tick: int, phase: str) -> Sensing:
-        """What follower ``agent``'s sensors read now, in its local frame (SPEC §5)."""
+        """What follower ``agent``'s sensors read now, in its local frame (design §5)."""
         self._check_request(agent, tick)
         self._check_follower_turn(agent, tick, settled_ok=phase == "settled")
         cfg, state = self.config, self.agents[agent]
@@ -537,7 +537,7 @@ class WorldSim:
                        odometry=_tup(odometry))
 
     def _sends_oracle(self) -> bool:
-        """The oracle velocity is sent only to dictionary c's ``oracle`` variant (SPEC §5)."""
+        """The oracle velocity is sent only to dictionary c's ``oracle`` variant (design §5)."""
         cfg = self.config
         return cfg.estimator == "edmd" and cfg.dictionary == "c" and cfg.velocity == "oracle"
 
@@ -562,7 +562,7 @@ class WorldSim:
     def snap(self, agent: int, tick: int) -> bool:
         """Follower moves by the rod-end offset it sensed last (after its move, or before it
         in an initial tick), with actuation noise, if it sees the rod end, and takes the
-        heading of SPEC §3 at the true rod end; returns False (lost) if it does not see it.
+        heading of design §3 at the true rod end; returns False (lost) if it does not see it.
 
         The landing point is ``end + reading error + actuation noise``: the same point as
         ``pos + sensed offset + actuation noise``, written so that with no noise it is the
@@ -598,14 +598,14 @@ class WorldSim:
         return cfg.control_steps + (cfg.snap_steps if state.drive.sees_rod else 0)
 
     def control(self, agent: int, request: Control) -> Sensing:
-        """One control step of a driving follower (SPEC §4 "Motion"): it drives at
+        """One control step of a driving follower (design §4 "Motion"): it drives at
         ``request.speed`` turning at ``request.turn`` for ``T_c / control_steps``, each with
         actuation noise (σ ``noise_speed``, ``noise_turn``), on the surface
         (:func:`world.motion.drive`); returns what its sensors read after the step.
 
         Its odometry reads the step's displacement (local frame) with noise of σ
         ``noise_velocity · √(δ T_c)`` per coordinate (δ the step's duration): a random walk
-        whose spread over a comm interval is that of the odometry of SPEC §5 over one interval
+        whose spread over a comm interval is that of the odometry of design §5 over one interval
         (``noise_velocity · T_c``). The first step carries the move phase's goal, which the
         world records as the estimate (from tick ``init_ticks`` on); after the move phase's
         last step the world notes how far the follower is from that goal (``reach_error``) and
@@ -660,7 +660,7 @@ class WorldSim:
 
     def _settle_driven(self, agent: int, tick: int) -> bool:
         """A driving follower ends its tick where its control steps took it, keeping its own
-        heading (its rod normal comes from it, SPEC §3); returns False (lost) if the rod end
+        heading (its rod normal comes from it, design §3); returns False (lost) if the rod end
         was out of range after the move phase."""
         state = self.agents[agent]
         if state.drive.step != self._phase_steps(state):
@@ -671,7 +671,7 @@ class WorldSim:
         return not state.lost
 
     def act(self, agent: int, request: Message) -> ActResult | ActSensing:
-        """Carry out one typed action of ``agent`` and say how it went (SPEC §8): a
+        """Carry out one typed action of ``agent`` and say how it went (design §8): a
         :class:`Drive` is answered with :class:`ActResult`; a :class:`Move` or a
         :class:`Control` step with the ``moved`` sensing and a :class:`Snap` with the
         ``settled`` sensing, all as :class:`ActSensing`.

@@ -1,7 +1,7 @@
 """Surfaces ``z = F(x, y)`` the column drives over: the protocol, the presets, and a loader.
 
 A surface is any object with ``height``, ``gradient`` and ``hessian`` at a point ``p = (x, y)``
-(SPEC §3), optionally with ``contains(p)`` telling whether ``p`` lies in its domain (no
+(design §3), optionally with ``contains(p)`` telling whether ``p`` lies in its domain (no
 ``contains`` means the whole plane). The presets below implement these methods in numpy and
 also carry an integer ``kind`` and a float64 ``params`` array, which
 :func:`preset_derivatives`, a numba kernel, turns into the same derivatives for the fast

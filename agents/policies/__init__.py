@@ -1,4 +1,4 @@
-"""What a follower does with its measurements (SPEC §6).
+"""What a follower does with its measurements (design §6).
 
 - :mod:`agents.policies.base`: the streaming interface (``propose`` / ``record`` / ``skip``),
   ``stay``, ``persist`` and the fallback to ``persist``;

@@ -1,5 +1,5 @@
 """``auto`` and ``auto-mix``: run several candidate policies side by side and score each on every
-tick; ``auto`` uses the one with the lowest recent one-step error (SPEC §6), ``auto-mix`` their
+tick; ``auto`` uses the one with the lowest recent one-step error (design §6), ``auto-mix`` their
 exponentially weighted mixture; one of the candidates is the blend of the others (beyond the
 paper)."""
 from __future__ import annotations
@@ -29,14 +29,14 @@ def _weighted(pre: Sensing, proposals: list[Proposal | None], weights: dict[int,
 
 
 class Auto(Policy):
-    """Follow the candidates by their recent one-step errors (SPEC §6); with ``blend=True`` the
+    """Follow the candidates by their recent one-step errors (design §6); with ``blend=True`` the
     candidates include their own *blend*: the weighted mean of their proposals with weights
     inversely proportional to their mean squared errors over the window (Bates and Granger's
     forecast combination), scored like any other candidate.
 
     How the scored candidates (the blend among them) are followed, ``combine``:
 
-    - ``"best"`` (the default, ``auto``, SPEC §6): the one candidate with the lowest mean squared
+    - ``"best"`` (the default, ``auto``, design §6): the one candidate with the lowest mean squared
       error over the window (follow the leader);
     - ``"weights"`` (``auto-mix``): the exponentially weighted mixture of their proposals. Each
       candidate's loss ``L`` is the discounted mean of its squared errors (each tick

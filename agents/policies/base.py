@@ -167,7 +167,7 @@ class FallbackToPersist(Policy):
     """``policy``, or ``persist``'s proposal (flagged ``fallback``) while it is not ready.
 
     The ticks a policy could not predict are then neither silent ``stay`` ticks nor reported as
-    estimated: the proposal says ``fallback=True`` and ``followed="persist"`` (SPEC §6).
+    estimated: the proposal says ``fallback=True`` and ``followed="persist"`` (design §6).
     """
 
     def __init__(self, policy: Policy) -> None:

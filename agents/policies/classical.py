@@ -1,4 +1,4 @@
-"""Classical tracking baselines the paper does not compare with (SPEC §6): ``cv``, ``kalman``,
+"""Classical tracking baselines the paper does not compare with (design §6): ``cv``, ``kalman``,
 ``arx``, ``gp``.
 
 Each predicts the leader's next position relative to the follower's next ideal position,

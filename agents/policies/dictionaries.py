@@ -1,4 +1,4 @@
-"""The paper's dictionaries (SPEC §6, paper Table 1), each a small object composed with EDMD.
+"""The paper's dictionaries (design §6, paper Table 1), each a small object composed with EDMD.
 
 A :class:`Dictionary` knows three things about its lifted vector: how to *lift* a settled
 sensing into a sample (``lift``), how to turn a predicted sample back into an *offset* to move
@@ -189,7 +189,7 @@ class RelativeVelocity(Dictionary):
 
 def make_dictionary(letter: str, comm_period: float, velocity: str = "lagged",
                     cartesian: bool = False, **estimator) -> Dictionary:
-    """The dictionary object for a letter of SPEC §6's table."""
+    """The dictionary object for a letter of design §6's table."""
     if not isinstance(letter, str) or len(letter) != 1 or letter not in "abcdefg":
         raise ValueError(f"dictionary must be one of a..g, got {letter!r}")
     if cartesian and letter != "b":

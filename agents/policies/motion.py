@@ -8,7 +8,7 @@ to its next ideal position. It splits into two parts it can see separately:
   ``s_i = d_i - c_{i-1}``, with ``d_i`` the ``target`` of tick ``i`` (its move plus the rod-end
   offset it read after the move: the ideal position relative to where it stood before moving)
   and ``c_{i-1}`` the rod-end offset it read after settling at tick ``i-1`` (where it stands
-  relative to its ideal position: a snap lands near, not on, the rod end, SPEC §4);
+  relative to its ideal position: a snap lands near, not on, the rod end, design §4);
 - where it stands relative to its ideal position now: the settled rod-end reading ``c_j``.
 
 The proposal is ``ŝ_{j+1} + c_j``. Both parts come from rod-end readings at a short distance,

@@ -1,4 +1,4 @@
-"""Your own estimator: ``--estimator package.module:Name`` (SPEC §6).
+"""Your own estimator: ``--estimator package.module:Name`` (design §6).
 
 Only the follower process imports it (the world records the name). ``Name`` is a class or a
 factory called with the follower's :class:`protocol.config.AgentSettings`; what it returns
