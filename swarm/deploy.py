@@ -9,7 +9,9 @@ One run id and a number of followers determine everything but the secrets:
   authentication, mutual TLS, ``max_message_size``, access control). ``swarm run``'s embedded
   router uses it too.
 - :func:`write_deployment`: a folder with ``run.toml``, ``zenoh/router.json5``,
-  ``docker-compose.yml`` and ``.gitignore`` (deterministic), and ``secrets/`` (random: a
+  ``docker-compose.yml`` and ``.gitignore`` (deterministic), ``.env`` (the uid and gid the
+  Python services run as: those of whoever ran the command, who owns the secrets), and
+  ``secrets/`` (random: a
   password per user, a CA, the router's and each user's certificate and key; the CA's private
   key is never written, so no further certificate can be signed with it;
   :mod:`swarm.certificates`, the ``[deploy]`` extra). Secrets come from the operating
@@ -35,6 +37,11 @@ if TYPE_CHECKING:  # swarm.certificates needs the [deploy] extra; swarm run impo
 
 ZENOH_IMAGE = "eclipse/zenoh:1.10.2"  # kept at the eclipse-zenoh version of pyproject.toml
 SWARM_IMAGE = "koopman-swarm:local"
+SOURCE_ROOT = Path(__file__).resolve().parents[1]  # a checkout's root, with the Dockerfile
+IMAGE_USER = "10001"  # the image's own user (Dockerfile), when no .env names another
+SERVICE_USER = f"${{SWARM_UID:-{IMAGE_USER}}}:${{SWARM_GID:-{IMAGE_USER}}}"
+"""The Python services' ``user``, from the deployment's ``.env``: mode-0600 secrets mounted
+from the host are readable by their owner only."""
 ROUTER_HOST = "zenoh"  # the router's name on the compose network (and in its certificate)
 ROUTER_PORT = 7447
 OBSERVER = "observer"
@@ -322,14 +329,17 @@ def _client_flags(user: str) -> list[str]:
             "--tls-cert", f"{secret}/cert.pem", "--tls-key", f"{secret}/key.pem"]
 
 
-def compose(config: RunConfig) -> dict:
+def compose(config: RunConfig, build: str | None = None) -> dict:
     """The docker-compose services: the router, the world, the leader and each follower.
 
     Each Python service mounts only its own secrets; the world alone mounts the results
-    volume; each follower has its own state volume.
+    volume; each follower has its own state volume. The Python services run as
+    :data:`SERVICE_USER`; with ``build`` (the Dockerfile's folder, relative to the compose
+    file) compose builds their image.
     """
     def service(user: str, command: list[str], volumes: list[str]) -> dict:
-        return {"image": SWARM_IMAGE, "depends_on": ["zenoh"], "restart": "no",
+        return {"image": SWARM_IMAGE, **({"build": build} if build else {}),
+                "user": SERVICE_USER, "depends_on": ["zenoh"], "restart": "no",
                 "command": command,
                 "volumes": [f"./run.toml:{RUN_TOML_IN_CONTAINER}:ro",
                             f"./{SECRETS}/{user}:{SECRETS_IN_CONTAINER}:ro", *volumes]}
@@ -361,18 +371,26 @@ def compose(config: RunConfig) -> dict:
 COMPOSE_HEADER = """\
 # One run over a zenohd router: user/password authentication, mutual TLS, access control.
 # Written by `python -m swarm deploy` (deploy/README.md); regenerate rather than edit.
-#
-#   docker build -t koopman-swarm:local .        # from the repository root
-#   docker compose -f deploy/docker-compose.yml up -d
-#   docker compose -f deploy/docker-compose.yml wait world
+# The repository's docker-compose.yml includes the one in deploy/: `docker compose up` there.
 #
 # Every service mounts only its own secrets (secrets/<user>/); the world alone mounts the
-# results volume; each follower keeps its checkpoint in its own volume state-K.
+# results volume; each follower keeps its checkpoint in its own volume state-K. The Python
+# services run as the owner of the secrets (SWARM_UID, SWARM_GID in .env).
 """
 
 
-def generated_files(config: RunConfig) -> dict[str, str]:
-    """Relative path -> text of every deterministic file of the deployment of ``config``."""
+def build_context(out: Path) -> str | None:
+    """The Dockerfile's folder relative to the deployment folder ``out``, when ``out`` lies in
+    a checkout (compose then builds the image); None otherwise (build it by hand)."""
+    if not (SOURCE_ROOT / "Dockerfile").is_file():
+        return None
+    rel = Path(os.path.relpath(SOURCE_ROOT, Path(out).resolve()))
+    return rel.as_posix() if all(part == ".." for part in rel.parts) else None
+
+
+def generated_files(config: RunConfig, build: str | None = None) -> dict[str, str]:
+    """Relative path -> text of every deterministic file of the deployment of ``config``
+    (``build``: :func:`build_context`)."""
     secrets_dir = f"{ROUTER_DIR_IN_CONTAINER}/{SECRETS}"
     router = router_config(
         config.run_id, config.followers, listen=[f"tls/[::]:{ROUTER_PORT}"],
@@ -383,10 +401,11 @@ def generated_files(config: RunConfig) -> dict[str, str]:
               "written by `python -m swarm deploy` (deploy/README.md explains every rule).\n"
               "Paths are those inside the router's container (docker-compose.yml mounts them).")
     return {
-        ".gitignore": f"# Random passwords and private keys: never commit them.\n{SECRETS}/\n",
+        ".gitignore": (f"# Random passwords and private keys: never commit them; .env names the\n"
+                       f"# user who owns them.\n{SECRETS}/\n.env\n"),
         "run.toml": _run_toml(config),
         "zenoh/router.json5": _json5(header, router),
-        "docker-compose.yml": COMPOSE_HEADER + "\n".join(_yaml(compose(config))) + "\n",
+        "docker-compose.yml": COMPOSE_HEADER + "\n".join(_yaml(compose(config, build))) + "\n",
     }
 
 
@@ -433,7 +452,9 @@ def write_deployment(out: str | Path, config: RunConfig, *, force: bool = False,
         shutil.rmtree(out / SECRETS)
     router, tls = identities(users(config.followers), router_hosts)
     written = []
-    for rel, text in generated_files(config).items():
+    files = {**generated_files(config, build_context(out)),
+             ".env": f"SWARM_UID={os.getuid()}\nSWARM_GID={os.getgid()}\n"}
+    for rel, text in files.items():
         path = out / rel
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(text, encoding="utf-8")

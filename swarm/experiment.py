@@ -16,21 +16,28 @@ Tables (key columns first, then the metrics, then the run folders behind each ro
   c, GPS for d–g), plus the two baselines as rows ``stay`` and ``persist`` (design §6);
 - ``practical``: surface, variant (b, c-lagged, c-estimated, and the baselines), noise on the
   velocity with a fixed actuation noise, mean RMSE over the seeds;
-- ``comm_period``: surface, T_c, estimator.
+- ``comm_period``: surface, T_c, estimator;
+- ``effectiveness``: surface, and what the report cites from its edmd-b run's ticks
+  (:func:`swarm.report.effectiveness_numbers`).
+
+With ``runs.csv``, ``figures.csv`` and ``experiment.csv`` (:mod:`swarm.report`) the tables are
+all the report reads.
 """
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from protocol.config import GPS_DICTIONARIES
+from protocol.config import GPS_DICTIONARIES, RunConfig
 from swarm.grid import (RUN_ATTEMPTS, Axis, GridRun, RunOutcome, execute, expand,
                         follower_rows, is_nan, mean_over, read_table, run_grid, summary_row,
                         write_table, write_tables)
-from swarm.report import effectiveness_run, write_report
+from swarm.report import (EFFECTIVENESS_NUMBERS, FIGURE_COLUMNS, SETTINGS,
+                          effectiveness_numbers, effectiveness_run, write_report)
 
 __all__ = ["FULL", "QUICK", "RUN_ATTEMPTS", "TABLE_COLUMNS", "GridRun", "GridSpec", "RunOutcome",
            "execute", "is_nan", "paper_grid", "practical_rows", "read_table", "run_grid",
@@ -58,6 +65,7 @@ TABLE_COLUMNS = {
     "practical": ("surface", "variant", "noise_velocity", "rmse", "noise_move", "rmse_std",
                   "seeds", "runs"),
     "comm_period": ("surface", "comm_period", "estimator", "mean_required_range", "run"),
+    "effectiveness": ("surface", *EFFECTIVENESS_NUMBERS, "run"),
 }
 
 @dataclass(frozen=True)
@@ -79,6 +87,11 @@ QUICK = GridSpec(surfaces=("elliptic",), ticks=10, comm_periods=(0.64, 1.28),
 
 # --- the grid ----------------------------------------------------------------------------------
 
+def grid_base(spec: GridSpec) -> dict:
+    """The options every run of the grid starts from (the report cites their settings)."""
+    return {"ticks": spec.ticks}
+
+
 def paper_grid(spec: GridSpec = FULL) -> dict[str, list[GridRun]]:
     """Every run of the paper experiment, per table (keys of :data:`TABLE_COLUMNS`).
 
@@ -86,7 +99,7 @@ def paper_grid(spec: GridSpec = FULL) -> dict[str, list[GridRun]]:
     reproducible. Dictionary, practical and comm-period runs have one follower; the
     sensing-range runs have three.
     """
-    base = {"ticks": spec.ticks}
+    base = grid_base(spec)
     surface = Axis.of_field("surface", spec.surfaces)
     estimator = Axis("estimator", tuple(ESTIMATORS.items()))
     return {
@@ -114,12 +127,31 @@ def practical_rows(outcomes: Iterable[RunOutcome]) -> list[dict]:
     return [{**row, "seeds": row["n"], "runs": row["run"]} for row in means]
 
 
-TABLE_BUILDERS: dict[str, Callable[[list[RunOutcome]], list[dict]]] = {
-    "sensing_range": lambda outcomes: follower_rows(outcomes, per_follower=True),
-    "dictionaries": lambda outcomes: follower_rows(outcomes, per_follower=False),
-    "practical": practical_rows,
-    "comm_period": lambda outcomes: follower_rows(outcomes, per_follower=False),
+def effectiveness_rows(outcomes: Iterable[RunOutcome], runs_dir: Path) -> list[dict]:
+    """Per surface, what the report cites from the ticks of its edmd-b sensing-range run
+    (the run the effectiveness figure draws); NaN where that run failed."""
+    rows = []
+    for outcome in outcomes:
+        if outcome.run.labels["estimator"] != "edmd-b":
+            continue
+        surface = outcome.run.labels["surface"]
+        numbers = (effectiveness_numbers(effectiveness_run(runs_dir.parent, surface),
+                                         range(1, outcome.run.config.followers + 1))
+                   if outcome.ok else dict.fromkeys(EFFECTIVENESS_NUMBERS, math.nan))
+        rows.append({"surface": surface, **numbers, "run": outcome.run.folder})
+    return rows
+
+
+TABLE_BUILDERS: dict[str, Callable[[list[RunOutcome], Path], list[dict]]] = {
+    "sensing_range": lambda outcomes, _: follower_rows(outcomes, per_follower=True),
+    "dictionaries": lambda outcomes, _: follower_rows(outcomes, per_follower=False),
+    "practical": lambda outcomes, _: practical_rows(outcomes),
+    "comm_period": lambda outcomes, _: follower_rows(outcomes, per_follower=False),
+    "effectiveness": effectiveness_rows,
 }
+"""Table name -> its rows from the outcomes of its runs and the folder they ran in."""
+TABLE_RUNS = {table: table for table in TABLE_COLUMNS} | {"effectiveness": "sensing_range"}
+"""Table name -> the grid table whose runs it is built from."""
 
 
 # --- figures and report ------------------------------------------------------------------------
@@ -178,7 +210,7 @@ def run_paper_experiment(out_dir: str | Path, spec: GridSpec = FULL, workers: in
     start = time.perf_counter()
     workers = workers or min(2, os.cpu_count() or 1)
     grid = paper_grid(spec)
-    outcomes = run_grid([run for table in TABLE_COLUMNS for run in grid[table]],
+    outcomes = run_grid([run for table in grid.values() for run in table],
                         Path(out_dir) / "runs", workers=workers, progress=progress,
                         scheduler=scheduler)
     return write_results(out_dir, spec, outcomes, workers, time.perf_counter() - start)
@@ -189,7 +221,10 @@ def write_results(out_dir: str | Path, spec: GridSpec, outcomes: list[RunOutcome
     """Write ``tables/``, ``figures/`` and ``report.md`` in ``out_dir`` from the runs' outcomes.
 
     Failed runs leave empty cells, figures that cannot be drawn are named in the report, and
-    the rest is written regardless.
+    the rest is written regardless. ``tables/experiment.csv`` keeps the grid's settings,
+    ``workers``, the machine's CPU count and the wall times (``run_time`` seconds for the
+    runs), ``tables/figures.csv`` each figure's file or problem: the report is written from
+    the tables alone.
 
     Returns
     -------
@@ -200,12 +235,25 @@ def write_results(out_dir: str | Path, spec: GridSpec, outcomes: list[RunOutcome
     """
     start = time.perf_counter()
     out_dir = Path(out_dir)
+    runs_dir = out_dir / "runs"
     tables, rows = write_tables(out_dir, {
-        table: (columns, TABLE_BUILDERS[table]([o for o in outcomes if o.run.table == table]))
+        table: (columns, TABLE_BUILDERS[table](
+            [o for o in outcomes if o.run.table == TABLE_RUNS[table]], runs_dir))
         for table, columns in TABLE_COLUMNS.items()}, outcomes)
     figures, problems = draw_figures(out_dir, rows)
     drawn = time.perf_counter() - start
     timing = {"runs": run_time, "figures": drawn, "total": run_time + drawn}
-    report = write_report(out_dir, spec, outcomes, figures, problems, timing, workers, rows)
+    tables["figures"] = out_dir / "tables" / "figures.csv"
+    write_table(tables["figures"], FIGURE_COLUMNS, [
+        {"figure": name, "file": figures[name].relative_to(out_dir).as_posix()
+         if name in figures else math.nan, "problem": problems.get(name, math.nan)}
+        for name in [*figures, *problems]])
+    base = RunConfig(**grid_base(spec))
+    tables["experiment"] = out_dir / "tables" / "experiment.csv"
+    write_table(tables["experiment"], SETTINGS, [{
+        "ticks": base.ticks, "init_ticks": base.init_ticks, "spacing": base.spacing,
+        "comm_period": base.comm_period, "workers": workers, "cpus": os.cpu_count() or 1,
+        "run_time": run_time, "figure_time": drawn}])
+    report = write_report(out_dir)
     return {"tables": tables, "figures": figures, "figure_problems": problems, "report": report,
             "failed": [o for o in outcomes if not o.ok], "timing": timing}

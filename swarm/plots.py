@@ -13,6 +13,7 @@ from __future__ import annotations
 import io
 import json
 import math
+import textwrap
 from collections.abc import Callable, Sequence
 from functools import wraps
 from pathlib import Path
@@ -88,6 +89,30 @@ def _log_y(ax) -> bool:
         ax.set_yscale("log")
         return True
     return False
+
+
+MAX_LEGEND_COLUMNS = 6
+
+
+def _figure_legend(fig: Figure) -> None:
+    """Every panel's labelled artists in one legend below the panels ("outside lower
+    center": the constrained layout reserves its height), in as many columns (at most
+    :data:`MAX_LEGEND_COLUMNS`) as fit in the figure's width."""
+    renderer = fig.canvas.get_renderer()
+    for ncol in range(MAX_LEGEND_COLUMNS, 0, -1):
+        legend = fig.legend(loc="outside lower center", ncol=ncol)
+        if ncol == 1 or legend.get_window_extent(renderer).width <= fig.bbox.width:
+            return
+        legend.remove()
+
+
+def _suptitle(fig: Figure, text: str) -> None:
+    """``fig``'s title, wrapped onto more lines where one would be wider than the figure."""
+    title = fig.suptitle(text)
+    width = title.get_window_extent(fig.canvas.get_renderer()).width
+    if width > 0.95 * fig.bbox.width:
+        title.set_text(textwrap.fill(text, max(20, int(len(text) * 0.9 * fig.bbox.width
+                                                       / width))))
 
 
 def _figure(width: float, height: float) -> Figure:
@@ -258,7 +283,8 @@ def plot_effectiveness(run_dir: str | Path, path: str | Path,
                 sub.set_xlabel("tick j (t = j·T_c)")
             if row == 1 and col == 0:
                 sub.legend(loc="best", framealpha=0.9, fontsize=9)
-    fig.suptitle(title or f"{config.surface}: trajectory estimation, T_c = {config.comm_period:g}")
+    _suptitle(fig, title or f"{config.surface}: trajectory estimation, T_c = "
+                            f"{config.comm_period:g}")
     return _save(fig, path)
 
 
@@ -296,8 +322,8 @@ def plot_required_range(run_dir: str | Path, path: str | Path) -> Path:
     lines.set(xlabel="tick j", ylabel=f"required sensing range {LENGTH}",
               title="per tick (dotted: persist counterfactual)")
     lines.legend(loc="best", ncol=2, fontsize=8.5, framealpha=0.9)
-    fig.suptitle(f"{config.surface}, T_c = {config.comm_period:g}: "
-                 "distance from the estimate to the ideal position")
+    _suptitle(fig, f"{config.surface}, T_c = {config.comm_period:g}: "
+                   "distance from the estimate to the ideal position")
     return _save(fig, path)
 
 
@@ -443,7 +469,7 @@ def plot_sensing_range(rows: list[dict], path: str | Path) -> Path:
         _log_y(ax)
         ax.set_title(SURFACE_TITLES.get(surface, surface))
     fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
-    fig.legend(loc="outside lower center", ncol=min(len(estimators), 6))
+    _figure_legend(fig)
     return _save(fig, path)
 
 
@@ -472,8 +498,8 @@ def plot_dictionaries(rows: list[dict], surface: str, path: str | Path) -> Path:
     panels[0].set_ylabel(f"RMSE of the estimate {LENGTH}")
     if panels[0].get_legend_handles_labels()[0]:
         panels[0].legend(loc="best", framealpha=0.9)
-    fig.suptitle(f"{SURFACE_TITLES.get(surface, surface)}: dictionaries for data-streaming EDMD "
-                 "(idealised: oracle velocity for c)")
+    _suptitle(fig, f"{SURFACE_TITLES.get(surface, surface)}: dictionaries for data-streaming "
+                   "EDMD (idealised: oracle velocity for c)")
     return _save(fig, path)
 
 
@@ -516,9 +542,9 @@ def plot_practical(rows: list[dict], path: str | Path) -> Path:
         ax.set_ylim(bottom=0)
     fig.axes[0].set_ylabel(f"RMSE of the estimate {LENGTH}")
     seeds = max((r["seeds"] for r in rows), default=0)
-    fig.suptitle(f"Practical case: actuation noise σ_move = {move:g} per move; "
-                 f"mean ± s.d. over {seeds} seed(s)")
-    fig.legend(loc="outside lower center", ncol=len(variants) + 1)
+    _suptitle(fig, f"Practical case: actuation noise σ_move = {move:g} per move; "
+                   f"mean ± s.d. over {seeds} seed(s)")
+    _figure_legend(fig)
     return _save(fig, path)
 
 
@@ -548,7 +574,7 @@ def plot_comm_period(rows: list[dict], path: str | Path,
         ax.set(title=SURFACE_TITLES.get(surface, surface),
                xlabel=f"comm period T_c ({units[1]})")
     fig.axes[0].set_ylabel(f"{RANGE_LABEL} ({units[0]})")
-    fig.legend(loc="outside lower center", ncol=min(len(estimators) + 1, 6) if len(surfaces) > 1 else 3)
+    _figure_legend(fig)
     return _save(fig, path)
 
 
@@ -573,5 +599,5 @@ def plot_position(rows: list[dict], path: str | Path,
         ax.set_xticks(followers, [str(k) for k in followers])
         ax.set(title=f"T_c = {period:g}", xlabel="position in the column (follower k)")
     fig.axes[0].set_ylabel(f"{RANGE_LABEL} ({units[0]})")
-    fig.legend(loc="outside lower center", ncol=min(len(estimators), 6))  # rows of 6
+    _figure_legend(fig)
     return _save(fig, path)

@@ -1,18 +1,38 @@
 """``D/report.md`` of ``swarm experiment paper``: each figure with what it shows, the numbers
-that matter (read back from ``D/tables``, never typed in) and how they compare with the paper."""
+that matter and how they compare with the paper.
+
+The report is a function of ``D/tables`` alone (:func:`paper_report`): every number it cites
+is read back from a table, never typed in and never read from the runs, so the committed
+report can be regenerated from the committed tables (a test does, byte for byte). Besides the
+result tables that means ``runs.csv`` (every run's status), ``effectiveness.csv`` (what the
+effectiveness paragraphs cite from the runs' ticks, :func:`effectiveness_numbers`),
+``figures.csv`` (each figure's file, or why it was not drawn) and ``experiment.csv`` (the
+grid's settings, the parallelism and the wall times).
+"""
 from __future__ import annotations
 
 import math
-import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from protocol.config import RunConfig
 from protocol.folder import write_atomic
-from swarm.grid import RunOutcome, is_nan
+from swarm.grid import is_nan, read_table
+
+EFFECTIVENESS_NUMBERS = ("r_error", "r_follower", "theta_error", "theta_follower",
+                         "theta_tick", "turn", "turn_tick")
+"""What :func:`effectiveness_numbers` returns, the columns of ``effectiveness.csv``."""
+SETTINGS = ("ticks", "init_ticks", "spacing", "comm_period", "workers", "cpus", "run_time",
+            "figure_time")
+"""The columns of ``experiment.csv`` (one row): the grid's base settings, then how it ran."""
+FIGURE_COLUMNS = ("figure", "file", "problem")
+"""The columns of ``figures.csv``: file relative to the experiment's folder, or the problem."""
+REPORT_TABLES = ("sensing_range", "dictionaries", "practical", "comm_period", "effectiveness",
+                 "runs", "figures", "experiment")
+"""The tables :func:`paper_report` reads."""
+
 
 def _g(x: float) -> str:
     """Three significant digits; 'n/a' for a missing number."""
@@ -38,17 +58,19 @@ def _ratio(a: float, b: float) -> float:
     return a / b if b and not (is_nan(a) or is_nan(b)) else math.nan
 
 
-def _effectiveness_text(rows: list[dict], surface: str, run_dir: Path) -> str:
+def effectiveness_numbers(run_dir: Path, followers: Iterable[int]) -> dict[str, float]:
+    """What the effectiveness paragraph cites from one run's ``ticks.csv``
+    (:data:`EFFECTIVENESS_NUMBERS`): the largest error of the predicted distance to the leader
+    (``r_error``, of follower ``r_follower``) and of the predicted bearing (``theta_error`` in
+    degrees, follower ``theta_follower`` at ``theta_tick``) over ``followers``, and the fastest
+    change of a measured bearing (``turn`` degrees per tick, at ``turn_tick``)."""
     from swarm.plots import leader_relative
     from world.results import read_ticks
 
-    edmd = _pick(rows, "mean_required_range", surface=surface, follower=1, estimator="edmd-b")
-    stay = _pick(rows, "mean_required_range", surface=surface, follower=1, estimator="stay")
-    persist = _pick(rows, "mean_required_range", surface=surface, follower=1, estimator="persist")
     ticks = read_ticks(run_dir / "ticks.csv")
     worst = {"r": (0.0, 0, 0), "theta": (0.0, 0, 0)}  # error, follower, tick
     turn = (0.0, 0)  # fastest bearing change per tick, at which tick
-    for k in sorted({r["follower"] for r in rows if r["surface"] == surface}):
+    for k in followers:
         rel = leader_relative(ticks, k)
         seen = ~np.isnan(rel["r_est"])
         for key, scale in (("r", 1.0), ("theta", 180 / math.pi)):
@@ -60,17 +82,27 @@ def _effectiveness_text(rows: list[dict], surface: str, run_dir: Path) -> str:
         if steps.max() > turn[0]:
             turn = (float(steps.max()), int(rel["tick"][int(np.argmax(steps)) + 1]))
     (err_r, k_r, _), (err_t, k_t, tick_t) = worst["r"], worst["theta"]
-    where = (f", next to where the measured bearing turns fastest: {_g(turn[0])}° per tick at "
-             f"tick {turn[1]}" if abs(turn[1] - tick_t) <= 1 else "")
+    return dict(zip(EFFECTIVENESS_NUMBERS, (err_r, k_r, err_t, k_t, tick_t, *turn), strict=True))
+
+
+def _effectiveness_text(rows: list[dict], numbers: dict) -> str:
+    surface = numbers["surface"]
+    edmd = _pick(rows, "mean_required_range", surface=surface, follower=1, estimator="edmd-b")
+    stay = _pick(rows, "mean_required_range", surface=surface, follower=1, estimator="stay")
+    persist = _pick(rows, "mean_required_range", surface=surface, follower=1, estimator="persist")
+    turn, turn_tick, tick_t = numbers["turn"], numbers["turn_tick"], numbers["theta_tick"]
+    where = (f", next to where the measured bearing turns fastest: {_g(turn)}° per tick at "
+             f"tick {turn_tick}" if abs(turn_tick - tick_t) <= 1 else "")
     gain = _ratio(stay, edmd)
     verdict = ("This agrees with the paper: the algorithm tracks distance and angle even where "
                "both vary non-linearly" if gain > 10 else
                "This does not reproduce the paper's clear gain over no estimation")
     return (f"Follower 1's mean required sensing range with edmd-b is {_g(edmd)}, against "
             f"{_g(stay)} for stay ({_times(gain)} larger) and {_g(persist)} for persist. The "
-            f"largest error of the predicted distance to the leader is {_g(err_r)} (follower "
-            f"{k_r}); of the predicted bearing {_g(err_t)}° (follower {k_t}, tick {tick_t}){where}. "
-            f"{verdict}.")
+            f"largest error of the predicted distance to the leader is "
+            f"{_g(numbers['r_error'])} (follower {numbers['r_follower']}); of the predicted "
+            f"bearing {_g(numbers['theta_error'])}° (follower {numbers['theta_follower']}, "
+            f"tick {tick_t}){where}. {verdict}.")
 
 
 def _sensing_range_text(rows: list[dict]) -> str:
@@ -164,7 +196,7 @@ def _practical_text(rows: list[dict]) -> str:
                f"constant relative position." if near < 0.2 else "."))
 
 
-def _comm_period_text(rows: list[dict]) -> str:
+def _comm_period_text(rows: list[dict], paper_period: float) -> str:
     surfaces = list(dict.fromkeys(r["surface"] for r in rows))
     periods = sorted({r["comm_period"] for r in rows})
     value = {(r["surface"], r["comm_period"], r["estimator"]): r["mean_required_range"] for r in rows}
@@ -180,7 +212,7 @@ def _comm_period_text(rows: list[dict]) -> str:
     others = ("stay", "persist", "edmd-b")
     auto_best = sum(value[(*c, "auto")] <= min(value[(*c, e)] for e in others) for c in cells)
     stay = [_ratio(value[(s, periods[-1], "stay")], value[(s, periods[0], "stay")]) for s in surfaces]
-    return (f"Beyond the paper, which uses T_c = {RunConfig().comm_period:g} only. Every run "
+    return (f"Beyond the paper, which uses T_c = {paper_period:g} only. Every run "
             f"has the same number of ticks, so the leader travels further at larger T_c. While "
             f"T_c grows "
             f"{_times(periods[-1] / periods[0])}, stay grows {_times(min(stay))} to "
@@ -194,41 +226,52 @@ def effectiveness_run(out_dir: Path, surface: str) -> Path:
     return out_dir / "runs" / "sensing_range" / f"{surface}-edmd-b"
 
 
-def write_report(out_dir: Path, spec, outcomes: list[RunOutcome],
-                 figures: dict[str, Path], problems: dict[str, str], timing: dict[str, float],
-                 workers: int, tables: dict[str, list[dict]]) -> Path:
-    """Write ``out_dir/report.md``: every figure with what it shows and the numbers that
-    matter, from the ``tables`` as read back from ``out_dir/tables/<name>.csv``; ``spec`` is
-    the experiment's ``GridSpec``."""
-    failed = [o for o in outcomes if not o.ok]
-    retried = [o for o in outcomes if o.ok and o.attempts > 1]
+def read_report_tables(tables_dir: str | Path) -> dict[str, list[dict]]:
+    """The rows of every table the report cites (:data:`REPORT_TABLES`), by name."""
+    tables_dir = Path(tables_dir)
+    missing = [n for n in REPORT_TABLES if not (tables_dir / f"{n}.csv").is_file()]
+    if missing:
+        raise ValueError(f"tables_dir {tables_dir} has no {', '.join(f'{n}.csv' for n in missing)}")
+    return {name: read_table(tables_dir / f"{name}.csv") for name in REPORT_TABLES}
+
+
+def paper_report(tables_dir: str | Path) -> str:
+    """The report's Markdown, from the tables in ``tables_dir`` alone (:data:`REPORT_TABLES`;
+    ValueError naming any that is missing). Figures are linked as ``figures.csv`` names them,
+    relative to the experiment's folder (the parent of ``tables_dir``)."""
+    tables = read_report_tables(tables_dir)
+    runs, (setup,) = tables["runs"], tables["experiment"]
+    failed = [r for r in runs if r["status"] != "ok"]
+    retried = [r for r in runs if r["status"] == "ok" and r["attempts"] > 1]
+    drawn = {r["figure"]: r["file"] for r in tables["figures"] if not is_nan(r["file"])}
+    problems = {r["figure"]: r["problem"] for r in tables["figures"] if is_nan(r["file"])}
     surfaces = list(dict.fromkeys(r["surface"] for r in tables["sensing_range"]))
-    base = RunConfig()
+    run_time, figure_time = setup["run_time"], setup["figure_time"]
     lines = [
         "# Paper experiment: data-streaming EDMD for a column formation (paper Section 4)", "",
-        f"Generated by `python -m swarm experiment paper`: {len(outcomes)} runs over Zenoh "
-        f"(world as embedded router, every agent its own session), {workers} in parallel. "
-        f"Wall time {timing['total']:.0f} s (runs {timing['runs']:.0f} s, tables and figures "
-        f"{timing['figures']:.0f} s) on {os.cpu_count()} CPU(s).", "",
-        f"Setup: {spec.ticks} ticks per run ({base.init_ticks} initial, "
-        f"{spec.ticks - base.init_ticks} estimated), rod length {base.spacing:g}, unlimited "
-        f"sensing range (every follower snaps to its true rod end after moving to its "
-        f"estimate), each surface's paper leader start, T_c = {base.comm_period:g} unless swept. "
-        f"Seeds fixed (0 unless listed). Numbers are lengths in the surface's units; the "
-        f"required sensing range is the distance from the estimate to the true ideal position. "
-        f"Tables: `tables/*.csv`; every row names the run folder(s) under `runs/` behind it; "
-        f"`tables/runs.csv` lists every run with its status.", "",
+        f"Generated by `python -m swarm experiment paper`: {len(runs)} runs over Zenoh "
+        f"(world as embedded router, every agent its own session), {setup['workers']} in "
+        f"parallel. Wall time {run_time + figure_time:.0f} s (runs {run_time:.0f} s, tables "
+        f"and figures {figure_time:.0f} s) on {setup['cpus']} CPU(s).", "",
+        f"Setup: {setup['ticks']} ticks per run ({setup['init_ticks']} initial, "
+        f"{setup['ticks'] - setup['init_ticks']} estimated), rod length {setup['spacing']:g}, "
+        f"unlimited sensing range (every follower snaps to its true rod end after moving to "
+        f"its estimate), each surface's paper leader start, T_c = {setup['comm_period']:g} "
+        f"unless swept. Seeds fixed (0 unless listed). Numbers are lengths in the surface's "
+        f"units; the required sensing range is the distance from the estimate to the true "
+        f"ideal position. Tables: `tables/*.csv`; every row names the run folder(s) under "
+        f"`runs/` behind it; `tables/runs.csv` lists every run with its status.", "",
     ]
     if failed:
         lines += [f"**{len(failed)} run(s) failed** (their table cells are empty; numbers below "
                   f"use the runs that completed):", ""]
-        lines += [f"- `{o.run.folder}`: {o.error}" for o in failed] + [""]
+        lines += [f"- `{r['run']}`: {r['error']}" for r in failed] + [""]
     else:
         lines += ["All runs completed." + (f" {len(retried)} needed a second attempt." if retried
                                            else ""), ""]
 
     def figure(name: str, caption: str, text: Callable[[], str]) -> None:
-        if name not in figures:
+        if name not in drawn:
             lines.extend([f"*Figure `{name}` could not be drawn: "
                           f"{problems.get(name, 'not drawn')}.*", ""])
             return
@@ -236,14 +279,14 @@ def write_report(out_dir: Path, spec, outcomes: list[RunOutcome],
             body = text()
         except (KeyError, ValueError, ZeroDivisionError) as exc:  # failed runs leave holes
             body = f"(numbers unavailable: {type(exc).__name__}: {exc})"
-        rel = figures[name].relative_to(out_dir).as_posix()
-        lines.extend([f"![{caption}]({rel})", "", f"*{caption}.* {body}", ""])
+        lines.extend([f"![{caption}]({drawn[name]})", "", f"*{caption}.* {body}", ""])
 
+    effectiveness = {r["surface"]: r for r in tables["effectiveness"]}
     lines += ["## Effectiveness (paper Fig. effectiveness, type I; appendix for types II, III)", ""]
     for s in surfaces:
         figure(f"effectiveness_{s}", f"Trajectory estimation on {s}: trajectories over the "
                f"contour lines, leader distance and bearing per tick (ideal red, estimated blue)",
-               lambda s=s: _effectiveness_text(tables["sensing_range"], s, effectiveness_run(out_dir, s)))
+               lambda s=s: _effectiveness_text(tables["sensing_range"], effectiveness[s]))
     lines += ["## Required sensing range (paper Fig. averaged required sensing range)", ""]
     figure("sensing_range", "Mean required sensing range per follower and estimator (log scale)",
            lambda: _sensing_range_text(tables["sensing_range"]))
@@ -256,9 +299,12 @@ def write_report(out_dir: Path, spec, outcomes: list[RunOutcome],
            "actuation noise", lambda: _practical_text(tables["practical"]))
     lines += ["## Communication period", ""]
     figure("comm_period", "Mean required sensing range against the comm period (log-log)",
-           lambda: _comm_period_text(tables["comm_period"]))
+           lambda: _comm_period_text(tables["comm_period"], setup["comm_period"]))
+    return "\n".join(lines)
+
+
+def write_report(out_dir: Path) -> Path:
+    """Write ``out_dir/report.md`` from ``out_dir/tables`` (:func:`paper_report`)."""
     path = out_dir / "report.md"
-    write_atomic(path, "\n".join(lines))
+    write_atomic(path, paper_report(out_dir / "tables"))
     return path
-
-

@@ -10,6 +10,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
+import shutil
 import stat
 import struct
 import subprocess
@@ -17,13 +19,15 @@ from importlib.metadata import version
 from pathlib import Path
 
 import pytest
+import yaml
 from cryptography import x509
 from cryptography.x509.oid import NameOID
 
 from protocol.config import RunConfig, load_config
 from protocol.messages import Sensing, encode
 from protocol.session import MAX_MESSAGE_SIZE
-from swarm.deploy import SECRETS, generated_files, users
+from swarm.deploy import (SECRETS, SERVICE_USER, SWARM_IMAGE, ZENOH_IMAGE, build_context,
+                          generated_files, users)
 from swarm.local import run_local
 from tests.deployment import (
     ROUTER_IN_COMPOSE, Deployment, check_complete_run, free_ports, generate, run_processes,
@@ -47,17 +51,87 @@ def deployment(tmp_path_factory) -> Deployment:
 
 
 def test_committed_deploy_is_the_generated_one(deployment):
-    """Every generated file but the secrets is committed byte for byte; nothing else is there
-    but the hand-written README and rviz2 configuration, and no secret is tracked by git."""
-    generated = generated_files(CONFIG)
+    """Every generated file but the secrets and ``.env`` is committed byte for byte (in the
+    checkout, compose builds the image from its root); nothing else is there but the
+    hand-written README, and neither a secret nor ``.env`` is tracked by git."""
+    assert build_context(COMMITTED) == ".." and build_context(deployment.folder) is None
+    generated = generated_files(CONFIG, "..")
     for rel, text in generated.items():
         assert (COMMITTED / rel).read_text() == text, f"deploy/{rel} is stale: regenerate it"
+    for rel, text in generated_files(CONFIG).items():  # elsewhere: no build context
         assert (deployment.folder / rel).read_text() == text
     tracked = subprocess.run(["git", "ls-files", "deploy"], cwd=ROOT, capture_output=True,
                              text=True, check=True).stdout.split()
     assert sorted(tracked) == sorted(["deploy/README.md", "deploy/rviz/swarm.rviz",
                                       *(f"deploy/{rel}" for rel in generated)])
-    assert f"{SECRETS}/" in generated[".gitignore"].splitlines()
+    assert {f"{SECRETS}/", ".env"} <= set(generated[".gitignore"].splitlines())
+
+
+# --- the repository's docker-compose.yml ----------------------------------------------------------
+
+
+PYTHON_SERVICES = {"world": ["python", "-m", "world"], "leader": ["python", "-m", "agents.leader"],
+                   **{f"follower-{k}": ["python", "-m", "agents.follower", "--id", str(k)]
+                      for k in range(1, CONFIG.followers + 1)}}
+
+
+def test_root_compose_runs_the_default_deployment(deployment):
+    """``docker compose up`` at the repository root: the root file includes deploy/'s, whose
+    services are the router, the world, the leader and every follower; the Python services
+    are built from the root's Dockerfile and run as the owner of the secrets (``.env``, written
+    by the one command, ``python -m swarm deploy``); every file a service mounts exists once
+    that command ran (``deployment`` ran it into a fresh folder, which holds the same files);
+    nothing is published on the host and every service is on the default network."""
+    root = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+    assert root == {"include": ["deploy/docker-compose.yml"]}
+    compose = yaml.safe_load((ROOT / root["include"][0]).read_text())
+    services = compose["services"]
+    assert set(services) == {"zenoh", *PYTHON_SERVICES}
+    assert services["zenoh"]["image"] == ZENOH_IMAGE
+    assert services["zenoh"]["command"] == ["-c", "/etc/zenoh/router.json5"]
+    for name, command in PYTHON_SERVICES.items():
+        service = services[name]
+        assert service["command"][:len(command)] == command
+        assert service["image"] == SWARM_IMAGE and service["user"] == SERVICE_USER
+        assert (COMMITTED / service["build"]).resolve() == ROOT
+        assert service["depends_on"] == ["zenoh"]
+    assert (ROOT / "Dockerfile").is_file()
+    assert "networks" not in compose
+    for name, service in services.items():
+        assert not {"ports", "network_mode", "networks", "expose"} & set(service), name
+        for spec in service["volumes"]:
+            source = spec.split(":")[0]
+            if source.startswith("."):
+                assert (deployment.folder / source).exists(), (name, spec)
+            else:
+                assert source in compose["volumes"], (name, spec)
+    env = dict(line.split("=", 1) for line in (deployment.folder / ".env").read_text().split())
+    assert env == {"SWARM_UID": str(os.getuid()), "SWARM_GID": str(os.getgid())}
+    assert (deployment.secret("world", "password").stat().st_uid == os.getuid())
+
+
+def test_root_compose_passes_docker_compose_config():
+    """``docker compose config`` (no engine needed) accepts the root file and resolves the
+    deployment's services, build context and user; skipped where the Docker client or its
+    compose plugin is missing."""
+    docker = shutil.which("docker")
+    if docker is None:
+        pytest.skip("no docker client on this machine")
+    probe = subprocess.run([docker, "compose", "version"], capture_output=True, text=True,
+                           timeout=60)
+    if probe.returncode != 0:
+        pytest.skip("the docker client here has no compose plugin (`docker compose version`: "
+                    f"{(probe.stderr or probe.stdout).strip().splitlines()[0][:80]})")
+    result = subprocess.run([docker, "compose", "config", "--format", "json"], cwd=ROOT,
+                            capture_output=True, text=True, timeout=60,
+                            env={**os.environ, "SWARM_UID": "1234", "SWARM_GID": "1235"})
+    assert result.returncode == 0, result.stderr
+    config = json.loads(result.stdout)
+    assert set(config["services"]) == {"zenoh", *PYTHON_SERVICES}
+    for name in PYTHON_SERVICES:
+        service = config["services"][name]
+        assert Path(service["build"]["context"]).resolve() == ROOT
+        assert service["user"] == "1234:1235"
 
 
 def test_generated_output_is_deterministic_but_secrets_are_not(deployment, tmp_path):

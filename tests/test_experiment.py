@@ -4,6 +4,7 @@ position behind the effectiveness figure, and the PNG files."""
 from __future__ import annotations
 
 import math
+import shutil
 from pathlib import Path
 
 import matplotlib.image
@@ -16,7 +17,9 @@ from swarm.cli import main
 from swarm.experiment import (FULL, QUICK, TABLE_COLUMNS, GridRun, RunOutcome, paper_grid,
                               practical_rows, read_table, run_grid, write_table)
 from swarm.plots import leader_relative
+from swarm.report import paper_report, write_report
 
+ROOT = Path(__file__).resolve().parents[1]
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 BROKEN = "dictionaries/elliptic-broken"
 
@@ -32,7 +35,7 @@ def assert_png(path: Path) -> None:
 
 def test_grid_shape():
     full, quick = paper_grid(FULL), paper_grid(QUICK)
-    assert set(full) == set(quick) == set(TABLE_COLUMNS)
+    assert set(full) == set(quick) == set(TABLE_COLUMNS) - {"effectiveness"}  # from sensing_range
     n_surfaces = len(FULL.surfaces)
     assert len(full["sensing_range"]) == n_surfaces * 4
     assert len(full["dictionaries"]) == n_surfaces * (7 + 2)
@@ -130,7 +133,8 @@ def test_quick_experiment_tables(quick_experiment):
         path = out / "tables" / f"{table}.csv"
         assert tuple(path.read_text().splitlines()[0].split(",")) == columns
         rows = read_table(path)
-        metric = "rmse" if table == "practical" else "mean_required_range"
+        metric = {"practical": "rmse", "effectiveness": "r_error"}.get(table,
+                                                                        "mean_required_range")
         good = [r for r in rows if r.get("run") != BROKEN]
         assert good and all(r[metric] >= 0 for r in good), table  # NaN fails >= 0
         for row in rows:  # every row names existing run folders
@@ -170,6 +174,21 @@ def test_quick_experiment_figures_and_report(quick_experiment):
     edmd = next(r for r in sensing if r["estimator"] == "edmd-b" and r["follower"] == 1)
     assert f"{edmd['mean_required_range']:.3g}" in report  # numbers come from the tables
     assert "n/a" not in report
+    assert paper_report(out / "tables") == report  # ... and from nothing else
+
+
+def test_committed_report_is_what_the_committed_tables_give(tmp_path):
+    """``docs/paper-report.md`` is regenerated from a copy of ``docs/tables`` alone (no run,
+    no figure drawn) and compared byte for byte: the committed report and tables come from
+    the same experiment, and the report depends on nothing else (not the machine, the clock,
+    the runs' folders or today's defaults)."""
+    shutil.copytree(ROOT / "docs" / "tables", tmp_path / "tables")
+    written = write_report(tmp_path)
+    assert written.read_bytes() == (ROOT / "docs" / "paper-report.md").read_bytes()
+    for name in ("effectiveness", "experiment"):  # a table the report needs is named if absent
+        (tmp_path / "tables" / f"{name}.csv").unlink()
+    with pytest.raises(ValueError, match="no effectiveness.csv, experiment.csv"):
+        paper_report(tmp_path / "tables")
 
 
 def test_plot_command_on_a_run(quick_experiment, capsys):
@@ -207,3 +226,38 @@ def test_every_estimator_of_a_figure_gets_its_own_style():
     names = [*TERRAIN_ESTIMATORS, "edmd-c", "edmd-g", "tests.example_estimator:MeanStep"]
     styles = estimator_styles(names)
     assert set(styles) == set(names) and len(set(styles.values())) == len(names)
+
+
+@pytest.mark.parametrize("surfaces", [("elliptic",), ("elliptic", "hyperbolic", "wavy")])
+def test_figure_legends_and_titles_lie_inside_their_figures(surfaces, tmp_path, monkeypatch):
+    """Every table figure drawn from the committed tables, for one surface (as ``--quick``
+    draws them) and for three: each figure's and each panel's legend and title lie inside
+    the figure (the practical figure's legend and title once ran off a one-panel figure)."""
+    from swarm import plots
+
+    drawn = []
+    save = plots._save
+    monkeypatch.setattr(plots, "_save", lambda fig, path: drawn.append(fig) or save(fig, path))
+    tables = {name: [r for r in read_table(ROOT / "docs" / "tables" / f"{name}.csv")
+                     if r["surface"] in surfaces]
+              for name in ("sensing_range", "dictionaries", "practical", "comm_period")}
+    plots.plot_sensing_range(tables["sensing_range"], tmp_path / "s.png")
+    plots.plot_dictionaries(tables["dictionaries"], surfaces[0], tmp_path / "d.png")
+    plots.plot_practical(tables["practical"], tmp_path / "p.png")
+    plots.plot_comm_period(tables["comm_period"], tmp_path / "c.png")
+    position = [{**r, "follower": r["follower"], "comm_period": 1.28}
+                for r in tables["sensing_range"] if r["surface"] == surfaces[0]]
+    plots.plot_position(position, tmp_path / "pos.png")
+    assert len(drawn) == 5
+    for fig in drawn:
+        renderer = fig.canvas.get_renderer()
+        fig.canvas.draw()
+        inner = fig.bbox.padded(1.0)  # a pixel of rounding
+        texts = [*fig.legends, *[ax.get_legend() for ax in fig.axes if ax.get_legend()],
+                 *[ax.title for ax in fig.axes if ax.get_title()]]
+        texts += [fig._suptitle] if fig._suptitle is not None else []
+        assert texts
+        for artist in texts:
+            box = artist.get_window_extent(renderer)
+            assert (inner.x0 <= box.x0 and box.x1 <= inner.x1 and inner.y0 <= box.y0
+                    and box.y1 <= inner.y1), (fig.get_suptitle(), artist, box, fig.bbox)

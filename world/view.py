@@ -25,18 +25,24 @@ from protocol.view import (
 from world.surfaces import DEM_PREFIX, Surface
 
 MAP_EVERY_S = 1.0
+MAX_MAP_ASPECT = 2.5  # the map's longer side over its shorter one, at most
 
 
 def map_box(ideal: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
     """Corners ``low``, ``high`` (2,) of the region to draw: the finite points of ``ideal``
-    (any shape ending in 2) grown by a margin of half a rod and 5% of the larger side."""
+    (any shape ending in 2) grown by a margin of half a rod and 5% of the larger side, the
+    shorter side then widened about the centre to at least 1/:data:`MAX_MAP_ASPECT` of the
+    longer (a page shows the box whole at true aspect: never a narrow strip)."""
     points = np.asarray(ideal, dtype=float).reshape(-1, 2)
     points = points[np.isfinite(points).all(axis=1)]
     if points.size == 0:
         raise ValueError("ideal must hold at least one finite point")
     low, high = points.min(axis=0), points.max(axis=0)
     margin = 0.5 * spacing + 0.05 * float(np.max(high - low))
-    return low - margin, high + margin
+    low, high = low - margin, high + margin
+    centre, size = (low + high) / 2, high - low
+    size = np.maximum(size, size.max() / MAX_MAP_ASPECT)
+    return centre - size / 2, centre + size / 2
 
 
 def grid_shape(low: np.ndarray, high: np.ndarray, cells: int = MAP_CELLS) -> tuple[int, int]:

@@ -50,7 +50,7 @@ def hillshade(view_map: Mapping, azimuth: float = 315.0, altitude: float = 45.0)
     inside = np.isfinite(z)
     if not inside.any():
         raise ValueError("view_map has no finite height to shade")
-    filled = np.where(inside, z, np.nanmin(z))
+    filled = _continued(z)
     light = LightSource(azdeg=azimuth, altdeg=altitude)
     # LightSource takes row 0 as the top (north) edge; our row 0 is the southern one.
     rgb = light.shade(filled[::-1], cmap=colormaps["gist_earth"], blend_mode="soft",
@@ -58,6 +58,59 @@ def hillshade(view_map: Mapping, azimuth: float = 315.0, altitude: float = 45.0)
     rgba = (np.clip(rgb, 0, 1) * 255).round().astype(np.uint8)
     rgba[..., 3] = np.where(inside, 255, 0)
     return rgba
+
+
+def _continued(z: np.ndarray) -> np.ndarray:
+    """``z`` with every NaN cell given the mean of its finite neighbours, ring after ring
+    inwards from the domain's edge: the relief goes on flat past the edge (filled with a
+    constant it would drop to a cliff there, which the light shades as a dark band)."""
+    z = z.copy()
+    while np.isnan(z).any():
+        padded = np.pad(z, 1, constant_values=np.nan)
+        rings = np.stack([padded[1 + dy:padded.shape[0] - 1 + dy, 1 + dx:padded.shape[1] - 1 + dx]
+                          for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx])
+        seen = np.isfinite(rings)
+        count = seen.sum(axis=0)
+        mean = np.where(seen, rings, 0.0).sum(axis=0) / np.maximum(count, 1)
+        z = np.where(np.isnan(z) & (count > 0), mean, z)
+    return z
+
+
+def fit_view(box: Sequence[float], points: np.ndarray, margin: float,
+             aspect: float) -> tuple[float, float, float, float]:
+    """The view ``(x0, x1, y0, y1)`` at width/height ratio ``aspect`` that holds the map's
+    ``box`` ``[x0, x1, y0, y1]`` and every point of ``points`` (n, 2) grown by ``margin``,
+    about the centre of what it holds (one length unit the same on both axes of a frame of
+    that ratio)."""
+    if not aspect > 0:
+        raise ValueError(f"aspect must be > 0, got {aspect!r}")
+    points = np.asarray(points, dtype=float).reshape(-1, 2)
+    low = np.array([box[0], box[2]], dtype=float)
+    high = np.array([box[1], box[3]], dtype=float)
+    if points.size:
+        low = np.minimum(low, points.min(axis=0) - margin)
+        high = np.maximum(high, points.max(axis=0) + margin)
+    width, height = high - low
+    width, height = max(width, height * aspect), max(height, width / aspect)
+    (cx, cy) = (low + high) / 2
+    return cx - width / 2, cx + width / 2, cy - height / 2, cy + height / 2
+
+
+def sparse_labels(xs: Sequence[float], ys: Sequence[float], labels: Sequence[str],
+                  gap: float) -> list[str]:
+    """``labels`` with those of points closer than ``gap`` to an earlier labelled point
+    blanked, so that labels never sit on one another: the first point (the leader) keeps its
+    label, then each in turn (a column's followers in order) if it is far enough from every
+    label kept."""
+    kept: list[tuple[float, float]] = []
+    out = []
+    for x, y, label in zip(xs, ys, labels, strict=True):
+        if all(math.hypot(x - kx, y - ky) >= gap for kx, ky in kept):
+            kept.append((x, y))
+            out.append(label)
+        else:
+            out.append("")
+    return out
 
 
 def heading(frames: Mapping[int, Frame], tick: int, agent: int) -> float:
@@ -162,6 +215,18 @@ def follower_series(frames: Sequence[Frame], follower: int) -> dict[str, dict[st
     for marks in (lost, missed):
         marks["y"] = [floor if math.isnan(y) else y for y in marks["y"]]
     return {"ranges": ranges, "lost": lost, "missed": missed}
+
+
+def log_span(ranges: Mapping[str, Sequence[float]], default: tuple[float, float] = (1e-3, 1.0),
+             pad: float = 1.5) -> tuple[float, float]:
+    """The y range of a log axis for :func:`follower_series`'s ``ranges``: the smallest and
+    largest positive finite value of its series (``tick`` aside), widened by the factor
+    ``pad`` each way; ``default`` when there is none yet."""
+    values = [v for name, series in ranges.items() if name != "tick" for v in series
+              if v > 0 and math.isfinite(v)]
+    if not values:
+        return default
+    return min(values) / pad, max(values) * pad
 
 
 def _positive(value: float | None) -> float:

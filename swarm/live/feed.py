@@ -13,7 +13,7 @@ from protocol import keys
 from protocol.messages import Done, Observation, ProtocolError, decode
 from protocol.session import undeclare_all
 from protocol.view import decode_map, decode_tick
-from swarm.live.store import RunStore
+from swarm.live.store import RunStore, choice_label
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +52,8 @@ class ZenohFeed:
         except (ProtocolError, ValueError) as exc:
             log.warning("live view: dropped observation on %s: %s", sample.key_expr, exc)
             return
-        self.store.add_choice(msg.tick, agent, msg.followed or msg.estimator)
+        self.store.add_choice(msg.tick, agent, choice_label(
+            msg.estimator, msg.followed, msg.fallback, msg.prediction is not None))
 
     def _on_done(self, sample: zenoh.Sample) -> None:
         try:

@@ -3,15 +3,23 @@
 Live, the map follows the newest complete tick; in a replay a slider (and play/pause) picks the
 tick. A periodic callback (every :data:`REFRESH_MS`) compares the store's version with the
 one drawn and refreshes the sources when it changed.
+
+The map is drawn at true aspect (one length unit the same number of pixels both ways): its
+frame takes the shape of the world's map box, whose contour lines (and relief, on a DEM)
+therefore fill the view; the view grows only to hold an agent that leaves the box. Labels
+closer than :data:`LABEL_GAP` pixels to another are left out. Every range is set here, never
+computed by the browser from data (BokehJS warns while a plot has none).
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 from protocol.distribution import needs
 from swarm.live.draw import (
-    agent_color, choice_points, contour_levels, empty_map_columns, follower_series, height_grid,
-    hillshade, map_columns,
+    agent_color, choice_points, contour_levels, empty_map_columns, fit_view, follower_series,
+    height_grid, hillshade, log_span, map_columns, sparse_labels,
 )
 from swarm.live.store import COMPLETE, INCOMPLETE, REPLAY_HINT, WAITING, RunStore, Snapshot
 
@@ -19,10 +27,12 @@ with needs("live"):
     from bokeh.document import Document
     from bokeh.layouts import column, row
     from bokeh.models import (
+        BoxZoomTool,
         ColumnDataSource,
-        DataRange1d,
         Div,
         FactorRange,
+        Legend,
+        LegendItem,
         Range1d,
         Slider,
         Span,
@@ -34,10 +44,35 @@ REFRESH_MS = 200
 PLAY_EVERY = 1  # replay: ticks advanced per refresh while playing
 MAX_RANGE_PLOTS = 8  # per-follower range plots drawn (the map shows every agent)
 
-MAP_FRAME = (680, 470)  # map's plot area in pixels (width, height): the box is fitted to it
+MAP_SIDE = 700  # px: the map's plot area along the longer side of the world's map box
+MIN_SIDE = 260  # px: and at least this along the other side (true aspect either way)
+LABEL_GAP = 16  # px: an agent label closer than this to another label is left out
 NOSE = 0.6  # heading segment length, in rods
+FOLLOWERS_PER_COLUMN = 6  # of the estimator strip's legend
+NEUTRAL = "#555555"  # legend glyphs of the map, whose colours stand for agents
 WAITING_HINT = (f"{WAITING}: none of this run is alive on the router (not started yet, or "
                 f"over: {REPLAY_HINT})")
+RS_LABEL = "sensing range R_s"
+
+
+def frame_size(box: list[float]) -> tuple[int, int]:
+    """Plot-area pixels ``(width, height)`` for the map's ``box`` ``[x0, x1, y0, y1]`` at true
+    aspect: :data:`MAP_SIDE` along its longer side, the other side in proportion but at least
+    :data:`MIN_SIDE` (the view then reaches past the box that way)."""
+    aspect = (box[1] - box[0]) / (box[3] - box[2])
+    if aspect >= 1:
+        return MAP_SIDE, max(MIN_SIDE, round(MAP_SIDE / aspect))
+    return max(MIN_SIDE, round(MAP_SIDE * aspect)), MAP_SIDE
+
+
+def strip_title(view_map: dict | None) -> str:
+    """The estimator strip's title: the run's estimator, and what its points are."""
+    if view_map is None:
+        return "estimator per tick"
+    name = view_map["estimator"]
+    if name == "edmd":
+        name += f", dictionary {view_map['dictionary']}"
+    return f"followed per tick (the run's estimator: {name})"
 
 
 class Page:
@@ -48,18 +83,22 @@ class Page:
         self.drawn_version = -1
         self.drawn_tick: int | None = None
         self.map_drawn = False
+        self.view: tuple[float, float, float, float] | None = None
         self.status = Div(text=WAITING_HINT, name="status",
                           css_classes=["swarm-status"], styles={"font-size": "16px"})
         self.sources = {name: ColumnDataSource(name=f"{name}-source", data=data)
                         for name, data in empty_map_columns().items()}
         self.map = self._map_figure()
-        self.range_column = column(name="ranges")
-        self.range_plots: dict[int, tuple[dict, Span]] = {}
+        self.range_column = column(Div(text="(the range plots follow the world's map)"),
+                                   name="ranges")
+        self.range_plots: dict[int, tuple[dict, Span, Range1d]] = {}
         self.choices = ColumnDataSource(name="choices", data=choice_points({}, 1))
-        self.ticks_range = DataRange1d()  # shared by every per-tick plot
-        self.choice_plot = figure(height=170, width=480, y_range=FactorRange(),
+        # shared by every per-tick plot; every range is set from the server, never computed
+        # by the browser from data (which warns while there is none)
+        self.ticks_range = Range1d(-0.5, 0.5)
+        self.choice_plot = figure(height=190, width=480, y_range=FactorRange(),
                                   x_range=self.ticks_range, x_axis_label="tick",
-                                  title="estimator per tick (auto: followed candidate)",
+                                  title=strip_title(None), name="choices-plot",
                                   toolbar_location=None)
         self.choice_plot.scatter("tick", "y", color="color", legend_field="follower",
                                  source=self.choices, size=5)
@@ -77,39 +116,59 @@ class Page:
         self.refresh()
 
     def _map_figure(self):
-        fig = figure(frame_width=MAP_FRAME[0], frame_height=MAP_FRAME[1], x_range=Range1d(0, 1),
+        fig = figure(frame_width=MAP_SIDE, frame_height=MAP_SIDE * 2 // 3, x_range=Range1d(0, 1),
                      y_range=Range1d(0, 1), title="column on the surface", x_axis_label="x",
-                     y_axis_label="y", name="map")
+                     y_axis_label="y", name="map", tools="pan,wheel_zoom,reset,save")
+        fig.add_tools(BoxZoomTool(match_aspect=True))
         src = self.sources
-        fig.multi_line("xs", "ys", line_color="color", line_width="width", line_alpha=0.6,
-                       source=src["paths"])
-        fig.circle("x", "y", radius="radius", line_color="color", fill_color="color",
-                   fill_alpha=0.05, line_dash="dotted", source=src["ranges"],
-                   legend_label="sensing range R_s")
-        fig.segment("x0", "y0", "x1", "y1", line_color="color", line_width=2, source=src["rods"],
-                    name="rods", legend_label="rod")
-        fig.scatter("x", "y", marker="circle", size=11, line_color="color", fill_color=None,
-                    line_width=2, source=src["targets"], legend_label="true rod end")
-        fig.scatter("x", "y", marker="x", size=11, line_color="color", line_width=2,
-                    source=src["estimates"], legend_label="estimate")
-        fig.segment("x0", "y0", "x1", "y1", line_color="color", line_width=3,
-                    source=src["headings"], name="headings")
-        fig.scatter("x", "y", marker="circle", size=11, fill_color="color", line_color="white",
-                    source=src["agents"], name="agents", legend_label="agent and heading")
-        fig.text("x", "y", text="label", x_offset=8, y_offset=-8, text_font_size="11px",
-                 source=src["agents"])
-        fig.legend.orientation = "horizontal"
-        fig.legend.click_policy = "hide"
-        fig.add_layout(fig.legend[0], "below")
+        drawn = {
+            "trail": fig.multi_line("xs", "ys", line_color="color", line_width="width",
+                                    line_alpha=0.6, source=src["paths"]),
+            RS_LABEL: fig.circle("x", "y", radius="radius", line_color="color",
+                                 fill_color="color", fill_alpha=0.05, line_dash="dotted",
+                                 source=src["ranges"]),
+            "rod": fig.segment("x0", "y0", "x1", "y1", line_color="color", line_width=2,
+                               source=src["rods"], name="rods"),
+            "true rod end": fig.scatter("x", "y", marker="circle", size=11, line_color="color",
+                                        fill_color=None, line_width=2, source=src["targets"]),
+            "estimate": fig.scatter("x", "y", marker="x", size=11, line_color="color",
+                                    line_width=2, source=src["estimates"]),
+        }
+        heading = fig.segment("x0", "y0", "x1", "y1", line_color="color", line_width=3,
+                              source=src["headings"], name="headings")
+        agents = fig.scatter("x", "y", marker="circle", size=11, fill_color="color",
+                             line_color="white", source=src["agents"], name="agents")
+        fig.text("x", "y", text="label", x_offset=8, y_offset=-8, text_font_size="12px",
+                 text_font_style="bold", background_fill_color="white",
+                 background_fill_alpha=0.8, source=src["agents"], name="labels")
+        styles = {"trail": ("line", {"line_color": NEUTRAL, "line_width": 2}),
+                  RS_LABEL: ("scatter", {"marker": "circle", "size": 13, "line_color": NEUTRAL,
+                                         "line_dash": "dotted", "fill_alpha": 0.05,
+                                         "fill_color": NEUTRAL}),
+                  "rod": ("segment", {"line_color": NEUTRAL, "line_width": 2}),
+                  "true rod end": ("scatter", {"marker": "circle", "size": 11, "line_width": 2,
+                                               "line_color": NEUTRAL, "fill_color": None}),
+                  "estimate": ("scatter", {"marker": "x", "size": 11, "line_width": 2,
+                                           "line_color": NEUTRAL})}
+        items = [legend_item(fig, label, [drawn[label]], *styles[label]) for label in styles]
+        items.append(legend_item(fig, "agent (L: leader), heading", [agents, heading], "scatter",
+                                 {"marker": "circle", "size": 11, "fill_color": NEUTRAL,
+                                  "line_color": "white"}))
+        legend = Legend(items=items, orientation="horizontal", click_policy="hide",
+                        name="map-legend")
+        fig.add_layout(legend, "below")
         return fig
 
     def _draw_surface(self, view_map: dict) -> None:
-        """Relief (DEM surfaces) and contour lines, once the map has arrived."""
+        """Relief (DEM surfaces) and contour lines over the whole box of the map, the map's
+        frame at the box's true aspect, the range plots, once the map has arrived."""
         xs, ys, z = height_grid(view_map)
         x0, x1, y0, y1 = view_map["box"]
-        if view_map["relief"] == "dem":
+        if view_map["relief"] == "dem":  # pixel centres on the grid's nodes
             image = hillshade(view_map).view(dtype=np.uint32).reshape(z.shape)
-            self.map.image_rgba(image=[image], x=x0, y=y0, dw=x1 - x0, dh=y1 - y0, level="image")
+            dx, dy = xs[1] - xs[0], ys[1] - ys[0]
+            self.map.image_rgba(image=[image], x=x0 - dx / 2, y=y0 - dy / 2, dw=x1 - x0 + dx,
+                                dh=y1 - y0 + dy, level="image", name="relief")
         levels = contour_levels(z)
         if levels.size >= 2:
             from bokeh.palettes import Viridis256
@@ -118,38 +177,58 @@ class Page:
                                         line_color=_pick(Viridis256, levels.size),
                                         line_alpha=0.7, fill_color=None)
             renderer.level = "underlay"
-        (x0, x1), (y0, y1) = _fit((x0, x1), (y0, y1), MAP_FRAME[0] / MAP_FRAME[1])
-        self.map.x_range.start, self.map.x_range.end = x0, x1
-        self.map.y_range.start, self.map.y_range.end = y0, y1
+            renderer.name = "contours"
+        self.map.frame_width, self.map.frame_height = frame_size(view_map["box"])
+        if view_map["sensing_range"] is None:  # nothing of it to draw
+            legend = self.map.select_one({"name": "map-legend"})
+            legend.items = [i for i in legend.items if i.label.value != RS_LABEL]
         self.map.title.text = (f"{view_map['surface']} surface, {view_map['followers']} "
                                f"follower(s), {view_map['estimator']}, "
                                f"T_c {view_map['comm_period']:g}")
+        self.ticks_range.start, self.ticks_range.end = -0.5, view_map["ticks"] - 0.5
+        self.choice_plot.title.text = strip_title(view_map)
+        self.choice_plot.legend.ncols = math.ceil(view_map["followers"] / FOLLOWERS_PER_COLUMN)
+        self.range_column.children = []
         for k in range(1, min(view_map["followers"], MAX_RANGE_PLOTS) + 1):
             self._add_range_plot(k)
 
+    def _fit_view(self, snap: Snapshot) -> None:
+        """Fit the map's ranges to the box and every agent seen so far, when that view changed
+        (it only grows, as ticks come in; a pan or zoom of the user's is kept till then)."""
+        points = np.array([(row["pos_x"], row["pos_y"]) for frame in snap.frames
+                           for row in frame.rows.values()])
+        width, height = self.map.frame_width, self.map.frame_height
+        view = fit_view(snap.map["box"], points, snap.map["spacing"], width / height)
+        if view == self.view:
+            return
+        self.view = view
+        self.map.x_range.start, self.map.x_range.end, self.map.y_range.start, \
+            self.map.y_range.end = view
+
     def _add_range_plot(self, k: int) -> None:
+        y_range = Range1d(*log_span({}))
         fig = figure(height=200, width=480, y_axis_type="log", toolbar_location=None,
-                     x_range=self.ticks_range,
+                     x_range=self.ticks_range, y_range=y_range,
                      title=f"follower {k}: sensing range needed per tick", name=f"ranges-{k}")
         sources = {name: ColumnDataSource(data=data) for name, data in
                    follower_series((), k).items()}
-        fig.line("tick", "required", source=sources["ranges"], color=agent_color(k),
-                 line_width=2, legend_label="required")
-        fig.line("tick", "persist", source=sources["ranges"], color="#555555", line_dash="dotted",
-                 legend_label="persist")
-        fig.line("tick", "stay", source=sources["ranges"], color="#aaaaaa", line_dash="dashed",
-                 legend_label="stay")
-        fig.scatter("tick", "y", source=sources["lost"], marker="x", size=9, color="red",
-                    legend_label="lost")
-        fig.scatter("tick", "y", source=sources["missed"], marker="square_x", size=9,
-                    color="purple", fill_color=None, legend_label="missed")
-        fig.legend.label_text_font_size = "9px"
-        fig.legend.orientation = "horizontal"
-        fig.legend.padding = fig.legend.spacing = 2
-        fig.add_layout(fig.legend[0], "above")
+        lines = {"required": {"line_color": agent_color(k), "line_width": 2},
+                 "persist": {"line_color": "#555555", "line_dash": "dotted"},
+                 "stay": {"line_color": "#aaaaaa", "line_dash": "dashed"}}
+        marks = {"lost": {"marker": "x", "size": 9, "line_color": "red"},
+                 "missed": {"marker": "square_x", "size": 9, "line_color": "purple",
+                            "fill_color": None}}
+        items = [legend_item(fig, name, [fig.line("tick", name, source=sources["ranges"],
+                                                  **style)], "line", style)
+                 for name, style in lines.items()]
+        items += [legend_item(fig, name, [fig.scatter("tick", "y", source=sources[name],
+                                                      **style)], "scatter", style)
+                  for name, style in marks.items()]
+        fig.add_layout(Legend(items=items, orientation="horizontal", label_text_font_size="9px",
+                              padding=2, spacing=2, name=f"ranges-{k}-legend"), "above")
         cursor = Span(dimension="height", location=0, line_color="#999999", line_dash="dashed")
         fig.add_layout(cursor)
-        self.range_plots[k] = (sources, cursor)
+        self.range_plots[k] = (sources, cursor, y_range)
         self.range_column.children = [*self.range_column.children, fig]
 
     def _on_play(self, active: bool) -> None:
@@ -181,9 +260,13 @@ class Page:
         self.drawn_version = snap.version
 
     def _draw_series(self, snap: Snapshot) -> None:
-        for k, (sources, _) in self.range_plots.items():
-            for name, data in follower_series(snap.frames, k).items():
+        if snap.map is not None:
+            self._fit_view(snap)
+        for k, (sources, _, y_range) in self.range_plots.items():
+            series = follower_series(snap.frames, k)
+            for name, data in series.items():
                 sources[name].data = data
+            y_range.start, y_range.end = log_span(series["ranges"])
         points = choice_points(snap.choices, snap.map["followers"] if snap.map else 1)
         labels = sorted(set(points["label"]))
         if list(self.choice_plot.y_range.factors) != labels:
@@ -203,9 +286,14 @@ class Page:
         sensing = snap.map["sensing_range"] if snap.map else None
         nose = NOSE * snap.map["spacing"] if snap.map else 1.0
         if tick != self.drawn_tick or snap.version != self.drawn_version:
-            for name, data in map_columns(frames, tick, sensing, nose).items():
+            columns = map_columns(frames, tick, sensing, nose)
+            agents = columns["agents"]
+            if self.view is not None:
+                gap = LABEL_GAP * (self.view[1] - self.view[0]) / self.map.frame_width
+                agents["label"] = sparse_labels(agents["x"], agents["y"], agents["label"], gap)
+            for name, data in columns.items():
                 self.sources[name].data = data
-            for _, cursor in self.range_plots.values():
+            for _, cursor, _ in self.range_plots.values():
                 cursor.location = tick
             self.drawn_tick = tick
         self.status.text = status_text(snap, frames[tick])
@@ -227,18 +315,23 @@ def status_text(snap: Snapshot, frame) -> str:
     return f"tick {frame.tick} of {last} · t = {frame.t:.2f} · {state}"
 
 
+def legend_item(fig, label: str, renderers: list, glyph: str, style: dict) -> LegendItem:
+    """A legend entry for ``renderers`` whose glyph is drawn by a proxy of one point at NaN
+    (drawn nowhere) in ``style``: Bokeh draws no legend glyph for a renderer with no data,
+    and the map's colours stand for agents, not for what is drawn. Hiding the entry (click)
+    hides ``renderers``."""
+    nan = [math.nan]
+    source = ColumnDataSource(data={"x": nan, "y": nan, "x0": nan, "y0": nan, "x1": nan,
+                                    "y1": nan})
+    coordinates = ("x0", "y0", "x1", "y1") if glyph == "segment" else ("x", "y")
+    proxy = getattr(fig, glyph)(*coordinates, source=source, **style)
+    for renderer in renderers:
+        proxy.js_link("visible", renderer, "visible")
+    return LegendItem(label=label, renderers=[proxy])
+
+
 def _pick(palette: tuple[str, ...], n: int) -> list[str]:
     return [palette[int(i)] for i in np.linspace(0, len(palette) - 1, n)]
-
-
-def _fit(xs: tuple[float, float], ys: tuple[float, float],
-         aspect: float) -> tuple[tuple[float, float], tuple[float, float]]:
-    """The ranges ``xs``, ``ys`` widened about their centres to the width/height ``aspect``
-    (one length unit the same number of pixels on both axes)."""
-    width, height = xs[1] - xs[0], ys[1] - ys[0]
-    width, height = max(width, height * aspect), max(height, width / aspect)
-    cx, cy = sum(xs) / 2, sum(ys) / 2
-    return (cx - width / 2, cx + width / 2), (cy - height / 2, cy + height / 2)
 
 
 def build_page(doc: Document, store: RunStore, replay: bool) -> None:

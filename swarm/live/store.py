@@ -20,6 +20,22 @@ STARTING = "world alive, waiting for its first tick"
 REPLAY_HINT = "python -m swarm replay RUN_DIR shows a finished run"
 """What to do when no run is there to watch (it may be over)."""
 COMPLETE, INCOMPLETE = "complete", "incomplete"
+NO_ESTIMATE = "no estimate yet"
+"""What a follower followed at a tick where neither its estimator nor the fallback could
+propose (it stood still)."""
+
+
+def choice_label(estimator: str, followed: str | None, fallback: bool, predicted: bool) -> str:
+    """What a follower followed at one tick, as its observation tells: the estimate of
+    ``followed`` (``auto``'s candidate, or the estimator itself), ``"persist (fallback)"``
+    while the estimator was not ready, :data:`NO_ESTIMATE` when nothing proposed. An
+    observation without ``followed`` (an older sender or file) names ``estimator`` where it
+    ``predicted``."""
+    if fallback:
+        return f"{followed or 'persist'} (fallback)"
+    if followed:
+        return followed
+    return estimator if predicted else NO_ESTIMATE
 
 
 @dataclass(frozen=True)
@@ -38,7 +54,7 @@ class Snapshot:
     version: int
     map: dict | None
     frames: tuple[Frame, ...]
-    choices: MappingProxyType  # (tick, follower) -> estimator or auto's followed candidate
+    choices: MappingProxyType  # (tick, follower) -> what it followed (choice_label)
     status: str
     reason: str
 
@@ -78,7 +94,7 @@ class RunStore:
                 self._version += 1
 
     def add_choice(self, tick: int, follower: int, label: str) -> None:
-        """Follower ``follower``'s estimator at ``tick`` (``auto``: its followed candidate)."""
+        """What follower ``follower`` followed at ``tick`` (:func:`choice_label`)."""
         with self._lock:
             self._choices[(tick, follower)] = label
             self._version += 1
@@ -141,7 +157,8 @@ def load_run(run_dir: str | Path) -> RunStore:
     except (OSError, ValueError) as exc:
         raise ValueError(f"cannot replay {run_dir}: {exc}") from None
     for row in observations:
-        store.add_choice(row["tick"], row["agent"], row["followed"] or row["estimator"])
+        store.add_choice(row["tick"], row["agent"], choice_label(
+            row["estimator"], row["followed"], row["fallback"] == 1, bool(row.get("prediction"))))
     store.finish(bool(summary.get("complete")), str(summary.get("reason", "")))
     return store
 
