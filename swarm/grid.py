@@ -32,7 +32,7 @@ from typing import Any
 from protocol.config import (DEFAULTS, OPTIONS, RunConfig, estimator_options, given_options,
                              idle_reason, load_config)
 from protocol.distribution import needs
-from protocol.folder import FolderLock, write_atomic
+from protocol.folder import LOCK_FILE, FolderLock, write_atomic
 from protocol.limits import MAX_RUN_ID
 
 RUN_ATTEMPTS = 2
@@ -128,7 +128,8 @@ def _clear_unfinished(run: GridRun, folder: Path) -> None:
         written = load_config(folder / "config.toml").run_id
     except (OSError, ValueError):
         written = None
-    if written != run.config.run_id:
+    nothing = not {p.name for p in folder.iterdir()} - {LOCK_FILE}  # an attempt that wrote none
+    if written != run.config.run_id and not nothing:
         raise ValueError(f"{folder} holds something other than run {run.config.run_id}: "
                          "remove it or choose another output folder")
     with FolderLock(folder, run.config.run_id):  # never from under a live writer

@@ -158,7 +158,8 @@ def load_run(run_dir: str | Path) -> RunStore:
         raise ValueError(f"cannot replay {run_dir}: {exc}") from None
     for row in observations:
         store.add_choice(row["tick"], row["agent"], choice_label(
-            row["estimator"], row["followed"], row["fallback"] == 1, bool(row.get("prediction"))))
+            row["estimator"], row.get("followed"), row.get("fallback") == 1,
+            bool(row.get("prediction"))))
     store.finish(bool(summary.get("complete")), str(summary.get("reason", "")))
     return store
 
