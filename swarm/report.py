@@ -188,9 +188,10 @@ def _practical_text(rows: list[dict]) -> str:
                f" The largest spread over seeds is {spread['variant']}'s (s.d. "
                f"{_g(spread['rmse_std'])} on {spread['surface']} at σ_v = "
                f"{spread['noise_velocity']:g}).")
-            + f" Every follower snaps onto its true rod end, so "
-            f"actuation noise does not accumulate but puts a floor of about σ_move·√2 = "
-            f"{_g(move * math.sqrt(2))} under every RMSE. b's RMSE over persist's: "
+            + f" A follower's snap is a move by the rod-end offset it reads (exact here: no "
+            f"range or bearing noise) with the same actuation noise, so actuation noise does not "
+            f"accumulate but puts a floor of about 2·σ_move = {_g(2 * move)} under every RMSE "
+            f"(the move's and the last snap's, σ_move·√2 each). b's RMSE over persist's: "
             + ", ".join(f"{s} {_times(x)}" for s, x in zip(surfaces, b_persist))
             + (f": with actuation noise, b is within {100 * near:.0f}% of simply assuming a "
                f"constant relative position." if near < 0.2 else "."))
@@ -255,8 +256,9 @@ def paper_report(tables_dir: str | Path) -> str:
         f"and figures {figure_time:.0f} s) on {setup['cpus']} CPU(s).", "",
         f"Setup: {setup['ticks']} ticks per run ({setup['init_ticks']} initial, "
         f"{setup['ticks'] - setup['init_ticks']} estimated), rod length {setup['spacing']:g}, "
-        f"unlimited sensing range (every follower snaps to its true rod end after moving to "
-        f"its estimate), each surface's paper leader start, T_c = {setup['comm_period']:g} "
+        f"unlimited sensing range (after moving to its estimate every follower moves by the "
+        f"rod-end offset it reads: onto the rod end without noise, near it with noise), each "
+        f"surface's paper leader start, T_c = {setup['comm_period']:g} "
         f"unless swept. Seeds fixed (0 unless listed). Numbers are lengths in the surface's "
         f"units; the required sensing range is the distance from the estimate to the true "
         f"ideal position. Tables: `tables/*.csv`; every row names the run folder(s) under "
