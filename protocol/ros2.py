@@ -319,16 +319,20 @@ def agent_topic(agent: int, name: str) -> str:
 
 
 def run_topics(followers: int, drive: bool = False) -> list[tuple[str, str]]:
-    """Every ``(topic, type)`` of a run with ``followers`` followers (``drive``: driving
-    followers, with :data:`DRIVE_TOPICS`), in a fixed order (the order of the world's
-    publisher entity ids)."""
+    """Every ``(topic, type)`` of a run with ``followers`` followers, in a fixed order (the
+    order of the world's publisher entity ids). ``drive`` (driving followers) appends each
+    follower's :data:`DRIVE_TOPICS` after all the others, so the other entity ids are those
+    of a teleport run."""
     if isinstance(followers, bool) or not isinstance(followers, int) or followers < 0:
         raise ValueError(f"followers must be a non-negative integer, got {followers!r}")
     topics = [CLOCK, TF, MARKERS]
     for k in range(followers + 1):
         topics += [(agent_topic(k, name), msgtype)
                    for name, (msgtype, leader) in AGENT_TOPICS.items()
-                   if (k > 0 or leader) and (drive or name not in DRIVE_TOPICS)]
+                   if (k > 0 or leader) and name not in DRIVE_TOPICS]
+    if drive:
+        topics += [(agent_topic(k, name), AGENT_TOPICS[name][0])
+                   for k in range(1, followers + 1) for name in DRIVE_TOPICS]
     return topics
 
 
