@@ -1,11 +1,13 @@
-"""A run's record as files (design §7): their names, the columns of ``ticks.csv`` and
-``observations.csv``, and the one way to read them back.
+"""A run's record as files (design §7): their names, the columns of ``ticks.csv``,
+``observations.csv`` and (``--motion drive``) ``controls.csv``, and the one way to read them
+back.
 
-The world writes them (:mod:`world.results`); ``swarm plot``, ``swarm replay``, the reports and
-``python -m world --resume`` read them through :func:`read_ticks` / :func:`read_observations`
-(or :func:`parse_ticks` / :func:`parse_observations` on bytes already read), which accept only a
-whole, ordered record: every row ends with a newline and has the header's fields, numbers
-parse, and ``(tick, agent)`` increases strictly from row to row. Anything else is refused with
+The world writes them (:mod:`world.results`); ``swarm plot``, ``swarm replay``, ``swarm
+export``, the reports and ``python -m world --resume`` read them through :func:`read_ticks` /
+:func:`read_observations` / :func:`read_controls` (or the ``parse_*`` functions on bytes
+already read), which accept only a whole, ordered record: every row ends with a newline and has
+the header's fields, numbers parse, and ``(tick, agent)`` — ``(tick, agent, step)`` for
+controls — increases strictly from row to row. Anything else is refused with
 :class:`DamagedRecord`, one line naming the file, the line and the defect.
 """
 from __future__ import annotations
@@ -23,10 +25,17 @@ TICK_COLUMNS = (
 )
 OBS_COLUMNS = ("tick", "agent", "estimator", "lost", "measurement", "prediction", "followed",
                "fallback")
+CONTROL_COLUMNS = ("tick", "t", "agent", "step", "speed", "turn", "achieved_speed",
+                   "achieved_turn")
+"""``controls.csv`` (``--motion drive``): every control step of every driving follower — its
+stamp (``WorldSim.control_time``), the commanded speed and turn rate and those achieved after
+actuation noise."""
 INT_TICK_COLUMNS = ("tick", "agent", "lost", "missed", "saturated_steps")
+INT_CONTROL_COLUMNS = ("tick", "agent", "step")
 MIN_COLUMNS = 3  # tick, and t or agent: a header this short is no results file
 TICKS_FILE, OBS_FILE, SUMMARY_FILE = "ticks.csv", "observations.csv", "summary.json"
-RESULT_FILES = (TICKS_FILE, OBS_FILE, SUMMARY_FILE)
+CONTROLS_FILE = "controls.csv"
+RESULT_FILES = (TICKS_FILE, OBS_FILE, CONTROLS_FILE, SUMMARY_FILE)
 
 
 class DamagedRecord(ValueError):
@@ -44,6 +53,12 @@ def read_ticks(path: str | Path) -> list[dict]:
     """Read a ``ticks.csv`` back (numbers as float/int, empty cells as None), validated as
     :func:`parse_ticks` does (:class:`DamagedRecord` otherwise)."""
     return parse_ticks(_read(path), path)
+
+
+def read_controls(path: str | Path) -> list[dict]:
+    """Read a ``controls.csv`` back (tick, agent, step as int, the rest as float), validated
+    as :func:`parse_controls` does (:class:`DamagedRecord` otherwise)."""
+    return parse_controls(_read(path), path)
 
 
 def _read(path: str | Path) -> bytes:
@@ -71,6 +86,17 @@ def parse_ticks(raw: bytes, source: str | Path) -> list[dict]:
     return rows
 
 
+def parse_controls(raw: bytes, source: str | Path) -> list[dict]:
+    """The rows of the ``controls.csv`` text ``raw``, validated as :func:`parse_ticks`, with
+    every cell a number and ``(tick, agent, step)`` increasing strictly from row to row."""
+    rows = []
+    for raw_row, line in _records(raw, source, CONTROL_COLUMNS, len(CONTROL_COLUMNS)):
+        rows.append({key: _number(int if key in INT_CONTROL_COLUMNS else float, value, key,
+                                  source, line) for key, value in raw_row.items()})
+    _in_order(rows, source, ("tick", "agent", "step"))
+    return rows
+
+
 def parse_observations(raw: bytes, source: str | Path) -> list[dict]:
     """The rows of the ``observations.csv`` text ``raw``, validated as :func:`parse_ticks`."""
     rows = []
@@ -88,10 +114,10 @@ def _damaged(source: str | Path, line: int, what: str) -> DamagedRecord:
     return DamagedRecord(f"{source}, line {line}: {what}; the record is damaged (refusing it)")
 
 
-def _records(raw: bytes, source: str | Path,
-             columns: tuple[str, ...]) -> list[tuple[dict[str, str], int]]:
+def _records(raw: bytes, source: str | Path, columns: tuple[str, ...],
+             least: int = MIN_COLUMNS) -> list[tuple[dict[str, str], int]]:
     """``(row, line number)`` of every whole CSV row of ``raw`` under a header of ``columns``
-    (or a prefix of at least :data:`MIN_COLUMNS` of them, from an earlier version)."""
+    (or a prefix of at least ``least`` of them, from an earlier version)."""
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
@@ -106,7 +132,7 @@ def _records(raw: bytes, source: str | Path,
     except StopIteration:
         raise DamagedRecord(f"{source}: empty (no header); the record is damaged "
                             "(refusing it)") from None
-    if len(header) < MIN_COLUMNS or header != columns[:len(header)]:
+    if len(header) < least or header != columns[:len(header)]:
         raise _damaged(source, 1, f"the header is not {', '.join(columns)}")
     records = []
     try:
@@ -127,14 +153,19 @@ def _number(kind: type, value: str, key: str, source: str | Path, line: int):
         raise _damaged(source, line, f"{key} is {value[:40]!r}, not a number") from None
 
 
-def _in_order(rows: list[dict], source: str | Path) -> None:
-    """Rows come tick by tick, in agent order, each (tick, agent) once."""
-    before = (-1, -1)
+def _in_order(rows: list[dict], source: str | Path,
+              order: tuple[str, ...] = ("tick", "agent")) -> None:
+    """Rows come tick by tick, in agent order (then in the order of the rest of ``order``),
+    each combination of ``order``'s columns once."""
+    def named(values: tuple) -> str:
+        return ", ".join(f"{key} {x}" for key, x in zip(order, values, strict=True))
+
+    before: tuple = (-1,) * len(order)
     for number, row in enumerate(rows, start=2):
-        tick, agent = row.get("tick"), row.get("agent")
-        if not (isinstance(tick, int) and isinstance(agent, int) and tick >= 0 and agent >= 0):
-            raise _damaged(source, number, "no tick and agent")
-        if (tick, agent) <= before:
-            raise _damaged(source, number, f"tick {tick}, agent {agent} after tick {before[0]}, "
-                                           f"agent {before[1]} (out of order or repeated)")
-        before = (tick, agent)
+        now = tuple(row.get(key) for key in order)
+        if not all(isinstance(x, int) and x >= 0 for x in now):
+            raise _damaged(source, number, f"no {' and '.join(order)}")
+        if now <= before:
+            raise _damaged(source, number, f"{named(now)} after {named(before)} (out of order "
+                                           "or repeated)")
+        before = now

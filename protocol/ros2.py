@@ -302,7 +302,11 @@ AGENT_TOPICS = {  # per agent: name -> (type, leader too)
     "ideal": ("geometry_msgs/msg/PointStamped", False),
     "estimate": ("geometry_msgs/msg/PointStamped", False),
     "required_range": ("std_msgs/msg/Float64", False),
+    "cmd_vel": ("geometry_msgs/msg/Twist", False),
 }
+DRIVE_TOPICS = ("cmd_vel",)
+"""Per-agent topics of driving followers only (``--motion drive``): the world's other runs
+neither publish nor declare them."""
 
 
 def agent_topic(agent: int, name: str) -> str:
@@ -314,15 +318,21 @@ def agent_topic(agent: int, name: str) -> str:
     return f"/swarm/agent_{agent}/{name}"
 
 
-def run_topics(followers: int) -> list[tuple[str, str]]:
+def run_topics(followers: int, drive: bool = False) -> list[tuple[str, str]]:
     """Every ``(topic, type)`` of a run with ``followers`` followers, in a fixed order (the
-    order of the world's publisher entity ids)."""
+    order of the world's publisher entity ids). ``drive`` (driving followers) appends each
+    follower's :data:`DRIVE_TOPICS` after all the others, so the other entity ids are those
+    of a teleport run."""
     if isinstance(followers, bool) or not isinstance(followers, int) or followers < 0:
         raise ValueError(f"followers must be a non-negative integer, got {followers!r}")
     topics = [CLOCK, TF, MARKERS]
     for k in range(followers + 1):
         topics += [(agent_topic(k, name), msgtype)
-                   for name, (msgtype, leader) in AGENT_TOPICS.items() if k > 0 or leader]
+                   for name, (msgtype, leader) in AGENT_TOPICS.items()
+                   if (k > 0 or leader) and name not in DRIVE_TOPICS]
+    if drive:
+        topics += [(agent_topic(k, name), AGENT_TOPICS[name][0])
+                   for k in range(1, followers + 1) for name in DRIVE_TOPICS]
     return topics
 
 
@@ -333,15 +343,16 @@ def any_hash(msgtype: str) -> str:
     return "*"
 
 
-def world_keys(domain: int, followers: int, digest=None) -> list[str]:
+def world_keys(domain: int, followers: int, digest=None, drive: bool = False) -> list[str]:
     """The data keys the world publishes on (one per topic of :func:`run_topics`), with the
     type hashes ``digest(msgtype)`` (default :func:`type_hash`; :func:`any_hash` for rules)."""
     digest = digest or type_hash
     return [topic_key(domain, topic, msgtype, digest(msgtype))
-            for topic, msgtype in run_topics(followers)]
+            for topic, msgtype in run_topics(followers, drive)]
 
 
-def world_tokens(domain: int, followers: int, zid: str = "*", digest=None) -> list[str]:
+def world_tokens(domain: int, followers: int, zid: str = "*", digest=None,
+                 drive: bool = False) -> list[str]:
     """The world's liveliness tokens: its node's, then one per publisher (entity ids 1, 2, …
     in the order of :func:`run_topics`). ``zid`` ``*`` and ``digest`` :func:`any_hash` give
     the key expressions that match them whatever the session id and the hashes (a router's
@@ -349,7 +360,7 @@ def world_tokens(domain: int, followers: int, zid: str = "*", digest=None) -> li
     digest = digest or type_hash
     return [node_token(domain, zid, 0)] + [
         publisher_token(domain, zid, 0, entity, topic, msgtype, digest(msgtype))
-        for entity, (topic, msgtype) in enumerate(run_topics(followers), start=1)]
+        for entity, (topic, msgtype) in enumerate(run_topics(followers, drive), start=1)]
 
 
 def graph_keys(domain: int) -> tuple[str, str]:

@@ -90,7 +90,7 @@ def _agent_needs(run_id: str, agent: int) -> list[str]:
 
 
 def access_control(run_id: str, followers: int, *, cert_names: bool = False,
-                   ros_domain: int = 0) -> dict:
+                   ros_domain: int = 0, drive: bool = False) -> dict:
     """The ``access_control`` section: deny by default, allow each user what its role needs.
 
     ``cert_names``: a user must also present a TLS certificate whose common name is its user
@@ -98,8 +98,9 @@ def access_control(run_id: str, followers: int, *, cert_names: bool = False,
     ``ros_domain``: the ROS 2 domain the world publishes the run's topics on (``--ros2``):
     the world may put on exactly its topics' keys and hold exactly its node's and publishers'
     liveliness tokens (:func:`protocol.ros2.world_keys`, :func:`protocol.ros2.world_tokens`;
-    any session id and type hash, so that no rule needs rosbags); the observer (or a ROS 2
-    router joining as it) may watch the domain's data and graph.
+    any session id and type hash, so that no rule needs rosbags; ``drive``: a drive run's,
+    with the followers' ``cmd_vel``); the observer (or a ROS 2 router joining as it) may watch
+    the domain's data and graph.
 
     At the router, ``ingress`` is what a client sends and ``egress`` what the router forwards
     to it; a message passes only if the sender's ingress rule and the receiver's egress rule
@@ -140,9 +141,9 @@ def access_control(run_id: str, followers: int, *, cert_names: bool = False,
     rules += [
         # --- ROS 2 (design §10): the world's topics and graph entities, as rmw_zenoh names them
         _rule("world-ros2-publish", "ingress", ["put"],
-              ros2.world_keys(ros_domain, followers, ros2.any_hash)),
+              ros2.world_keys(ros_domain, followers, ros2.any_hash, drive=drive)),
         _rule("world-ros2-tokens", "ingress", ["liveliness_token"],
-              ros2.world_tokens(ros_domain, followers, digest=ros2.any_hash)),
+              ros2.world_tokens(ros_domain, followers, digest=ros2.any_hash, drive=drive)),
         _rule("world-ros2-subscribers", "egress", ["declare_subscriber"], [ros_data]),
         _rule("observer-ros2-subscribe", "ingress", ["declare_subscriber"], [ros_data]),
         _rule("observer-ros2-receive", "egress", ["put"], [ros_data]),
@@ -203,8 +204,10 @@ class TlsFiles:
 
 
 def router_config(run_id: str, followers: int, *, listen: list[str], dictionary_file: str,
-                  tls: TlsFiles | None = None, ros_domain: int = 0) -> dict:
-    """The router's configuration as a dict (``zenoh.Config.from_json5(json.dumps(...))``).
+                  tls: TlsFiles | None = None, ros_domain: int = 0,
+                  drive: bool = False) -> dict:
+    """The router's configuration as a dict (``zenoh.Config.from_json5(json.dumps(...))``);
+    ``ros_domain`` and ``drive`` as for :func:`access_control`.
 
     With ``tls``, the router accepts ``tls/`` links only, each from a client holding a
     certificate of the deployment's CA whose common name is the user's name.
@@ -219,7 +222,7 @@ def router_config(run_id: str, followers: int, *, listen: list[str], dictionary_
         "scouting": scouting_settings(),
         "transport": {"auth": {"usrpwd": {"dictionary_file": dictionary_file}}, "link": link},
         "access_control": access_control(run_id, followers, cert_names=tls is not None,
-                                         ros_domain=ros_domain),
+                                         ros_domain=ros_domain, drive=drive),
     }
 
 
@@ -395,6 +398,7 @@ def generated_files(config: RunConfig, build: str | None = None) -> dict[str, st
     router = router_config(
         config.run_id, config.followers, listen=[f"tls/[::]:{ROUTER_PORT}"],
         dictionary_file=f"{secrets_dir}/credentials.txt", ros_domain=config.ros_domain,
+        drive=config.motion == "drive",
         tls=TlsFiles(f"{secrets_dir}/ca.pem", f"{secrets_dir}/cert.pem",
                      f"{secrets_dir}/key.pem"))
     header = (f"zenohd configuration of run {config.run_id!r} with {config.followers} followers,\n"

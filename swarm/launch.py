@@ -92,7 +92,8 @@ def embedded_router_config(config: RunConfig, endpoint: str,
     only the run's users, with the access-control rules of a deployment (swarm/deploy.py)."""
     return zenoh.Config.from_json5(json.dumps(router_config(
         config.run_id, config.followers, listen=[endpoint],
-        dictionary_file=str(credentials.dictionary), ros_domain=config.ros_domain)))
+        dictionary_file=str(credentials.dictionary), ros_domain=config.ros_domain,
+        drive=config.motion == "drive")))
 
 
 def last_error_line(log: Path, limit: int = 240) -> str | None:

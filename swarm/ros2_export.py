@@ -6,8 +6,10 @@ The bag holds the topics of :func:`protocol.ros2.run_topics`, one message per ag
 on each per-agent topic (``estimate`` and ``required_range`` on estimated ticks only), each
 recorded and stamped at the tick's simulation time; the first ``/swarm/markers`` message is
 the terrain (at most :data:`world.ros2.EXPORT_TERRAIN_CELLS` nodes over the box the run
-covers). Messages come from :class:`world.ros2.RosScene`, the builder the live publisher uses,
-fed with ``ticks.csv`` read back (floats round-trip exactly). The bag is written in a scratch
+covers). A drive run's bag also holds each follower's control steps on ``cmd_vel``, one twist
+per step, recorded at the step's time (``controls.csv``'s ``t``). Messages come from
+:class:`world.ros2.RosScene`, the builder the live publisher uses, fed with ``ticks.csv`` and
+``controls.csv`` read back (floats round-trip exactly). The bag is written in a scratch
 folder beside ``BAG_DIR`` and renamed into place when complete.
 """
 from __future__ import annotations
@@ -22,7 +24,7 @@ import numpy as np
 
 from protocol import ros2
 from protocol.config import load_config
-from world.results import SUMMARY_FILE, TICKS_FILE, read_ticks
+from world.results import CONTROLS_FILE, SUMMARY_FILE, TICKS_FILE, read_controls, read_ticks
 
 BAG_VERSION = 9  # rosbag2's metadata version of Jazzy
 BAG_FILES = {"metadata.yaml"}
@@ -76,6 +78,21 @@ def _tick_rows(rows: list[dict], n_agents: int) -> list[list[dict]]:
     return ticks
 
 
+def _tick_controls(run_dir: Path, n_ticks: int) -> list[list[dict]]:
+    """``controls.csv``'s rows grouped by tick, one (possibly empty) list per tick of
+    ``ticks.csv``."""
+    path = run_dir / CONTROLS_FILE
+    if not path.is_file():
+        raise ValueError(f"{run_dir} is a drive run without {CONTROLS_FILE}: the run was made "
+                         "by an older version; run it again to export it")
+    by_tick: list[list[dict]] = [[] for _ in range(n_ticks)]
+    for row in read_controls(path):
+        if row["tick"] >= n_ticks:
+            raise ValueError(f"{path}: tick {row['tick']} is not in {TICKS_FILE}")
+        by_tick[row["tick"]].append(row)
+    return by_tick
+
+
 def export_run(run_dir: str | Path, out: str | Path | None = None, *,
                force: bool = False) -> Path:
     """Write the bag of the finished run in ``run_dir`` to ``out`` (default ``run_dir/bag``).
@@ -98,6 +115,8 @@ def export_run(run_dir: str | Path, out: str | Path | None = None, *,
     ticks = _tick_rows(read_ticks(run_dir / TICKS_FILE), config.followers + 1)
     if not ticks:
         raise ValueError(f"{run_dir / TICKS_FILE} holds no tick")
+    drive = config.motion == "drive"
+    controls = _tick_controls(run_dir, len(ticks)) if drive else [[] for _ in ticks]
     scene = RosScene(config, surface)
     points = np.array([[r[a], r[b]] for tick in ticks for r in tick
                        for a, b in (("pos_x", "pos_y"), ("ideal_x", "ideal_y"))
@@ -111,15 +130,20 @@ def export_run(run_dir: str | Path, out: str | Path | None = None, *,
         with Writer(partial, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP) as writer:
             connections = {
                 topic: writer.add_connection(topic, msgtype, typestore=store)
-                for topic, msgtype in ros2.run_topics(config.followers)}
+                for topic, msgtype in ros2.run_topics(config.followers, drive)}
             first = ticks[0][0]["t"]
             markers = ros2.MARKERS
             writer.write(connections[markers[0]], stamp_ns(first), store.serialize_cdr(
                 scene.terrain(points, EXPORT_TERRAIN_CELLS, first), markers[1]))
-            for tick in ticks:
+            for tick, steps in zip(ticks, controls, strict=True):
                 stamp = stamp_ns(tick[0]["t"])
                 for topic, msgtype, message in scene.tick_messages(tick):
                     writer.write(connections[topic], stamp, store.serialize_cdr(message, msgtype))
+                # the tick's control steps, in time order (they fill its comm interval)
+                for topic, msgtype, message, t in sorted(scene.control_messages(steps),
+                                                         key=lambda m: m[3]):
+                    writer.write(connections[topic], stamp_ns(t),
+                                 store.serialize_cdr(message, msgtype))
         if out.exists():
             shutil.rmtree(out)
         os.replace(partial, out)

@@ -26,8 +26,8 @@ from cryptography.x509.oid import NameOID
 from protocol.config import RunConfig, load_config
 from protocol.messages import Sensing, encode
 from protocol.session import MAX_MESSAGE_SIZE
-from swarm.deploy import (SECRETS, SERVICE_USER, SWARM_IMAGE, ZENOH_IMAGE, build_context,
-                          generated_files, users)
+from swarm.deploy import (SECRETS, SERVICE_USER, SWARM_IMAGE, ZENOH_IMAGE, access_control,
+                          build_context, generated_files, users)
 from swarm.local import run_local
 from tests.deployment import (
     ROUTER_IN_COMPOSE, Deployment, check_complete_run, free_ports, generate, run_processes,
@@ -314,3 +314,26 @@ def test_every_session_config_bounds_message_size_and_takes_tls_flags(deployment
                                        "--tls-key", files[2]]))
     with pytest.raises(ValueError, match="max_message_size"):
         zenoh_config("peer", max_message_size=10)
+
+
+def test_a_drive_runs_world_may_publish_its_cmd_vel_and_nothing_more():
+    """design §10: a drive run's router lets the world put on, and hold the tokens of, each
+    follower's ``cmd_vel`` (and the teleport run's keys); a teleport run's router does not."""
+    def world_ros_rules(config: RunConfig) -> dict[str, list[str]]:
+        rules = access_control(config.run_id, config.followers, ros_domain=config.ros_domain,
+                               drive=config.motion == "drive")["rules"]
+        return {r["id"]: r["key_exprs"] for r in rules
+                if r["id"] in ("world-ros2-publish", "world-ros2-tokens")}
+
+    drive = dataclasses.replace(CONFIG, motion="drive")
+    generated = generated_files(drive)["zenoh/router.json5"]
+    teleport, driving = world_ros_rules(CONFIG), world_ros_rules(drive)
+    twist = "geometry_msgs::msg::dds_::Twist_"
+    for rule in ("world-ros2-publish", "world-ros2-tokens"):
+        added = [key for key in driving[rule] if key not in teleport[rule]]
+        assert set(teleport[rule]) < set(driving[rule])
+        assert len(added) == CONFIG.followers
+        assert all(f"agent_{k}/cmd_vel/{twist}/*" in key or f"agent_{k}%cmd_vel/{twist}/*" in key
+                   for k, key in enumerate(added, start=1)), added
+        assert all(key in generated for key in added)
+    assert not any("cmd_vel" in key for keys in teleport.values() for key in keys)

@@ -18,6 +18,7 @@ from swarm.local import LocalLink, run_local
 from tests.make_dem_data import HILLS, HILLS_LEADER_START
 from world import geometry, motion
 from world.main import resolve_with_surface
+from world.results import read_controls, read_ticks
 from world.sim import RequestError, WorldSim
 from world.surfaces import make_surface
 
@@ -241,6 +242,56 @@ def test_without_noise_the_readings_are_exact_and_the_actuation_too():
 
 
 # --- what is measured --------------------------------------------------------------------------
+
+
+class CommandLink(LocalLink):
+    """Notes every control step a follower sends, as it sends it."""
+
+    def __init__(self, sim, agent, sent):
+        super().__init__(sim, agent)
+        self.sent = sent
+
+    def act(self, request):
+        if isinstance(request, Control):
+            self.sent.append((request.tick, self.agent, request.step, request.speed,
+                              request.turn))
+        return super().act(request)
+
+
+def test_controls_csv_holds_every_step_the_followers_commanded(tmp_path):
+    """``controls.csv``: each step a follower sent, in order (a lost tick's skipped correction
+    window included), its stamp ``t_j + step·T_c/(control + snap steps)``, and the achieved
+    speeds that make up ``ticks.csv``'s path lengths and saturated steps; a teleport run
+    writes no such file."""
+    config = RunConfig(motion="drive", surface="wavy", followers=2, ticks=10, seed=4,
+                       sensing_range=0.3, control_steps=5, snap_steps=3, **NOISE)
+    sent: list = []
+    run_local(config, tmp_path / "drive",
+              link_factory=lambda sim, k: CommandLink(sim, k, sent))
+    controls = read_controls(tmp_path / "drive" / "controls.csv")
+    # in (tick, agent, step) order: pipelined, the followers send them interleaved
+    assert [(c["tick"], c["agent"], c["step"], c["speed"], c["turn"])
+            for c in controls] == sorted(sent)
+    resolved, _ = resolve_with_surface(config)
+    ticks = read_ticks(tmp_path / "drive" / "ticks.csv")
+    assert any(r["lost"] for r in ticks), "the run should lose a tick (sensing_range)"
+    duration = config.comm_period / config.control_steps
+    for row in (r for r in ticks if r["agent"] > 0):
+        steps = [c for c in controls if (c["tick"], c["agent"]) == (row["tick"], row["agent"])]
+        assert [c["step"] for c in steps] == list(range(5 if row["lost"] else 8))
+        assert [c["t"] for c in steps] == [row["tick"] * config.comm_period
+                                           + c["step"] * config.comm_period / 8 for c in steps]
+        path = 0.0
+        for c in steps:
+            path += abs(c["achieved_speed"]) * duration
+            assert c["achieved_speed"] != c["speed"] and c["achieved_turn"] != c["turn"]
+        assert path == row["path_length"]
+        assert row["saturated_steps"] == sum(abs(c["speed"]) >= resolved.max_speed
+                                             or abs(c["turn"]) >= resolved.max_turn
+                                             for c in steps)
+    run_local(RunConfig(surface="wavy", followers=2, ticks=4), tmp_path / "teleport")
+    assert not (tmp_path / "teleport" / "controls.csv").exists()
+
 
 
 def test_a_slow_robot_falls_short_and_says_so():

@@ -34,7 +34,7 @@ from protocol.folder import (
     open_file,
     write_atomic,
 )
-from protocol.record import DamagedRecord, read_observations, read_ticks
+from protocol.record import DamagedRecord, read_controls, read_observations, read_ticks
 from protocol.session import free_tcp_endpoint
 from swarm.launch import agent_commands, launch
 from swarm.local import run_local
@@ -277,6 +277,30 @@ def test_readers_refuse_a_damaged_record_in_one_line(finished_run, tmp_path, cap
         read_observations(folder / "observations.csv")
 
 
+@pytest.fixture(scope="module")
+def finished_drive_run(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("finished-drive") / "run"
+    launch(RunConfig(run_id="finished-drive", followers=2, ticks=6, motion="drive",
+                     control_steps=4, snap_steps=2), folder, in_process=True)
+    return folder
+
+
+@pytest.mark.parametrize("kind", DAMAGES)
+def test_a_damaged_controls_csv_is_refused_in_one_line(finished_drive_run, tmp_path, capsys,
+                                                       kind):
+    """A drive run's ``controls.csv``: its reader and ``swarm export`` refuse a torn, glued,
+    reordered or repeated row (exit 2, one line naming the file and line)."""
+    folder = tmp_path / "run"
+    shutil.copytree(finished_drive_run, folder)
+    assert len(read_controls(folder / "controls.csv")) == 6 * 2 * 6
+    (folder / "controls.csv").write_text(_damage(kind, (folder / "controls.csv").read_text()))
+    with pytest.raises(DamagedRecord, match=r"controls\.csv, line \d+: .*damaged"):
+        read_controls(folder / "controls.csv")
+    assert swarm.cli.main(["export", str(folder)]) == 2
+    assert "controls.csv, line" in _error_line(capsys.readouterr().err)
+    assert not (folder / "bag").exists()
+
+
 def _edit_checkpoint(folder: Path, change) -> None:
     """Rewrite the checkpoint with ``change`` applied and a recomputed checksum."""
     body = json.loads((folder / checkpoint.STATE_FILE).read_text())
@@ -286,16 +310,19 @@ def _edit_checkpoint(folder: Path, change) -> None:
                     offsets=body["offsets"], wall_time=body["wall_time"])
 
 
-@pytest.mark.parametrize("defect", ["offset mid-row", "damaged kept row"])
+@pytest.mark.parametrize("defect", ["offset mid-row", "damaged kept row", "controls mid-row"])
 def test_resume_changes_nothing_until_everything_is_validated(tmp_path, procs, defect):
     """A checkpoint offset into the middle of a row, or a damaged row before the offset:
     ``--resume`` refuses in one line and every file is as it was (it used to cut ticks.csv
-    first, then crash)."""
+    first, then crash); in a drive run, ``controls.csv``'s offset too."""
     folder = tmp_path / "run"
-    _stopped_run(folder, RunConfig(run_id="resume-check", followers=1, ticks=40), after=12)
-    if defect == "offset mid-row":
+    drive = {"motion": "drive"} if defect == "controls mid-row" else {}
+    _stopped_run(folder, RunConfig(run_id="resume-check", followers=1, ticks=40, **drive),
+                 after=12)
+    damaged = "controls.csv" if drive else "ticks.csv"
+    if defect in ("offset mid-row", "controls mid-row"):
         _edit_checkpoint(folder, lambda body: body["offsets"].update(
-            {"ticks.csv": body["offsets"]["ticks.csv"] - 9}))
+            {damaged: body["offsets"][damaged] - 9}))
     else:
         text = (folder / "ticks.csv").read_text()
         (folder / "ticks.csv").write_text(_damage("duplicate", text))
@@ -310,7 +337,7 @@ def test_resume_changes_nothing_until_everything_is_validated(tmp_path, procs, d
     code, err = _outcomes(world)[0]
     assert code == 2  # refused before anything ran
     line = _error_line(err)
-    assert line.startswith(f"error: cannot resume {folder}: {folder / 'ticks.csv'}"), line
+    assert line.startswith(f"error: cannot resume {folder}: {folder / damaged}"), line
     assert files() == before
 
 

@@ -13,6 +13,7 @@ from swarm.launch import launch
 from swarm.local import run_local
 
 RESULTS = ("ticks.csv", "observations.csv")
+DRIVE_RESULTS = (*RESULTS, "controls.csv")
 
 
 def _config(followers: int, pipelined: bool) -> RunConfig:
@@ -29,8 +30,8 @@ def _drive_config(pipelined: bool) -> RunConfig:
                                control_steps=6, snap_steps=3)
 
 
-def _same(out: Path, reference: Path) -> None:
-    for name in RESULTS:
+def _same(out: Path, reference: Path, names: tuple[str, ...] = RESULTS) -> None:
+    for name in names:
         assert (out / name).read_bytes() == (reference / name).read_bytes(), name
 
 
@@ -73,11 +74,11 @@ def test_drive_column_matches_in_every_layout(tmp_path, drive_unpipelined, layou
     config = _drive_config(pipelined=True)
     if layout == "in-memory":
         run_local(config, tmp_path)
-        _same(tmp_path, drive_unpipelined)
+        _same(tmp_path, drive_unpipelined, DRIVE_RESULTS)
         return
     summary = launch(config, tmp_path / "run", in_process=layout == "in-process")
     assert summary["complete"], summary["reason"]
-    _same(tmp_path / "run", drive_unpipelined)
+    _same(tmp_path / "run", drive_unpipelined, DRIVE_RESULTS)
 
 
 def test_unpipelined_over_zenoh_matches(tmp_path, unpipelined):

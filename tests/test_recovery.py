@@ -151,8 +151,9 @@ def test_any_process_killed_at_random_moments_changes_nothing(tmp_path, kind):
 @pytest.mark.parametrize("kind", ["follower", "leader", "world"])
 def test_a_drive_run_killed_at_random_moments_changes_nothing(tmp_path, kind):
     """Driving followers (``--motion drive``): a kill lands anywhere in a tick's control
-    steps; the world's checkpoint (poses with the robots' own headings) and the followers'
-    replay logs restore it, and the results are byte-identical."""
+    steps; the world's checkpoint (poses with the robots' own headings, the record files'
+    offsets, ``controls.csv``'s included) and the followers' replay logs restore it, and the
+    results, every control step included, are byte-identical."""
     print(f"FAULT_SEED={SEED} (rerun with this environment variable to replay)")
     surface, seed, kills = _draws(kind, f"drive-{kind}")[0]
     config = RunConfig(run_id=f"kill-drive-{kind}", surface=surface, followers=2, ticks=TICKS,
@@ -211,7 +212,9 @@ def _kill_and_compare(tmp_path: Path, n: int, config: RunConfig, kind: str,
                     assert proc.wait(timeout=WAIT_S) == 0, run.failure_logs()
     finally:
         run.close()
-    for name in ("ticks.csv", "observations.csv"):
+    names = ["ticks.csv", "observations.csv"] + (["controls.csv"] if config.motion == "drive"
+                                                 else [])
+    for name in names:
         assert (out / name).read_bytes() == (reference / name).read_bytes(), \
             f"{name} differs after killing the {kind} (run {n}):\n{run.failure_logs()}"
     summary = json.loads((out / "summary.json").read_text())

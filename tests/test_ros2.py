@@ -95,6 +95,23 @@ def test_world_tokens_round_trip():
                                  p.type_hash) for p in publishers] == tokens[1:]
 
 
+def test_a_drive_run_adds_one_cmd_vel_twist_per_follower():
+    """``cmd_vel`` (``geometry_msgs/msg/Twist``, the Jazzy hash) for each follower of a drive
+    run, after every other topic: the other publishers keep a teleport run's entity ids."""
+    assert ros2.type_hash("geometry_msgs/msg/Twist") == (
+        "RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a")
+    drive, teleport = ros2.run_topics(2, drive=True), ros2.run_topics(2)
+    assert drive == teleport + [(f"/swarm/agent_{k}/cmd_vel", "geometry_msgs/msg/Twist")
+                                for k in (1, 2)]
+    keys = ros2.world_keys(7, 2, drive=True)
+    assert keys[-1] == ("7/swarm/agent_2/cmd_vel/geometry_msgs::msg::dds_::Twist_/"
+                        + ros2.type_hash("geometry_msgs/msg/Twist"))
+    tokens = ros2.world_tokens(7, 2, "0123abcd", drive=True)
+    assert tokens[:-2] == ros2.world_tokens(7, 2, "0123abcd")
+    assert [(p.topic, p.msgtype, p.entity_id) for p in map(ros2.parse_token, tokens[1:])] == [
+        (topic, msgtype, entity) for entity, (topic, msgtype) in enumerate(drive, start=1)]
+
+
 def test_qos_chunks():
     assert ros2.qos_keyexpr(ros2.PUBLISHER_QOS) == "::,10:,:,:,,"
     assert ros2.qos_keyexpr(ros2.RMW_ZENOH_DEFAULT) == "::,:,:,:,,"

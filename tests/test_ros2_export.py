@@ -23,7 +23,7 @@ from protocol.folder import LOCK_FILE
 from swarm.cli import main as swarm_main
 from swarm.launch import launch
 from swarm.ros2_export import export_run
-from world.results import read_ticks
+from world.results import read_controls, read_ticks
 from world.ros2 import stamp_ns, stamp_parts
 from world.surfaces import make_surface
 
@@ -170,6 +170,57 @@ def test_bag_metadata_names_types_and_hashes(bag):
         found = {c.topic: (c.msgtype, c.digest) for c in reader.connections}
     assert found == {topic: (msgtype, ros2.type_hash(msgtype))
                      for topic, msgtype in ros2.run_topics(FOLLOWERS)}
+
+
+@pytest.fixture(scope="module")
+def drive_run(tmp_path_factory) -> Path:
+    """A small run of driving followers with actuation noise (commanded ≠ achieved)."""
+    out = tmp_path_factory.mktemp("ros2-export-drive") / "run"
+    config = RunConfig(run_id="ros-export-drive", surface="wavy", followers=2, ticks=8,
+                       motion="drive", control_steps=4, snap_steps=2, noise_speed=0.02,
+                       noise_turn=0.02, seed=6)
+    summary = launch(config, out, in_process=True)
+    assert summary["complete"], summary["reason"]
+    return out
+
+
+def _check_cmd_vel(messages: dict, controls: list[dict], followers: int) -> None:
+    """Each follower's ``cmd_vel`` (either reader's): one twist per row of ``controls.csv``,
+    in order, ``linear.x`` the commanded speed, ``angular.z`` the commanded turn, recorded at
+    the step's time."""
+    for k in range(1, followers + 1):
+        rows = [c for c in controls if c["agent"] == k]
+        twists = messages[ros2.agent_topic(k, "cmd_vel")]
+        assert len(twists) == len(rows) == 8 * (4 + 2)
+        stamps = [stamp for stamp, _ in twists]
+        assert stamps == [stamp_ns(c["t"]) for c in rows] and stamps == sorted(set(stamps))
+        assert [(m.linear.x, m.angular.z) for _, m in twists] == [
+            (c["speed"], c["turn"]) for c in rows]
+        assert all((m.linear.y, m.linear.z, m.angular.x, m.angular.y) == (0, 0, 0, 0)
+                   for _, m in twists)
+
+
+def test_a_drive_runs_bag_holds_every_command(drive_run):
+    bag = export_run(drive_run)
+    controls = read_controls(drive_run / "controls.csv")
+    assert any(c["speed"] != c["achieved_speed"] for c in controls)
+    from rosbags.rosbag2 import Reader
+
+    with Reader(bag) as reader:
+        found = {c.topic: (c.msgtype, c.digest) for c in reader.connections}
+    assert found == {topic: (msgtype, ros2.type_hash(msgtype))
+                     for topic, msgtype in ros2.run_topics(2, drive=True)}
+    _check_cmd_vel(_rosbags_messages(bag), controls, 2)
+    messages, encodings = _mcap_messages(bag)
+    _check_cmd_vel(messages, controls, 2)
+    assert encodings["/swarm/agent_1/cmd_vel"] == ("geometry_msgs/msg/Twist", "ros2msg", "cdr")
+    # a drive run's record without its controls is refused (one line)
+    (drive_run / "controls.csv").rename(drive_run / "controls.kept")
+    try:
+        with pytest.raises(ValueError, match="drive run without controls.csv"):
+            export_run(drive_run, drive_run / "bag2")
+    finally:
+        (drive_run / "controls.kept").rename(drive_run / "controls.csv")
 
 
 def _one_error_line(capsys) -> str:

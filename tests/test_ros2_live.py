@@ -18,14 +18,18 @@ import zenoh
 
 from protocol import ros2
 from protocol.config import RunConfig
+from protocol.record import CONTROLS_FILE, OBS_FILE, TICKS_FILE
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.deploy import OBSERVER
 from swarm.launch import launch
-from world.results import read_ticks
+from swarm.local import run_local
+from world.results import read_controls, read_ticks
 from world.ros2 import stamp_parts
 from world.surfaces import make_surface
 
 DOMAIN, FOLLOWERS, TICKS = 17, 3, 12
+DRIVE = {"motion": "drive", "control_steps": 4, "snap_steps": 2, "noise_speed": 0.02,
+         "noise_turn": 0.02}
 
 
 class Listener:
@@ -41,12 +45,15 @@ class Listener:
             self.samples.append((str(sample.key_expr), sample.payload.to_bytes(), attachment))
 
 
-def _ros_run(out: Path, ros: bool, listen: bool) -> tuple[dict, Listener, list[str]]:
-    """A 3-follower wavy run (agents in-process); with ``listen``, an observer session
-    subscribed to the ROS 2 data of the domain and a liveliness query of its graph made
-    once the world is up."""
+def _ros_run(out: Path, ros: bool, listen: bool, drive: bool = False,
+             topics: tuple[str, ...] = ("pose", "required_range"),
+             ) -> tuple[dict, Listener, list[str]]:
+    """A 3-follower wavy run (agents in-process; ``drive``: driving followers); with
+    ``listen``, an observer session subscribed to the domain's ROS 2 data on ``topics`` and a
+    liveliness query of its graph made once the world is up."""
     config = RunConfig(run_id=f"ros-live-{int(ros)}", surface="wavy", followers=FOLLOWERS,
-                       ticks=TICKS, noise_move=0.02, seed=9,
+                       ticks=TICKS, seed=9,
+                       **(DRIVE if drive else {"noise_move": 0.02}),
                        **({"ros2": True, "ros_domain": DOMAIN} if ros else {}))
     endpoint = free_tcp_endpoint()
     listener, tokens, sessions = Listener(), [], []
@@ -57,8 +64,8 @@ def _ros_run(out: Path, ros: bool, listen: bool) -> tuple[dict, Listener, list[s
         sessions.append(session)
         # as rmw_zenoh's subscriptions: one key per topic (here with wildcards over the
         # agents and types), and the graph through a liveliness query on the domain
-        session.declare_subscriber(f"{DOMAIN}/swarm/*/pose/**", listener)
-        session.declare_subscriber(f"{DOMAIN}/swarm/*/required_range/**", listener)
+        for topic in topics:
+            session.declare_subscriber(f"{DOMAIN}/swarm/*/{topic}/**", listener)
         tokens.extend(str(r.ok.key_expr) for r in session.liveliness().get(
             ros2.graph_keys(DOMAIN)[1], timeout=10.0) if r.ok is not None)
 
@@ -114,6 +121,39 @@ def test_a_zenoh_client_listening_as_ros2_decodes_every_pose(tmp_path):
         assert values == [t[k]["required_range"] for t in ticks
                           if t[k]["required_range"] is not None]
     assert by_key == {}
+
+
+def test_a_zenoh_client_decodes_every_command_of_a_drive_run(tmp_path):
+    """A drive run with ``--ros2``: each follower's ``cmd_vel`` carries one Twist per control
+    step, in order (sequence numbers 1, 2, …, the GID of its publisher's token), equal to
+    ``controls.csv``; the graph holds the ``cmd_vel`` publishers; and the record is
+    byte-identical to the same run's without ROS 2 (in memory)."""
+    out = tmp_path / "run"
+    _, listener, tokens = _ros_run(out, ros=True, listen=True, drive=True, topics=("cmd_vel",))
+    zid = ros2.parse_token(tokens[0]).zid
+    assert sorted(tokens) == sorted(ros2.world_tokens(DOMAIN, FOLLOWERS, zid, drive=True))
+    controls = read_controls(out / CONTROLS_FILE)
+    store, twist = ros2.typestore(), "geometry_msgs/msg/Twist"
+    by_key: dict[str, list] = {}
+    for key, payload, attachment in listener.samples:
+        by_key.setdefault(key, []).append((payload, ros2.parse_attachment(attachment)))
+    for k in range(1, FOLLOWERS + 1):
+        topic = ros2.agent_topic(k, "cmd_vel")
+        [token] = [t for t in tokens if ros2.parse_token(t).topic == topic]
+        samples = by_key.pop(ros2.topic_key(DOMAIN, topic, twist, ros2.type_hash(twist)))
+        rows = [c for c in controls if c["agent"] == k]
+        assert len(samples) == len(rows) == TICKS * (4 + 2)
+        assert [a for _, a in samples] == [(n, a[1], ros2.gid(token))
+                                           for n, (_, a) in enumerate(samples, start=1)]
+        messages = [store.deserialize_cdr(payload, twist) for payload, _ in samples]
+        assert [(m.linear.x, m.angular.z) for m in messages] == [
+            (c["speed"], c["turn"]) for c in rows]
+    assert by_key == {}
+    reference = tmp_path / "reference"
+    run_local(RunConfig(run_id="ros-live-0", surface="wavy", followers=FOLLOWERS, ticks=TICKS,
+                        seed=9, **DRIVE), reference)
+    for name in (TICKS_FILE, OBS_FILE, CONTROLS_FILE):
+        assert (out / name).read_bytes() == (reference / name).read_bytes(), name
 
 
 def test_a_run_with_ros2_records_byte_identical_results(tmp_path):

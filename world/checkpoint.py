@@ -1,12 +1,12 @@
 """The world's checkpoint: ``world_state.json``, describing only complete ticks (design §4).
 
-After every complete tick the world first appends the tick to ``ticks.csv`` and
-``observations.csv``, then replaces this file atomically. It holds the simulation state after
-that tick, the two CSV files' lengths at that point, the run id, the run's *start nonce*
-(random per fresh start, kept across resumes: agents' state files must carry the same one) and a
-SHA-256 checksum. A world killed at any moment — even halfway through appending a tick — resumes
-from the last tick this file describes, cutting the CSV files back to the lengths it records.
-The file is deleted once the run is complete.
+After every complete tick the world first appends the tick to ``ticks.csv``,
+``observations.csv`` and (a drive run) ``controls.csv``, then replaces this file atomically.
+It holds the simulation state after that tick, the CSV files' lengths at that point, the run
+id, the run's *start nonce* (random per fresh start, kept across resumes: agents' state files
+must carry the same one) and a SHA-256 checksum. A world killed at any moment — even halfway
+through appending a tick — resumes from the last tick this file describes, cutting the CSV
+files back to the lengths it records. The file is deleted once the run is complete.
 """
 from __future__ import annotations
 

@@ -1,10 +1,10 @@
 """The run's results folder (design §7): append-only CSVs and an atomic summary.
 
 A run folder holds ``config.toml`` (written by whoever starts the run), ``ticks.csv``,
-``observations.csv`` and ``summary.json``. The recorder appends each complete tick to the two
-CSV files and rewrites ``summary.json`` atomically, so an interrupted run leaves a readable
-partial result with ``"complete": false``, and a tick's write costs the same at tick 100 as at
-tick 100,000.
+``observations.csv``, with ``--motion drive`` ``controls.csv``, and ``summary.json``. The
+recorder appends each complete tick to the CSV files and rewrites ``summary.json`` atomically,
+so an interrupted run leaves a readable partial result with ``"complete": false``, and a
+tick's write costs the same at tick 100 as at tick 100,000.
 """
 from __future__ import annotations
 
@@ -20,6 +20,8 @@ from protocol.config import RunConfig
 from protocol.distribution import version
 from protocol.folder import AppendFile, write_atomic
 from protocol.limits import MAX_TEXT
+from protocol.record import CONTROL_COLUMNS as CONTROL_COLUMNS
+from protocol.record import CONTROLS_FILE as CONTROLS_FILE
 from protocol.record import OBS_COLUMNS as OBS_COLUMNS
 from protocol.record import OBS_FILE as OBS_FILE
 from protocol.record import RESULT_FILES as RESULT_FILES
@@ -27,7 +29,8 @@ from protocol.record import SUMMARY_FILE as SUMMARY_FILE
 from protocol.record import TICK_COLUMNS as TICK_COLUMNS
 from protocol.record import TICKS_FILE as TICKS_FILE
 from protocol.record import DamagedRecord as DamagedRecord
-from protocol.record import parse_observations, parse_ticks
+from protocol.record import parse_controls, parse_observations, parse_ticks
+from protocol.record import read_controls as read_controls
 from protocol.record import read_observations as read_observations
 from protocol.record import read_ticks as read_ticks
 
@@ -133,14 +136,15 @@ class RunRecorder:
     """Records each complete tick: its ground-truth rows and the followers' observations.
 
     With a results folder, :meth:`open` it first; each :meth:`add_tick` then appends one tick to
-    ``ticks.csv`` and ``observations.csv``, whole or not at all (a failed write is cut back to
-    the previous tick in both files before the error, naming the file, is raised).
-    :attr:`offsets` are the two files' lengths after the last complete tick: the world's
-    checkpoint stores them, and ``open(resume_offsets=...)`` first checks that the files hold
-    whole, ordered rows up to them (nothing is changed otherwise), then cuts off whatever a
-    crash left past them (a half-written or unconfirmed tick). A spare file of
-    :meth:`reserve_bytes` is kept in the folder while the run goes, and given up just before the
-    last summary is written, so that even a full disk leaves a summary with the true reason.
+    ``ticks.csv``, ``observations.csv`` and, in a drive run, ``controls.csv``, whole or not at
+    all (a failed write is cut back to the previous tick in every file before the error, naming
+    the file, is raised). :attr:`offsets` are the files' lengths after the last complete tick:
+    the world's checkpoint stores them, and ``open(resume_offsets=...)`` first checks that the
+    files hold whole, ordered rows up to them (nothing is changed otherwise), then cuts off
+    whatever a crash left past them (a half-written or unconfirmed tick). A spare file of
+    :meth:`reserve_bytes` is kept in the folder while the run goes, and given up just before
+    the last summary is written, so that even a full disk leaves a summary with the true
+    reason.
     Without a folder (``out_dir=None``) only the totals are kept.
     """
 
@@ -150,6 +154,9 @@ class RunRecorder:
         self.ticks_done = 0
         self._metrics = {k: _FollowerMetrics() for k in range(1, config.followers + 1)}
         self._files: dict[str, AppendFile] = {}
+        self._tables = {TICKS_FILE: TICK_COLUMNS, OBS_FILE: OBS_COLUMNS}
+        if config.motion == "drive":
+            self._tables[CONTROLS_FILE] = CONTROL_COLUMNS
 
     def open(self, resume_offsets: dict[str, int] | None = None,
              resume_ticks: int | None = None) -> None:
@@ -166,7 +173,7 @@ class RunRecorder:
             raise RuntimeError("this recorder has no results folder")
         if resume_offsets is not None:
             ticks, observations = self._kept_rows(resume_offsets, resume_ticks)
-        for name, columns in ((TICKS_FILE, TICK_COLUMNS), (OBS_FILE, OBS_COLUMNS)):
+        for name, columns in self._tables.items():
             fresh = resume_offsets is None
             self._files[name] = AppendFile(self.out_dir / name, truncate=fresh)
             if fresh:
@@ -183,9 +190,10 @@ class RunRecorder:
     def _kept_rows(self, offsets: dict[str, int],
                    ticks: int | None) -> tuple[list[dict], list[dict]]:
         """The rows of ``ticks.csv`` and ``observations.csv`` up to ``offsets``, validated
-        (whole rows, in order, ``ticks`` complete ticks if given), reading only."""
+        (whole rows, in order, ``ticks`` complete ticks if given; ``controls.csv``'s too, of
+        those ticks only), reading only."""
         kept = {}
-        for name in (TICKS_FILE, OBS_FILE):
+        for name in self._tables:
             path, keep = self.out_dir / name, offsets.get(name)
             try:
                 with open(path, "rb") as fh:
@@ -203,6 +211,12 @@ class RunRecorder:
         if ticks is not None and held != ticks:
             raise DamagedRecord(f"{self.out_dir / TICKS_FILE} holds {held} ticks up to the "
                                 f"checkpoint's offset, the checkpoint {ticks}")
+        if CONTROLS_FILE in kept:
+            controls = parse_controls(kept[CONTROLS_FILE], self.out_dir / CONTROLS_FILE)
+            if controls and controls[-1]["tick"] >= held:
+                raise DamagedRecord(f"{self.out_dir / CONTROLS_FILE} holds tick "
+                                    f"{controls[-1]['tick']} up to the checkpoint's offset, "
+                                    f"{self.out_dir / TICKS_FILE} {held} ticks")
         return rows, observations
 
     def reserve_bytes(self) -> int:
@@ -230,17 +244,21 @@ class RunRecorder:
         if m is not None and row["tick"] >= self.config.init_ticks:
             m.add_observation(row)
 
-    def add_tick(self, rows: list[dict], observations: list[tuple[int, object]] = ()) -> None:
-        """Record one complete tick: its rows (``WorldSim.finish_tick``) and the followers'
-        observations of that tick as ``(agent, Observation)`` pairs, in agent order. With a
-        folder the tick is written whole to both files before it counts, or not at all."""
+    def add_tick(self, rows: list[dict], observations: list[tuple[int, object]] = (),
+                 controls: list[dict] = ()) -> None:
+        """Record one complete tick: its rows (``WorldSim.finish_tick``), the followers'
+        observations of that tick as ``(agent, Observation)`` pairs, in agent order, and in a
+        drive run its control steps (``WorldSim.control_rows``). With a folder the tick is
+        written whole to every file before it counts, or not at all."""
+        if controls and CONTROLS_FILE not in self._tables:
+            raise ValueError("controls are recorded in drive runs only (motion 'drive')")
         obs_rows = [observation_row(agent, msg) for agent, msg in observations]
         if self.out_dir is not None:
             before = self.offsets
+            data = {TICKS_FILE: rows, OBS_FILE: obs_rows, CONTROLS_FILE: controls}
             try:
-                for name, columns, data in ((TICKS_FILE, TICK_COLUMNS, rows),
-                                            (OBS_FILE, OBS_COLUMNS, obs_rows)):
-                    text = "".join(_line(columns, row) for row in data)
+                for name, columns in self._tables.items():
+                    text = "".join(_line(columns, row) for row in data[name])
                     self._files[name].append(text.encode("utf-8"))
             except OSError:
                 for name, size in before.items():

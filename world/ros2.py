@@ -2,8 +2,9 @@
 run's Zenoh session the way rmw_zenoh does, or written to a bag (``swarm/ros2_export.py``).
 
 :class:`RosScene` turns each completed tick's rows (``WorldSim.finish_tick``, or ``ticks.csv``
-read back) into the messages of every topic of :func:`protocol.ros2.run_topics`, and draws the
-terrain once as a triangle mesh. :class:`Ros2Publisher` publishes them, with the key
+read back) into the messages of every topic of :func:`protocol.ros2.run_topics`, a drive run's
+control steps (``WorldSim.control_rows``, or ``controls.csv``) into ``cmd_vel`` twists, and
+draws the terrain once as a triangle mesh. :class:`Ros2Publisher` publishes them, with the key
 expressions, attachments and liveliness tokens of :mod:`protocol.ros2`.
 
 Frames and poses: frame ``map`` is the world's x, y and ``z = F(x, y)``. An agent at ``p`` with
@@ -239,6 +240,20 @@ class RosScene:
         out.append((*ros2.MARKERS, markers))
         return out
 
+    def control_messages(self, controls: Sequence[dict]) -> list[tuple[str, str, object, float]]:
+        """``(topic, type, message, stamp)`` of one tick's control steps (``controls.csv``
+        rows, in their order): on ``/swarm/agent_<k>/cmd_vel`` a ``geometry_msgs/msg/Twist``
+        in the robot's frame (``agent_<k>``: x along its heading, z its surface normal) with
+        ``linear.x`` the commanded speed and ``angular.z`` the commanded turn rate, stamped
+        (a twist has no header: the bag's record time) with the step's time ``t``."""
+        T = self.types
+        Vector3 = T["geometry_msgs/msg/Vector3"]
+        msgtype = ros2.AGENT_TOPICS["cmd_vel"][0]
+        return [(ros2.agent_topic(c["agent"], "cmd_vel"), msgtype,
+                 T[msgtype](linear=Vector3(x=float(c["speed"]), y=0.0, z=0.0),
+                            angular=Vector3(x=0.0, y=0.0, z=float(c["turn"]))), c["t"])
+                for c in controls]
+
     def _point_stamped(self, agent: int, name: str, header, x: float, y: float):
         msg = self.types["geometry_msgs/msg/PointStamped"](
             header=header, point=self.point(x, y, self.height(x, y)))
@@ -301,16 +316,17 @@ class RosScene:
 class Ros2Publisher:
     """Publishes a run's ROS 2 topics on an open Zenoh session, as rmw_zenoh would: one node
     ``/swarm_world`` (entity 0) with one publisher per topic (entities 1, 2, … in the order of
-    :func:`protocol.ros2.run_topics`), each with its liveliness token, its key expression, the
-    CDR payload and the attachment (its own sequence number from 1, the wall clock in ns, its
-    GID). Samples are sent with congestion control DROP, reliably (rmw_zenoh's choice for a
-    reliable keep-last publisher): a slow ROS 2 subscriber never holds up the run.
+    :func:`protocol.ros2.run_topics`; a drive run's followers' ``cmd_vel`` included), each
+    with its liveliness token, its key expression, the CDR payload and the attachment (its own
+    sequence number from 1, the wall clock in ns, its GID). Samples are sent with congestion
+    control DROP, reliably (rmw_zenoh's choice for a reliable keep-last publisher): a slow
+    ROS 2 subscriber never holds up the run.
 
     Parameters
     ----------
     session : zenoh.Session
     config : RunConfig
-        ``ros_domain`` names the domain.
+        ``ros_domain`` names the domain; ``motion`` ``drive`` adds the ``cmd_vel`` topics.
     surface : Surface
     ideal : ndarray, shape (n_agents, n_ticks, 2)
         The ideal formation: the terrain covers its box.
@@ -321,12 +337,13 @@ class Ros2Publisher:
         self.scene = RosScene(config, surface, path_window=LIVE_PATH_POSES,
                               rod_pieces=LIVE_ROD_PIECES)
         domain, followers = config.ros_domain, config.followers
-        node, *tokens = ros2.world_tokens(domain, followers, str(session.zid()))
+        drive = config.motion == "drive"
+        node, *tokens = ros2.world_tokens(domain, followers, str(session.zid()), drive=drive)
         self._publishers: dict[str, tuple] = {}
         self._declared: list = [session.liveliness().declare_token(node)]
-        for (topic, _), key, token in zip(ros2.run_topics(followers),
-                                          ros2.world_keys(domain, followers), tokens,
-                                          strict=True):
+        for (topic, _), key, token in zip(ros2.run_topics(followers, drive),
+                                          ros2.world_keys(domain, followers, drive=drive),
+                                          tokens, strict=True):
             publisher = session.declare_publisher(
                 key, congestion_control=zenoh.CongestionControl.DROP,
                 reliability=zenoh.Reliability.RELIABLE)
@@ -341,13 +358,17 @@ class Ros2Publisher:
         publisher.put(payload, attachment=ros2.attachment(sequence[0], time.time_ns(), source))
         sequence[0] += 1
 
-    def publish_tick(self, rows: Sequence[dict]) -> None:
-        """Publish one completed tick (ticks in order), and the terrain when it is due."""
+    def publish_tick(self, rows: Sequence[dict], controls: Sequence[dict] = ()) -> None:
+        """Publish one completed tick (ticks in order) from what it recorded: its rows, then
+        its control steps (``cmd_vel``, each robot's in step order); and the terrain when it
+        is due."""
         now = time.monotonic()
         if now - self._terrain_sent >= TERRAIN_EVERY_S:
             self._put(ros2.MARKERS[0], self._terrain)
             self._terrain_sent = now
         for topic, msgtype, message in self.scene.tick_messages(rows):
+            self._put(topic, bytes(self.scene.serialize(message, msgtype)))
+        for topic, msgtype, message, _ in self.scene.control_messages(controls):
             self._put(topic, bytes(self.scene.serialize(message, msgtype)))
 
     def undeclare(self) -> None:

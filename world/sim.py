@@ -60,6 +60,19 @@ class TickRecord:
     lost: bool
     missed: bool
     drive: DriveRecord | None = None
+    controls: tuple[ControlStep, ...] = ()
+
+
+@dataclass(frozen=True)
+class ControlStep:
+    """One control step a driving follower drove (``controls.csv``, design §7): the commanded
+    speed and turn rate, and those achieved after actuation noise."""
+
+    step: int
+    speed: float
+    turn: float
+    achieved_speed: float
+    achieved_turn: float
 
 
 @dataclass(frozen=True)
@@ -85,6 +98,7 @@ class DriveTick:
     sees_rod: bool = True  # whether the rod end is in range after the move phase
     path_length: float = 0.0
     saturated: int = 0
+    controls: list[ControlStep] = field(default_factory=list)  # the steps driven so far
 
 
 @dataclass
@@ -248,7 +262,8 @@ class WorldSim:
             d = state.drive
             snap_error = None if state.lost else _dist(state.pos, self._leader_rod(agent, tick)[0])
             drive = DriveRecord(d.reach_error, snap_error, d.path_length, d.saturated)
-        state.records[tick] = TickRecord(state.estimate, state.lost, state.missed, drive)
+        state.records[tick] = TickRecord(state.estimate, state.lost, state.missed, drive,
+                                         tuple(state.drive.controls))
         if agent == 0:
             self._leader_at[tick] = (self.leader_velocity.copy(), self.leader_time)
 
@@ -302,11 +317,34 @@ class WorldSim:
         for state in self.agents:  # keep only what velocities and baselines still need
             _drop_ticks_before(state.settled, j - 1)
             _drop_ticks_before(state.headings, j - 1)
-            _drop_ticks_before(state.records, j + 1)
+            _drop_ticks_before(state.records, j)  # j's: control_rows
         _drop_ticks_before(self._leader_at, j)
         for key in [key for key in self._rod_cache if key[1] < j]:  # the next floor reads j's
             del self._rod_cache[key]
         return rows
+
+    def control_time(self, tick: int, step: int) -> float:
+        """The stamp of control step ``step`` of tick ``tick``: ``t_j + step·T_c / n``, ``n``
+        the tick's steps with the correction window (``control_steps + snap_steps``). The
+        steps of a tick are spread evenly over its comm interval, so a robot's stamps increase
+        from step to step and tick to tick; the world integrates each step for
+        :attr:`control_period` (``T_c / control_steps``), so without a correction window
+        the stamp is the step's start in the integration's time too."""
+        cfg = self.config
+        return self.time_of(tick) + step * cfg.comm_period / (cfg.control_steps
+                                                              + cfg.snap_steps)
+
+    def control_rows(self, tick: int) -> list[dict]:
+        """The ``controls.csv`` rows of tick ``tick``, the tick :meth:`finish_tick` finished
+        last: every control step each driving follower drove in it, in agent then step order
+        (none in a teleport run)."""
+        if tick != self.complete:
+            raise RuntimeError(f"tick {tick}'s control steps are read after finish_tick, "
+                               f"and only until the next (the last finished is {self.complete})")
+        return [{"tick": tick, "t": self.control_time(tick, c.step), "agent": k, "step": c.step,
+                 "speed": c.speed, "turn": c.turn, "achieved_speed": c.achieved_speed,
+                 "achieved_turn": c.achieved_turn}
+                for k, state in enumerate(self.agents) for c in state.records[tick].controls]
 
     def state(self) -> dict:
         """JSON-ready state after the last complete tick, for :meth:`restore` (what agents
@@ -649,6 +687,8 @@ class WorldSim:
         drive.path_length += abs(v) * duration
         drive.saturated += (abs(request.speed) >= cfg.max_speed
                             or abs(request.turn) >= cfg.max_turn)
+        drive.controls.append(ControlStep(step, float(request.speed), float(request.turn),
+                                          float(v), float(omega)))
         if drive.step == cfg.control_steps:
             if tick >= cfg.init_ticks:
                 drive.reach_error = _dist(pos, drive.goal)
