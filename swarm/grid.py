@@ -22,15 +22,22 @@ import shutil
 import statistics
 import tempfile
 import time
+from collections.abc import Iterable, Mapping
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
-from collections.abc import Iterable, Mapping
 from typing import Any
 
-from protocol.config import (DEFAULTS, OPTIONS, RunConfig, estimator_options, given_options,
-                             idle_reason, load_config)
+from protocol.config import (
+    DEFAULTS,
+    OPTIONS,
+    RunConfig,
+    estimator_options,
+    given_options,
+    idle_reason,
+    load_config,
+)
 from protocol.distribution import needs
 from protocol.folder import FolderLock, write_atomic
 from protocol.limits import MAX_RUN_ID

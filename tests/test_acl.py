@@ -22,8 +22,17 @@ from protocol.session import free_tcp_endpoint, undeclare_all, zenoh_config
 from swarm.deploy import agent_user
 from swarm.launch import RunCredentials, embedded_router_config
 from tests.deployment import (
-    ABSENT_S, WAIT_S, Deployment, Inbox, check_complete_run, delivered, free_ports, generate,
-    replies, run_processes, until,
+    ABSENT_S,
+    WAIT_S,
+    Deployment,
+    Inbox,
+    check_complete_run,
+    delivered,
+    free_ports,
+    generate,
+    replies,
+    run_processes,
+    until,
 )
 
 ROOT = Path(__file__).resolve().parents[1]

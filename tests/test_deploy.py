@@ -26,7 +26,12 @@ from protocol.session import MAX_MESSAGE_SIZE
 from swarm.deploy import SECRETS, generated_files, users
 from swarm.local import run_local
 from tests.deployment import (
-    ROUTER_IN_COMPOSE, Deployment, check_complete_run, free_ports, generate, run_processes,
+    ROUTER_IN_COMPOSE,
+    Deployment,
+    check_complete_run,
+    free_ports,
+    generate,
+    run_processes,
 )
 from world.sim import WorldSim
 

@@ -20,7 +20,11 @@ from agents.leader import run_leader
 from agents.link import AgentAbort
 from protocol.cli import add_log_level_flag
 from protocol.config import (
-    MAX_CONFIG_BYTES, OPTIONS, RunConfig, dump_config, load_config,
+    MAX_CONFIG_BYTES,
+    OPTIONS,
+    RunConfig,
+    dump_config,
+    load_config,
 )
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.cli import empty_followers

@@ -10,7 +10,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 import zenoh
 
 from protocol import keys
@@ -68,7 +67,8 @@ def test_realtime_without_pressure_matches_lockstep(tmp_path):
                   in_process=True)
     assert real["complete"]
     assert all(f["missed_ticks"] == 0 for f in real["followers"].values())
-    assert (tmp_path / "lock" / "ticks.csv").read_text() == (tmp_path / "real" / "ticks.csv").read_text()
+    assert ((tmp_path / "lock" / "ticks.csv").read_text()
+            == (tmp_path / "real" / "ticks.csv").read_text())
     assert lock["followers"] == real["followers"]
 
 

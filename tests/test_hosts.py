@@ -29,8 +29,14 @@ import pytest
 from protocol.config import load_config
 from tests.delay_relay import main as relay_main
 from tests.delay_relay import relay_process
-from tests.deployment import (ROUTER_IN_COMPOSE, Deployment, check_complete_run, free_ports,
-                              generate, run_processes)
+from tests.deployment import (
+    ROUTER_IN_COMPOSE,
+    Deployment,
+    check_complete_run,
+    free_ports,
+    generate,
+    run_processes,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN_TIMEOUT_S = 240.0

@@ -10,8 +10,14 @@ import numpy as np
 
 from protocol.distribution import needs
 from swarm.live.draw import (
-    agent_color, choice_points, contour_levels, empty_map_columns, follower_series, height_grid,
-    hillshade, map_columns,
+    agent_color,
+    choice_points,
+    contour_levels,
+    empty_map_columns,
+    follower_series,
+    height_grid,
+    hillshade,
+    map_columns,
 )
 from swarm.live.store import COMPLETE, INCOMPLETE, REPLAY_HINT, WAITING, RunStore, Snapshot
 
