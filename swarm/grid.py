@@ -277,13 +277,15 @@ def _failed(reason: str) -> Future:
 
 def _run_on_cluster(runs: list[GridRun], runs_dir: Path, scheduler: str, record) -> None:
     """Submit each run as one task to the dask scheduler at ``scheduler``; ``record`` each
-    finished one. Ctrl-C cancels the tasks not yet finished."""
+    finished one. Ctrl-C cancels the tasks not yet finished. How long connecting may take is
+    dask's own option ``distributed.comm.timeouts.connect`` (30 s unless configured, e.g.
+    ``DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT=5s``)."""
     with needs("cluster"):
         from distributed import Client
         from distributed import as_completed as completed
 
     try:
-        client = Client(scheduler, timeout="30s")
+        client = Client(scheduler)
     except (OSError, TimeoutError) as exc:
         raise RuntimeError(f"cannot reach the dask scheduler at {scheduler}: {exc}") from None
     with client:
