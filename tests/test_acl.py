@@ -394,6 +394,7 @@ def test_clients_without_tls_or_without_the_deployments_certificate_are_refused(
     assert refused == list(attempts)
 
 
+@pytest.mark.slow  # five followers; fast tier: test_deploy.py's compose services complete a run
 def test_a_whole_run_over_the_generated_configuration(deployment, tmp_path):
     """World, leader and five followers as processes, each with its own generated files."""
     listen, connect = free_ports()

@@ -446,6 +446,7 @@ def _external(requests: list[str], port: int) -> list[str]:
     return [u for u in requests if not u.startswith(local) and not u.startswith("data:")]
 
 
+@pytest.mark.slow  # a paced run in the browser; fast tier: the watch page follows a run
 @pytest.mark.timeout(240)
 def test_live_page_follows_a_run_and_replay_reaches_the_last_tick(browser, tmp_path):
     """A realtime 3-follower run over Zenoh with ``--live``: the page's tick advances, it draws
