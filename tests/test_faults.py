@@ -144,7 +144,9 @@ def test_agents_exit_when_the_world_vanishes_and_resume_continues(tmp_path, proc
 
 
 @pytest.mark.skipif(os.name != "posix", reason="signals")
-@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+@pytest.mark.parametrize("stop", [  # SIGTERM's 143, fast: the cleanup test below, test_grid_workers
+    pytest.param(signal.SIGINT, id="ctrl-c"),
+    pytest.param(signal.SIGTERM, id="sigterm", marks=pytest.mark.slow)])
 def test_ctrl_c_stops_everything_and_leaves_a_partial_result(tmp_path, stop):
     """Ctrl-C, or a supervisor's SIGTERM, to ``swarm run`` alone: every agent process ends, the
     partial result stays, the run's temporary credentials are removed, status 128 + signal."""
@@ -192,8 +194,11 @@ sys.exit(7)  # cleanup finished in time: the program's own status
 
 
 @pytest.mark.skipif(os.name != "posix", reason="signals")
-@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
-@pytest.mark.parametrize("cleanup", ["wedged", "prompt"])
+@pytest.mark.parametrize("cleanup, stop", [  # each cleanup and each signal once in the fast tier
+    pytest.param("wedged", signal.SIGINT, id="wedged-ctrl-c"),
+    pytest.param("wedged", signal.SIGTERM, id="wedged-sigterm", marks=pytest.mark.slow),
+    pytest.param("prompt", signal.SIGINT, id="prompt-ctrl-c", marks=pytest.mark.slow),
+    pytest.param("prompt", signal.SIGTERM, id="prompt-sigterm")])
 def test_ctrl_c_ends_a_process_whose_cleanup_wedges(cleanup, stop):
     """After Ctrl-C or SIGTERM the cleanup runs; if it is still running after the grace period
     the process exits with 128 + signal anyway (a Zenoh teardown can wedge); if it finishes,
