@@ -12,9 +12,10 @@ transparent recovery needs when the world restarts a tick (design §4).
 The file is JSON lines. The first line is the header ``{"schema", "run_id", "agent",
 "start"}``; ``start`` is the world's per-start nonce, so a file from another start of the same
 run id is refused. Every line carries ``"sum"``, the SHA-256 of its canonical JSON without
-that key (:func:`protocol.config.json_checksum`, as for the world's checkpoint). A torn last line (a crash in the middle of an append: no
-final newline) is dropped, since its tick was never reported to anyone; any other defect
-refuses the whole file with one line naming the file and the reason (:class:`StateLogError`).
+that key (:func:`protocol.config.json_checksum`, as for the world's checkpoint). A torn last
+line (a crash in the middle of an append: no final newline) is dropped, since its tick was
+never reported to anyone; any other defect refuses the whole file with one line naming the
+file and the reason (:class:`StateLogError`).
 """
 from __future__ import annotations
 

@@ -7,8 +7,16 @@ from collections.abc import Callable
 import zenoh
 
 from agents.link import AgentAbort, RunFinished
-from protocol.cli import (FAILED, REFUSED, add_log_level_flag, describe, ends_with, fail,
-                          run_command, setup_logging)
+from protocol.cli import (
+    FAILED,
+    REFUSED,
+    add_log_level_flag,
+    describe,
+    ends_with,
+    fail,
+    run_command,
+    setup_logging,
+)
 from protocol.config import AgentSettings, load_agent_settings
 from protocol.session import add_connection_flags, connection_config, open_session
 

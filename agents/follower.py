@@ -1,4 +1,5 @@
-"""A follower: estimates its leader's rod end, moves there, snaps on it (``python -m agents.follower``).
+"""A follower: estimates its leader's rod end, moves there, snaps on it
+(``python -m agents.follower``).
 
 One tick (design §4): sense the leader (``pre``) and ask the policy for its estimate; from tick
 ``init_ticks`` on, move there (the reply carries the ``moved`` sensing); snap onto the rod end
@@ -26,8 +27,7 @@ from agents.checkpoint import Entry, StateLog, replay
 from agents.cli import parser, run_cli
 from agents.drive import drive_tick
 from agents.link import AgentAbort, AgentLink, MarkedMissed, Rejoin, RunFinished
-from agents.policies import (NotReady, Policy, make_policy, move_variance, reading_variance,
-                             relative)
+from agents.policies import NotReady, Policy, make_policy, move_variance, reading_variance, relative
 from protocol.config import AgentSettings
 from protocol.messages import Move, Observation, Sensing, Snap
 
@@ -67,7 +67,8 @@ def displacement(offset: np.ndarray, pre: Sensing, moved: Sensing,
     return target + weight * (relative(pre) - relative(moved) - offset)
 
 
-def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick: int) -> TickOutcome:
+def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings,
+                  tick: int) -> TickOutcome:
     """Run one tick of the follower."""
     pre = link.sense(tick, "pre")
     try:  # during the initial ticks the prediction is only scored, not followed

@@ -1,4 +1,5 @@
-"""The leader: drives its geodesic tick by tick and holds its rod out (``python -m agents.leader``)."""
+"""The leader: drives its geodesic tick by tick and holds its rod out
+(``python -m agents.leader``)."""
 from __future__ import annotations
 
 import logging

@@ -24,8 +24,26 @@ import zenoh
 from protocol import keys
 from protocol.config import AgentSettings
 from protocol.messages import (
-    ActResult, ActSensing, Control, Done, Drive, ErrorReply, Joined, JoinRequest, Message, Missed,
-    Observation, Move, ProtocolError, Rod, Sensing, SenseRequest, Snap, TickStart, decode, encode,
+    ActResult,
+    ActSensing,
+    Control,
+    Done,
+    Drive,
+    ErrorReply,
+    Joined,
+    JoinRequest,
+    Message,
+    Missed,
+    Move,
+    Observation,
+    ProtocolError,
+    Rod,
+    SenseRequest,
+    Sensing,
+    Snap,
+    TickStart,
+    decode,
+    encode,
 )
 from protocol.session import token_live, undeclare_all
 
@@ -107,7 +125,8 @@ class AgentLink:
         self._joined_at = 0  # the value of _cuts when this agent last joined
         self._declared = []
         if token_live(session, keys.alive(run_id, agent_id)):
-            raise AgentAbort(f"agent id {agent_id} is already live in run {run_id}: refusing to start")
+            raise AgentAbort(f"agent id {agent_id} is already live in run {run_id}: "
+                             "refusing to start")
         self.follow = follow
         self._declared.append(session.declare_subscriber(keys.tick(run_id), self._on_tick))
         if follow is not None:
@@ -142,7 +161,8 @@ class AgentLink:
         try:
             return decode(sample.payload, kind)
         except ProtocolError as exc:
-            log.warning("agent %d: dropped bad sample on %s: %s", self.agent_id, sample.key_expr, exc)
+            log.warning("agent %d: dropped bad sample on %s: %s", self.agent_id, sample.key_expr,
+                        exc)
             return None
 
     def _on_tick(self, sample: zenoh.Sample) -> None:

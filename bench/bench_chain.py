@@ -91,7 +91,8 @@ def main() -> None:
           f"{'peak RSS max (MB)':>17}  {'median (MB)':>11}")
     for n in [int(x) for x in args.chains.split(",")]:
         r = chain(n, args.ticks)
-        print(f"{r['followers']:>9}  {r['ms_per_tick']:>8.1f}  {r['ms_per_tick_per_follower']:>16.2f}  "
+        print(f"{r['followers']:>9}  {r['ms_per_tick']:>8.1f}  "
+              f"{r['ms_per_tick_per_follower']:>16.2f}  "
               f"{r['peak_rss_max_mb']:>17.1f}  {r['peak_rss_median_mb']:>11.1f}"
               f"   ({r['processes']} agent processes; target <= 80 MB each)")
 

@@ -32,11 +32,9 @@ if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 
 from swarm.terrain import dem_from_npz  # noqa: E402  (after the path set-up)
+from tests.dem_reference import REFERENCE_TOLERANCE, Case, make_cases, reference_rod_end  # noqa: E402
 from world.dem import DemSurface, load_dem  # noqa: E402
 from world.geometry import rod_end  # noqa: E402
-
-from tests.dem_reference import (REFERENCE_TOLERANCE, Case, make_cases,  # noqa: E402
-                                 reference_rod_end)
 
 TARGET_MS, TARGET_ERROR, TARGET_SPEEDUP = 0.1, 1e-6, 1000.0
 

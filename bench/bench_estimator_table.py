@@ -43,9 +43,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from protocol.config import AUTO, CLASSICAL, OWN_MOTION, RunConfig  # noqa: E402
 from swarm.cli import parse_leader_start  # noqa: E402
 from swarm.local import run_local  # noqa: E402
-from world.surfaces import make_surface  # noqa: E402
-
 from world import random_waves  # noqa: E402
+from world.surfaces import make_surface  # noqa: E402
 
 PAPER = ("elliptic", "hyperbolic", "wavy")
 HELD_OUT = ("gaussian-hill", "ripple", "world.held_out:crossed_waves",
@@ -212,7 +211,8 @@ def main() -> None:
 
 
 def tables() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="T_c = 1.28 only, seeds 0-1")
     p.add_argument("--noise-free", action="store_true", help="the noise-free tables only")
     p.add_argument("--noise-levels", metavar="R/B,...",
@@ -302,7 +302,8 @@ def print_noisy(surfaces, noisy_table: dict, levels, seeds) -> None:
             cl_name, cl_best = best_classical(row)
             print(f"{short(s):<15}" + "".join(" " + num(row[n]) for n in names)
                   + " " + num(row["floor"]) + "".join(f"{gains[a][-1]:>18.3f}" for a in AUTO)
-                  + f"{row['auto'] / cl_best:>9.3f} {cl_name:<5}{row['auto'] / row['floor']:>12.2f}")
+                  + f"{row['auto'] / cl_best:>9.3f} {cl_name:<5}"
+                  + f"{row['auto'] / row['floor']:>12.2f}")
         for label, reduce in (("geometric mean", geometric_mean), ("min", min)):
             print(f"{label:<15}" + " " * 10 * (len(names) + 1)
                   + "".join(f"{reduce(g):>18.3f}" for g in gains.values()))

@@ -27,7 +27,6 @@ from world.main import resolve  # noqa: E402
 from world.service import WorldService  # noqa: E402
 from world.surfaces import make_surface  # noqa: E402
 
-
 _CLIENT = r"""
 import statistics, sys, time, zenoh
 from protocol.messages import Sensing, SenseRequest, decode, encode

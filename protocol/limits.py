@@ -38,7 +38,7 @@ MAX_NAME = 64
 MAX_RUN_ID = 64
 """Longest run id (a chunk of every key expression, and a folder name)."""
 
-NAME_PATTERN = re.compile(r"[A-Za-z][A-Za-z0-9_.:+-]{0,%d}" % (MAX_NAME - 1))
+NAME_PATTERN = re.compile(rf"[A-Za-z][A-Za-z0-9_.:+-]{{0,{MAX_NAME - 1}}}")
 """A name starts with a letter and uses a small safe alphabet: it can never be read as a
 spreadsheet formula nor carry a separator, quote, space or control character."""
 

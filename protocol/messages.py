@@ -30,8 +30,15 @@ from typing import Any, ClassVar
 import msgpack
 
 from protocol.limits import (
-    MAX_DEPTH, MAX_NAME, MAX_PAYLOAD_BYTES, MAX_TEXT, MAX_TICK, MAX_VECTOR, MSGPACK_BOUNDS,
-    NAME_PATTERN, NAME_RULE,
+    MAX_DEPTH,
+    MAX_NAME,
+    MAX_PAYLOAD_BYTES,
+    MAX_TEXT,
+    MAX_TICK,
+    MAX_VECTOR,
+    MSGPACK_BOUNDS,
+    NAME_PATTERN,
+    NAME_RULE,
 )
 
 SCHEMA_VERSION = 1

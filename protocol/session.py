@@ -99,7 +99,8 @@ def zenoh_config(
     for name, endpoints in (("listen", listen), ("connect", connect)):
         for endpoint in endpoints:
             if not isinstance(endpoint, str) or "/" not in endpoint:
-                raise ValueError(f"{name} endpoint must look like 'tcp/HOST:PORT', got {endpoint!r}")
+                raise ValueError(f"{name} endpoint must look like 'tcp/HOST:PORT', "
+                                 f"got {endpoint!r}")
     if (user is None) != (password is None):
         raise ValueError("user and password must be given together")
     tls = (tls_ca, tls_cert, tls_key)

@@ -28,10 +28,20 @@ import struct
 from typing import Any
 
 from protocol.limits import (  # the view's bounds; importers may take them from here too
-    MAP_CELLS, MAX_VIEW_BYTES, MAX_VIEW_DEPTH, MAX_VIEW_TEXT, ROWS_PER_CHUNK, VIEW_MSGPACK_BOUNDS,
+    MAP_CELLS,
+    MAX_VIEW_BYTES,
+    MAX_VIEW_DEPTH,
+    MAX_VIEW_TEXT,
+    ROWS_PER_CHUNK,
+    VIEW_MSGPACK_BOUNDS,
 )
 from protocol.messages import (
-    ProtocolError, check_count, check_finite, check_text, pack_bounded, unpack_bounded,
+    ProtocolError,
+    check_count,
+    check_finite,
+    check_text,
+    pack_bounded,
+    unpack_bounded,
 )
 
 VIEW_VERSION = 1

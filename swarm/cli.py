@@ -7,11 +7,30 @@ import sys
 from pathlib import Path
 
 from protocol.cli import (
-    EXPECTED_FAILURES, FAILED, INTERRUPTED, REFUSED, Refused, add_log_level_flag, check_out_dir, describe,
-    ends_with, fail, refuse, run_command, setup_logging,
+    EXPECTED_FAILURES,
+    FAILED,
+    INTERRUPTED,
+    REFUSED,
+    Refused,
+    add_log_level_flag,
+    check_out_dir,
+    describe,
+    ends_with,
+    fail,
+    refuse,
+    run_command,
+    setup_logging,
 )
-from protocol.config import (OPTIONS, Option, RunConfig, applies_to, config_from_dict,
-                             config_from_file, flag_of, read_toml)
+from protocol.config import (
+    OPTIONS,
+    Option,
+    RunConfig,
+    applies_to,
+    config_from_dict,
+    config_from_file,
+    flag_of,
+    read_toml,
+)
 from protocol.distribution import DISTRIBUTION, require, version
 from protocol.folder import FolderLock
 from protocol.ros2 import domain_from_env
@@ -570,7 +589,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_live_port(run)
     add_log_level_flag(run)
     run.set_defaults(func=cmd_run, in_process=False)
-    experiment = sub.add_parser("experiment", help="regenerate the paper's tables, figures and report")
+    experiment = sub.add_parser("experiment",
+                                help="regenerate the paper's tables, figures and report")
     experiment.add_argument("name", choices=("paper", "terrain", "drive"),
                             help="which experiment")
     experiment.add_argument("--out", default=None,

@@ -309,7 +309,8 @@ def _yaml(value, indent: int = 0) -> list[str]:
 def _run_toml(config: RunConfig) -> str:
     return (
         "# Run configuration of the deployment (written by `python -m swarm deploy`; mounted\n"
-        f"# read-only at {RUN_TOML_IN_CONTAINER}). Any option of `python -m swarm run` (design §9)\n"
+        f"# read-only at {RUN_TOML_IN_CONTAINER}). Any option of `python -m swarm run` "
+        "(design §9)\n"
         "# may be added; run_id and followers must stay as generated: the router's rules are\n"
         "# written for exactly this run id and these agents.\n"
         f"run_id = {json.dumps(config.run_id)}\n"

@@ -1,4 +1,5 @@
-"""``python -m swarm experiment paper``: the paper's Section 4 over Zenoh, as tables, figures, report.
+"""``python -m swarm experiment paper``: the paper's Section 4 over Zenoh, as tables, figures,
+report.
 
 The grid is data: :func:`paper_grid` returns, per table, the named :class:`GridRun` s (a
 ``RunConfig`` plus the table columns it fills), built by :func:`swarm.grid.expand` from axes as
@@ -33,11 +34,30 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from protocol.config import GPS_DICTIONARIES, RunConfig
-from swarm.grid import (RUN_ATTEMPTS, Axis, GridRun, RunOutcome, execute, expand,
-                        follower_rows, is_nan, mean_over, read_table, run_grid, summary_row,
-                        write_table, write_tables)
-from swarm.report import (EFFECTIVENESS_NUMBERS, FIGURE_COLUMNS, SETTINGS,
-                          effectiveness_numbers, effectiveness_run, write_report)
+from swarm.grid import (
+    RUN_ATTEMPTS,
+    Axis,
+    GridRun,
+    RunOutcome,
+    execute,
+    expand,
+    follower_rows,
+    is_nan,
+    mean_over,
+    read_table,
+    run_grid,
+    summary_row,
+    write_table,
+    write_tables,
+)
+from swarm.report import (
+    EFFECTIVENESS_NUMBERS,
+    FIGURE_COLUMNS,
+    SETTINGS,
+    effectiveness_numbers,
+    effectiveness_run,
+    write_report,
+)
 
 __all__ = ["FULL", "QUICK", "RUN_ATTEMPTS", "TABLE_COLUMNS", "GridRun", "GridSpec", "RunOutcome",
            "execute", "is_nan", "paper_grid", "practical_rows", "read_table", "run_grid",

@@ -22,15 +22,22 @@ import shutil
 import statistics
 import tempfile
 import time
+from collections.abc import Iterable, Mapping
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
-from collections.abc import Iterable, Mapping
 from typing import Any
 
-from protocol.config import (DEFAULTS, OPTIONS, RunConfig, estimator_options, given_options,
-                             idle_reason, load_config)
+from protocol.config import (
+    DEFAULTS,
+    OPTIONS,
+    RunConfig,
+    estimator_options,
+    given_options,
+    idle_reason,
+    load_config,
+)
 from protocol.distribution import needs
 from protocol.folder import LOCK_FILE, FolderLock, write_atomic
 from protocol.limits import MAX_RUN_ID
@@ -271,13 +278,15 @@ def _failed(reason: str) -> Future:
 
 def _run_on_cluster(runs: list[GridRun], runs_dir: Path, scheduler: str, record) -> None:
     """Submit each run as one task to the dask scheduler at ``scheduler``; ``record`` each
-    finished one. Ctrl-C cancels the tasks not yet finished."""
+    finished one. Ctrl-C cancels the tasks not yet finished. How long connecting may take is
+    dask's own option ``distributed.comm.timeouts.connect`` (30 s unless configured, e.g.
+    ``DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT=5s``)."""
     with needs("cluster"):
         from distributed import Client
         from distributed import as_completed as completed
 
     try:
-        client = Client(scheduler, timeout="30s")
+        client = Client(scheduler)
     except (OSError, TimeoutError) as exc:
         raise RuntimeError(f"cannot reach the dask scheduler at {scheduler}: {exc}") from None
     with client:

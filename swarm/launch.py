@@ -28,8 +28,15 @@ from protocol.config import AgentSettings, RunConfig
 from protocol.folder import FolderLock, open_file
 from protocol.messages import safe_text
 from protocol.session import free_tcp_endpoint, zenoh_config
-from swarm.deploy import (OBSERVER, agent_user, private_dir, router_config, users,
-                          write_credentials, write_secret)
+from swarm.deploy import (
+    OBSERVER,
+    agent_user,
+    private_dir,
+    router_config,
+    users,
+    write_credentials,
+    write_secret,
+)
 from world.main import run_world
 from world.service import WorldService
 

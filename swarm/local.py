@@ -16,8 +16,20 @@ from agents.follower import follower_tick
 from agents.policies import Policy, make_policy
 from protocol.config import AgentSettings, RunConfig
 from protocol.folder import FolderLock
-from protocol.messages import (ActResult, ActSensing, Control, Drive, Message, Move, Observation,
-                               SenseRequest, Sensing, Snap, decode, encode)
+from protocol.messages import (
+    ActResult,
+    ActSensing,
+    Control,
+    Drive,
+    Message,
+    Move,
+    Observation,
+    SenseRequest,
+    Sensing,
+    Snap,
+    decode,
+    encode,
+)
 from world.main import resolve_with_surface
 from world.results import RunRecorder
 from world.schedule import may_open, predecessor_through

@@ -29,8 +29,8 @@ from protocol.config import RunConfig, load_config
 from protocol.folder import write_atomic
 from world.dem import DemSurface
 from world.results import read_ticks
-from world.view import height_grid
 from world.surfaces import make_surface
+from world.view import height_grid
 
 DPI = 110
 STYLE = {"font.size": 12, "axes.titlesize": 13, "axes.labelsize": 12, "legend.fontsize": 11,
@@ -405,9 +405,11 @@ def plot_run(run_dir: str | Path, force: bool = False) -> list[Path]:
     (unless ``force``: draw them anew).
     """
     run_dir = Path(run_dir)
-    missing = [n for n in ("config.toml", "ticks.csv", "summary.json") if not (run_dir / n).is_file()]
+    missing = [n for n in ("config.toml", "ticks.csv", "summary.json")
+               if not (run_dir / n).is_file()]
     if missing:
-        raise ValueError(f"run_dir {run_dir} is not a results folder (missing {', '.join(missing)})")
+        raise ValueError(f"run_dir {run_dir} is not a results folder "
+                         f"(missing {', '.join(missing)})")
     out = run_dir / "figures"
     effectiveness, required = (out / f"{name}.png" for name in ("effectiveness", "required_range"))
     if not force and (effectiveness.exists() or required.exists()):
@@ -518,14 +520,15 @@ def plot_practical(rows: list[dict], path: str | Path) -> Path:
     width = 0.8 / len(variants)
     move = rows[0]["noise_move"] if rows else math.nan
     for ax, surface in zip(_panels(fig, len(surfaces)), surfaces):
-        def cell(variant: str, noise: float) -> dict | None:
+        def cell(variant: str, noise: float, surface: str = surface) -> dict | None:
             return next((r for r in rows if r["surface"] == surface and r["variant"] == variant
                          and r["noise_velocity"] == noise), None)
 
         for i, variant in enumerate(variants):
             cells = [cell(variant, nv) for nv in noises]
             values = [c["rmse"] if c else math.nan for c in cells]
-            spread = [0.0 if c is None or math.isnan(c["rmse_std"]) else c["rmse_std"] for c in cells]
+            spread = [0.0 if c is None or math.isnan(c["rmse_std"]) else c["rmse_std"]
+                      for c in cells]
             color, hatch = VARIANT_STYLE.get(variant, ("k", ""))
             x = np.arange(len(noises)) + (i - (len(variants) - 1) / 2) * width
             ax.bar(x, values, width, yerr=spread, color=color, hatch=hatch, edgecolor="white",
@@ -560,8 +563,8 @@ def plot_comm_period(rows: list[dict], path: str | Path,
     styles = estimator_styles(estimators)
     for ax, surface in zip(_panels(fig, len(surfaces), sharey=True), surfaces):
         for est in estimators:
-            mine = sorted(((r["comm_period"], r["mean_required_range"]) for r in rows
-                           if r["surface"] == surface and r["estimator"] == est))
+            mine = sorted((r["comm_period"], r["mean_required_range"]) for r in rows
+                           if r["surface"] == surface and r["estimator"] == est)
             color, marker = styles[est]
             ax.plot(*zip(*mine), marker=marker, color=color, ms=5,
                     label=est if surface == surfaces[0] else None)

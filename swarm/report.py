@@ -34,6 +34,7 @@ REPORT_TABLES = ("sensing_range", "dictionaries", "practical", "comm_period", "e
 """The tables :func:`paper_report` reads."""
 
 
+
 def _g(x: float) -> str:
     """Three significant digits; 'n/a' for a missing number."""
     return "n/a" if is_nan(x) else f"{x:.3g}"
@@ -43,7 +44,9 @@ def _times(x: float) -> str:
     """A ratio for prose: '126×', '5,580×', '0.466×'."""
     if is_nan(x):
         return "n/a"
-    return f"{x:,.0f}×" if x >= 100 else f"{x:.1f}×" if x >= 10 else f"{x:.2f}×" if x >= 0.1 else f"{x:.2g}×"
+    if x >= 100:
+        return f"{x:,.0f}×"
+    return f"{x:.1f}×" if x >= 10 else f"{x:.2f}×" if x >= 0.1 else f"{x:.2g}×"
 
 
 def _pick(rows: list[dict], metric: str, **keys: Any) -> float:
@@ -165,15 +168,17 @@ def _practical_text(rows: list[dict]) -> str:
     b_best = [(s, nv) for s, nv in noisy
               if rmse[(s, "b", nv)] <= min(rmse[(s, v, nv)] for v in variants)]
     top, move = noises[-1], rows[0]["noise_move"]
-    b_change = max(max(rmse[(s, "b", nv)] for nv in noises) - min(rmse[(s, "b", nv)] for nv in noises)
-                   for s in surfaces)
+    b_change = max(max(rmse[(s, "b", nv)] for nv in noises)
+                   - min(rmse[(s, "b", nv)] for nv in noises) for s in surfaces)
     spread = max(rows, key=lambda r: -math.inf if is_nan(r["rmse_std"]) else r["rmse_std"])
     share = len(b_best) / len(noisy) if noisy else math.nan
     verdict = ("agrees with the paper: relative position alone (b) is the best dictionary once "
                "velocity is noisy" if share == 1 else
-               "mostly agrees with the paper's conclusion that b is best under noise" if share >= 0.5
-               else "disagrees with the paper's conclusion that b is best under noise")
-    b_persist = [_ratio(rmse[(s, "b", noises[0])], rmse[(s, "persist", noises[0])]) for s in surfaces]
+               "mostly agrees with the paper's conclusion that b is best under noise"
+               if share >= 0.5 else
+               "disagrees with the paper's conclusion that b is best under noise")
+    b_persist = [_ratio(rmse[(s, "b", noises[0])], rmse[(s, "persist", noises[0])])
+                 for s in surfaces]
     near = max(abs(1 - x) for x in b_persist)
     return (f"Noise: σ_v ∈ {{{', '.join(f'{nv:g}' for nv in noises)}}} on every velocity "
             f"reading, σ_move = {move:g} on every move, none on range or bearing; mean RMSE over "
@@ -200,19 +205,23 @@ def _practical_text(rows: list[dict]) -> str:
 def _comm_period_text(rows: list[dict], paper_period: float) -> str:
     surfaces = list(dict.fromkeys(r["surface"] for r in rows))
     periods = sorted({r["comm_period"] for r in rows})
-    value = {(r["surface"], r["comm_period"], r["estimator"]): r["mean_required_range"] for r in rows}
+    value = {(r["surface"], r["comm_period"], r["estimator"]): r["mean_required_range"]
+             for r in rows}
     parts = []
     for s in surfaces:
         worse = [tc for tc in periods if not value[(s, tc, "edmd-b")] < value[(s, tc, "persist")]]
-        at = (f"edmd-b is not lower than persist at T_c ∈ {{{', '.join(f'{tc:g}' for tc in worse)}}}"
+        at = ("edmd-b is not lower than persist at T_c ∈ "
+              f"{{{', '.join(f'{tc:g}' for tc in worse)}}}"
               if worse else "edmd-b is lower than persist at every T_c")
-        gains = [_times(_ratio(value[(s, tc, "persist")], value[(s, tc, "edmd-b")])) for tc in periods]
+        gains = [_times(_ratio(value[(s, tc, "persist")], value[(s, tc, "edmd-b")]))
+                 for tc in periods]
         parts.append(f"On {s}, persist's range over edmd-b's goes " + ", ".join(gains)
                      + f" over T_c = {periods[0]:g} … {periods[-1]:g}; {at}")
     cells = [(s, tc) for s in surfaces for tc in periods]
     others = ("stay", "persist", "edmd-b")
     auto_best = sum(value[(*c, "auto")] <= min(value[(*c, e)] for e in others) for c in cells)
-    stay = [_ratio(value[(s, periods[-1], "stay")], value[(s, periods[0], "stay")]) for s in surfaces]
+    stay = [_ratio(value[(s, periods[-1], "stay")], value[(s, periods[0], "stay")])
+            for s in surfaces]
     return (f"Beyond the paper, which uses T_c = {paper_period:g} only. Every run "
             f"has the same number of ticks, so the leader travels further at larger T_c. While "
             f"T_c grows "

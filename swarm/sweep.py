@@ -31,9 +31,19 @@ from pathlib import Path
 from typing import Any
 
 from protocol.config import MAX_CONFIG_DEPTH, read_toml
-from swarm.grid import (SUMMARY_COLUMNS, Axis, RunOutcome, estimator_axis, expand, mean_over,
-                        run_grid, summary_row, table_number, write_run_index, write_table)
-
+from swarm.grid import (
+    SUMMARY_COLUMNS,
+    Axis,
+    RunOutcome,
+    estimator_axis,
+    expand,
+    mean_over,
+    run_grid,
+    summary_row,
+    table_number,
+    write_run_index,
+    write_table,
+)
 
 GRID_DEPTH = MAX_CONFIG_DEPTH + 2  # a run's options, under [axes.<axis>.<label>]
 

@@ -36,8 +36,18 @@ from protocol.config import AUTO, CLASSICAL, OWN_MOTION
 from protocol.distribution import needs
 from protocol.folder import write_atomic
 from swarm.experiment import draw_jobs
-from swarm.grid import (Axis, GridRun, RunOutcome, estimator_axis, expand, follower_rows, is_nan,
-                        mean_over, run_grid, write_tables)
+from swarm.grid import (
+    Axis,
+    GridRun,
+    RunOutcome,
+    estimator_axis,
+    expand,
+    follower_rows,
+    is_nan,
+    mean_over,
+    run_grid,
+    write_tables,
+)
 
 TERRAIN_ESTIMATORS = ("stay", "persist", "edmd-b", *CLASSICAL, *OWN_MOTION, *AUTO)
 """Estimators the terrain study compares (add classical baselines here by name)."""
@@ -109,7 +119,8 @@ def terrain_grid(dem: str | Path, spec: TerrainSpec) -> list[GridRun]:
     base = {"surface": f"dem:{Path(dem).resolve()}", "followers": spec.followers,
             "spacing": spec.spacing, "ticks": spec.ticks,
             "surface_params": {"smoothing": spec.smoothing} if spec.smoothing else {}}
-    starts = Axis("start", tuple((i, {"leader_start": s}) for i, s in enumerate(spec.leader_starts)),
+    starts = Axis("start",
+                  tuple((i, {"leader_start": s}) for i, s in enumerate(spec.leader_starts)),
                   "start{}")
     return expand("terrain", base, [starts, Axis.of_field("comm_period", spec.comm_periods,
                                                           "tc{:g}"),
@@ -303,7 +314,8 @@ def _findings(comm_all: list[dict], position_all: list[dict], position: list[dic
                        + f" (EDMD-b better in {sum(r < 1 for r in ratios)} of {len(ratios)}).")
     for period in spec.position_periods:
         growth = [f"{n} {_fmt(_cell(position, comm_period=period, follower=1, estimator=n))} → "
-                  f"{_fmt(_cell(position, comm_period=period, follower=spec.followers, estimator=n))}"
+                  + _fmt(_cell(position, comm_period=period, follower=spec.followers,
+                               estimator=n))
                   for n in spec.estimators]
         winners: dict[str, int] = {}
         for i in range(len(spec.leader_starts)):

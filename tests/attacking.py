@@ -50,5 +50,6 @@ def run_under_attack(config: RunConfig, tmp_path: Path, attack: Attack) -> tuple
 
 def same_results(tmp_path: Path) -> bool:
     """Whether the attacked run's ticks.csv and observations.csv equal the clean run's."""
-    return all((tmp_path / "attacked" / name).read_bytes() == (tmp_path / "clean" / name).read_bytes()
+    return all((tmp_path / "attacked" / name).read_bytes()
+               == (tmp_path / "clean" / name).read_bytes()
                for name in ("ticks.csv", "observations.csv"))

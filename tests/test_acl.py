@@ -22,8 +22,17 @@ from protocol.session import free_tcp_endpoint, undeclare_all, zenoh_config
 from swarm.deploy import agent_user
 from swarm.launch import RunCredentials, embedded_router_config
 from tests.deployment import (
-    ABSENT_S, WAIT_S, Deployment, Inbox, check_complete_run, delivered, free_ports, generate,
-    replies, run_processes, until,
+    ABSENT_S,
+    WAIT_S,
+    Deployment,
+    Inbox,
+    check_complete_run,
+    delivered,
+    free_ports,
+    generate,
+    replies,
+    run_processes,
+    until,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -385,6 +394,7 @@ def test_clients_without_tls_or_without_the_deployments_certificate_are_refused(
     assert refused == list(attempts)
 
 
+@pytest.mark.slow  # five followers; fast tier: test_deploy.py's compose services complete a run
 def test_a_whole_run_over_the_generated_configuration(deployment, tmp_path):
     """World, leader and five followers as processes, each with its own generated files."""
     listen, connect = free_ports()

@@ -21,8 +21,8 @@ from protocol import keys
 from protocol.config import RunConfig, dump_config
 from protocol.messages import Observation, Rod, encode
 from protocol.session import free_tcp_endpoint, zenoh_config
-from tests.attacking import run_under_attack, same_results, wait_for_world
 from swarm.launch import RunCredentials, agent_commands, launch
+from tests.attacking import run_under_attack, same_results, wait_for_world
 from world.results import read_observations, read_ticks
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -74,8 +74,9 @@ def test_a_second_world_with_a_live_run_id_refuses(tmp_path):
     cfg = RunConfig(run_id="twice", followers=1, ticks=10, start_timeout=30.0)
     dump_config(cfg, folder / "config.toml")
     endpoint = free_tcp_endpoint()
-    first = subprocess.Popen([sys.executable, "-m", "world", "--config", str(folder / "config.toml"),
-                              "--listen", endpoint, "--out", str(folder / "first")], cwd=ROOT,
+    first = subprocess.Popen([sys.executable, "-m", "world",
+                              "--config", str(folder / "config.toml"), "--listen", endpoint,
+                              "--out", str(folder / "first")], cwd=ROOT,
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         with zenoh.open(zenoh_config("client", connect=[endpoint])) as watcher:
@@ -102,7 +103,8 @@ def test_world_refuses_a_finished_runs_folder(tmp_path):
     launch(cfg, tmp_path / "run")
     before = (tmp_path / "run" / "ticks.csv").read_bytes()
     dump_config(cfg, tmp_path / "config.toml")
-    again = subprocess.run([sys.executable, "-m", "world", "--config", str(tmp_path / "config.toml"),
+    again = subprocess.run([sys.executable, "-m", "world",
+                            "--config", str(tmp_path / "config.toml"),
                             "--listen", free_tcp_endpoint(), "--out", str(tmp_path / "run")],
                            cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert again.returncode == 2  # refused before anything ran
@@ -121,7 +123,8 @@ def test_a_dead_follower_never_makes_its_successors_miss(tmp_path):
     endpoint = free_tcp_endpoint()
     out = folder / "out"
     procs = [subprocess.Popen([sys.executable, "-m", "world", "--config",
-                               str(folder / "config.toml"), "--listen", endpoint, "--out", str(out)],
+                               str(folder / "config.toml"), "--listen", endpoint,
+                               "--out", str(out)],
                               cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)]
     procs += [subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
               for cmd in agent_commands(folder / "config.toml", endpoint, 3)]

@@ -15,8 +15,16 @@ from hypothesis import strategies as st
 from protocol import keys
 from protocol.config import RunConfig
 from protocol.messages import (
-    MESSAGE_TYPES, Drive, ErrorReply, Joined, JoinRequest, ProtocolError, Rod, SenseRequest,
-    decode, encode,
+    MESSAGE_TYPES,
+    Drive,
+    ErrorReply,
+    Joined,
+    JoinRequest,
+    ProtocolError,
+    Rod,
+    SenseRequest,
+    decode,
+    encode,
 )
 from protocol.session import free_tcp_endpoint, zenoh_config
 from tests.attacking import run_under_attack, same_results, wait_for_world

@@ -11,10 +11,16 @@ import pytest
 
 from protocol.config import RunConfig
 from swarm.terrain import crop_dem, largest_rectangle, write_geotiff
-from tests.make_dem_data import (HILLS, HILLS_CELL, HILLS_CRS, HILLS_LEADER_START, HILLS_SHAPE,
-                                 hills_function, hills_heights)
-from world.dem import (METRES_PER_DEGREE, DemSurface, load_dem, read_dem, read_grid,
-                       spline_surface)
+from tests.make_dem_data import (
+    HILLS,
+    HILLS_CELL,
+    HILLS_CRS,
+    HILLS_LEADER_START,
+    HILLS_SHAPE,
+    hills_function,
+    hills_heights,
+)
+from world.dem import METRES_PER_DEGREE, DemSurface, load_dem, read_dem, read_grid, spline_surface
 from world.geometry import SurfaceDomainError, ideal_formation, integrate_geodesic, rod_end
 from world.surfaces import make_surface
 

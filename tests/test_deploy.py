@@ -26,11 +26,24 @@ from cryptography.x509.oid import NameOID
 from protocol.config import RunConfig, load_config
 from protocol.messages import Sensing, encode
 from protocol.session import MAX_MESSAGE_SIZE
-from swarm.deploy import (SECRETS, SERVICE_USER, SWARM_IMAGE, ZENOH_IMAGE, access_control,
-                          build_context, generated_files, users)
+from swarm.deploy import (
+    SECRETS,
+    SERVICE_USER,
+    SWARM_IMAGE,
+    ZENOH_IMAGE,
+    access_control,
+    build_context,
+    generated_files,
+    users,
+)
 from swarm.local import run_local
 from tests.deployment import (
-    ROUTER_IN_COMPOSE, Deployment, check_complete_run, free_ports, generate, run_processes,
+    ROUTER_IN_COMPOSE,
+    Deployment,
+    check_complete_run,
+    free_ports,
+    generate,
+    run_processes,
 )
 from world.sim import WorldSim
 

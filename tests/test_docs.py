@@ -152,3 +152,11 @@ def test_ci_runs_the_readme_test_command():
     assert len(named) == 1, named
     ci_lines = [line.strip() for line in CI.read_text(encoding="utf-8").splitlines()]
     assert named[0] in ci_lines
+
+
+def test_ci_lints_before_the_tests():
+    """``ruff check .`` (its rules in pyproject.toml) runs first: a lint error fails CI fast."""
+    ci_lines = [line.strip() for line in CI.read_text(encoding="utf-8").splitlines()]
+    assert ".venv/bin/ruff check ." in ci_lines
+    assert ci_lines.index(".venv/bin/ruff check .") < ci_lines.index(".venv/bin/python -m pytest")
+    assert "[tool.ruff" in (ROOT / "pyproject.toml").read_text(encoding="utf-8")

@@ -60,15 +60,16 @@ def test_the_end_is_where_it_is_met_first(reference, case):
 
 
 @pytest.mark.parametrize("case", list(CASES))
-@pytest.mark.parametrize("repeat", [0, 1])
+@pytest.mark.parametrize("repeat", [0, pytest.param(1, marks=pytest.mark.slow)])
 def test_in_memory_wavefront_ends_alike(tmp_path, reference, case, repeat):
     run_local(_config(case), tmp_path)
     assert _record(tmp_path) == reference[case]
 
 
 @pytest.mark.parametrize("case", list(CASES))
-@pytest.mark.parametrize("layout", ["in-process", "processes", "in-process-unpipelined"])
-@pytest.mark.parametrize("repeat", [0, 1])
+@pytest.mark.parametrize("layout", ["in-process", "processes", pytest.param(
+    "in-process-unpipelined", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("repeat", [0, pytest.param(1, marks=pytest.mark.slow)])
 def test_zenoh_layouts_end_alike(tmp_path, reference, case, layout, repeat):
     config = _config(case, pipelined=not layout.endswith("unpipelined"))
     summary = launch(config, tmp_path / "run", in_process=layout.startswith("in-process"))

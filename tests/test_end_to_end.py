@@ -13,10 +13,10 @@ import pytest
 from protocol.config import RunConfig, load_config
 from protocol.session import free_tcp_endpoint
 from swarm.launch import agent_commands, launch
+from tests.boundaries import check_imports
 from world import ideal_formation
 from world.results import TICK_COLUMNS, read_ticks
 from world.surfaces import make_surface
-from tests.boundaries import check_imports
 
 ROOT = Path(__file__).resolve().parents[1]
 SUMMARY_KEYS = {"mean_required_range", "rmse", "mean_stay_range", "mean_persist_range",

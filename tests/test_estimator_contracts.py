@@ -315,7 +315,8 @@ def test_target_corrects_for_actuation_noise(noise):
     rec = recorders[0]
     corrected, uncorrected = [], []
     for j in range(init, ticks):
-        truth = np.array([f1[j]["ideal_x"] - f1[j - 1]["pos_x"], f1[j]["ideal_y"] - f1[j - 1]["pos_y"]])
+        truth = np.array([f1[j]["ideal_x"] - f1[j - 1]["pos_x"],
+                          f1[j]["ideal_y"] - f1[j - 1]["pos_y"]])
         rod = np.array([f1[j]["ideal_x"] - f1[j]["est_x"], f1[j]["ideal_y"] - f1[j]["est_y"]])
         offset = rec.offsets[j - 1]  # propose is called from tick 1 (tick 0 has no history)
         uncorrected.append(float(np.hypot(*(offset + rod - truth))))

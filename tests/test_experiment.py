@@ -14,8 +14,18 @@ import pytest
 from protocol.config import RunConfig
 from swarm import experiment
 from swarm.cli import main
-from swarm.experiment import (FULL, QUICK, TABLE_COLUMNS, GridRun, RunOutcome, paper_grid,
-                              practical_rows, read_table, run_grid, write_table)
+from swarm.experiment import (
+    FULL,
+    QUICK,
+    TABLE_COLUMNS,
+    GridRun,
+    RunOutcome,
+    paper_grid,
+    practical_rows,
+    read_table,
+    run_grid,
+    write_table,
+)
 from swarm.plots import leader_relative
 from swarm.report import paper_report, write_report
 

@@ -20,7 +20,11 @@ from agents.leader import run_leader
 from agents.link import AgentAbort
 from protocol.cli import add_log_level_flag
 from protocol.config import (
-    MAX_CONFIG_BYTES, OPTIONS, RunConfig, dump_config, load_config,
+    MAX_CONFIG_BYTES,
+    OPTIONS,
+    RunConfig,
+    dump_config,
+    load_config,
 )
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.cli import empty_followers
@@ -218,7 +222,7 @@ def _agents(config: RunConfig, endpoint: str) -> list[threading.Thread]:
     return threads
 
 
-@pytest.mark.parametrize("code", [errno.ENOSPC, errno.EROFS])
+@pytest.mark.parametrize("code", [errno.ENOSPC, pytest.param(errno.EROFS, marks=pytest.mark.slow)])
 def test_world_reports_a_failing_results_disk(tmp_path, monkeypatch, capsys, code):
     config = RunConfig(run_id="disk", ticks=8, start_timeout=10.0)
     path = tmp_path / "run.toml"
@@ -316,7 +320,7 @@ def test_swarm_run_reports_a_broken_surface_module(tmp_path, monkeypatch, capsys
     assert fragment in one_error_line(capsys)
 
 
-@pytest.mark.parametrize("code", [errno.ENOSPC, errno.EROFS])
+@pytest.mark.parametrize("code", [errno.ENOSPC, pytest.param(errno.EROFS, marks=pytest.mark.slow)])
 def test_swarm_run_reports_a_failing_results_disk(tmp_path, monkeypatch, capsys, code):
     _failing_writes(monkeypatch, code, after=3)
     out = tmp_path / "out"

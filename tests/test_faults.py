@@ -10,13 +10,13 @@ import sys
 from pathlib import Path
 
 import pytest
-
 import zenoh
 
 from protocol import keys
 from protocol.config import RunConfig, dump_config
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.launch import agent_commands, launch
+from swarm.local import run_local
 from tests.waiting import children, running, signalled, wait_for
 from world.results import read_ticks
 
@@ -68,7 +68,8 @@ def test_realtime_without_pressure_matches_lockstep(tmp_path):
                   in_process=True)
     assert real["complete"]
     assert all(f["missed_ticks"] == 0 for f in real["followers"].values())
-    assert (tmp_path / "lock" / "ticks.csv").read_text() == (tmp_path / "real" / "ticks.csv").read_text()
+    assert ((tmp_path / "lock" / "ticks.csv").read_text()
+            == (tmp_path / "real" / "ticks.csv").read_text())
     assert lock["followers"] == real["followers"]
 
 
@@ -105,14 +106,16 @@ def test_second_process_with_a_live_id_refuses(tmp_path, procs):
         proc.kill()
 
 
+@pytest.mark.slow  # fast tier: test_link.py (an agent whose world vanishes) and test_integrity.py
+# (a resume after the world was killed gives the numbers of an undisturbed run)
 def test_agents_exit_when_the_world_vanishes_and_resume_continues(tmp_path, procs):
     """World SIGKILLed once 10 ticks are done: agents exit with a clear error and keep their state;
     ``--resume`` plus restarted agents finish the run with exactly the numbers of an
     uninterrupted one (tests/test_recovery.py draws the moments at random)."""
     # long enough that the world cannot finish between the poll and the kill (a loaded machine)
     cfg = RunConfig(run_id="resume", surface="wavy", followers=2, ticks=300, agent_timeout=10.0)
-    reference = tmp_path / "ref"
-    launch(cfg, reference, in_process=False)
+    reference = tmp_path / "ref"  # in memory: every layout gives the same numbers
+    run_local(cfg, reference)
     out, endpoint = tmp_path / "run", free_tcp_endpoint()
     out.mkdir()
     dump_config(cfg, out / "config.toml")
@@ -141,14 +144,18 @@ def test_agents_exit_when_the_world_vanishes_and_resume_continues(tmp_path, proc
 
 
 @pytest.mark.skipif(os.name != "posix", reason="signals")
-@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+@pytest.mark.parametrize("stop", [  # SIGTERM's 143, fast: the cleanup test below, test_grid_workers
+    pytest.param(signal.SIGINT, id="ctrl-c"),
+    pytest.param(signal.SIGTERM, id="sigterm", marks=pytest.mark.slow)])
 def test_ctrl_c_stops_everything_and_leaves_a_partial_result(tmp_path, stop):
     """Ctrl-C, or a supervisor's SIGTERM, to ``swarm run`` alone: every agent process ends, the
     partial result stays, the run's temporary credentials are removed, status 128 + signal."""
     out, scratch = tmp_path / "run", tmp_path / "tmp"
     scratch.mkdir()
+    # paced at 0.3 × 1.28 s a tick: two ticks come soon, the end (200 ticks) never before the stop
     proc = subprocess.Popen([sys.executable, "-m", "swarm", "run", "--followers", "2",
-                             "--mode", "realtime", "--time-scale", "1.0", "--out", str(out)],
+                             "--mode", "realtime", "--time-scale", "0.3", "--ticks", "200",
+                             "--out", str(out)],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "TMPDIR": str(scratch)})
     try:
@@ -187,8 +194,11 @@ sys.exit(7)  # cleanup finished in time: the program's own status
 
 
 @pytest.mark.skipif(os.name != "posix", reason="signals")
-@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
-@pytest.mark.parametrize("cleanup", ["wedged", "prompt"])
+@pytest.mark.parametrize("cleanup, stop", [  # each cleanup and each signal once in the fast tier
+    pytest.param("wedged", signal.SIGINT, id="wedged-ctrl-c"),
+    pytest.param("wedged", signal.SIGTERM, id="wedged-sigterm", marks=pytest.mark.slow),
+    pytest.param("prompt", signal.SIGINT, id="prompt-ctrl-c", marks=pytest.mark.slow),
+    pytest.param("prompt", signal.SIGTERM, id="prompt-sigterm")])
 def test_ctrl_c_ends_a_process_whose_cleanup_wedges(cleanup, stop):
     """After Ctrl-C or SIGTERM the cleanup runs; if it is still running after the grace period
     the process exits with 128 + signal anyway (a Zenoh teardown can wedge); if it finishes,

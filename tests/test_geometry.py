@@ -9,10 +9,25 @@ import pytest
 from numpy.typing import ArrayLike
 from scipy.integrate import solve_ivp
 
-from world.geometry import (SurfaceDomainError, heading_at_rod_end, ideal_formation,
-                            integrate_geodesic, metric, rod_end, rod_normal)
-from world.surfaces import (PRESETS, Elliptic, GaussianHill, Hemisphere, Plane, make_surface,
-                            preset_derivatives, surface_leader_start)
+from world.geometry import (
+    SurfaceDomainError,
+    heading_at_rod_end,
+    ideal_formation,
+    integrate_geodesic,
+    metric,
+    rod_end,
+    rod_normal,
+)
+from world.surfaces import (
+    PRESETS,
+    Elliptic,
+    GaussianHill,
+    Hemisphere,
+    Plane,
+    make_surface,
+    preset_derivatives,
+    surface_leader_start,
+)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SPACING, COMM_PERIOD = 3.57, 1.28

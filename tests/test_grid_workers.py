@@ -53,6 +53,7 @@ def scratch(tmp_path, monkeypatch) -> Path:
     return folder
 
 
+@pytest.mark.slow  # fast tier: a run that kills its own worker is run again, then reported
 @pytest.mark.timeout(300)
 def test_a_worker_killed_mid_run_costs_nothing(tmp_path, scratch):
     print(f"FAULT_SEED={SEED} (rerun with this environment variable to replay)")

@@ -29,8 +29,14 @@ import pytest
 from protocol.config import load_config
 from tests.delay_relay import main as relay_main
 from tests.delay_relay import relay_process
-from tests.deployment import (ROUTER_IN_COMPOSE, Deployment, check_complete_run, free_ports,
-                              generate, run_processes)
+from tests.deployment import (
+    ROUTER_IN_COMPOSE,
+    Deployment,
+    check_complete_run,
+    free_ports,
+    generate,
+    run_processes,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN_TIMEOUT_S = 240.0
@@ -320,6 +326,8 @@ def realtime_deployment(tmp_path_factory) -> tuple[Deployment, str]:
     return deployment, (deployment.folder / "run.toml").read_text()
 
 
+@pytest.mark.slow  # a paced deployment behind delayed links (the misses of a realtime run:
+# test_faults.py, fast)
 @pytest.mark.parametrize("links", ["relay", "netem"])
 def test_realtime_misses_match_the_injected_delay(realtime_deployment, tmp_path, links):
     """Realtime runs over links delayed by HOP_MS each way miss exactly where the delay

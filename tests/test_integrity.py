@@ -43,7 +43,8 @@ from world import checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = int(os.environ.get("FAULT_SEED", str(int(time.time()) % 100_000)))
-RACES = 2  # repetitions of each race, each with its own drawn start gap
+RACES = [0, pytest.param(1, marks=pytest.mark.slow)]
+"""Repetitions of each race, each with its own drawn start gap (the second in the slow tier)."""
 WAIT_S = 90.0
 
 
@@ -119,29 +120,28 @@ def test_a_second_writer_is_refused_while_the_holder_lives_even_stalled(tmp_path
         pass
 
 
-def test_two_runs_started_together_one_is_refused_at_once(tmp_path, procs):
+@pytest.mark.parametrize("n", RACES)
+def test_two_runs_started_together_one_is_refused_at_once(tmp_path, procs, n):
     print(f"FAULT_SEED={SEED} (rerun with this environment variable to replay)")
-    rng = random.Random(f"{SEED}-runs")
-    for n in range(RACES):
-        out, gap = tmp_path / f"race-{n}", rng.uniform(0.0, 0.3)
-        print(f"race {n}: second run started {gap:.3f} s after the first")
-        runs = []
-        for name, seed in (("a", 1), ("b", 2)):
-            runs.append(procs.start("-m", "swarm", "run", "--in-process", "--ticks", "1500",
-                                    "--seed", str(seed), "--run-id", f"race-{n}-{name}",
-                                    "--out", str(out)))
-            time.sleep(gap)
-        (code_a, err_a), (code_b, err_b) = _outcomes(*runs)
-        assert sorted((code_a, code_b)) == [0, 2], (err_a, err_b)
-        winner, loser = (0, 1) if code_a == 0 else (1, 0)
-        line = _error_line((err_a, err_b)[loser])
-        assert (f"is in use by run 'race-{n}-{'ab'[winner]}' (pid {runs[winner].pid} on host "
-                in line), line
-        summary = json.loads((out / "summary.json").read_text())
-        assert summary["run_id"] == f"race-{n}-{'ab'[winner]}" and summary["complete"]
-        assert f'run_id = "race-{n}-{"ab"[winner]}"' in (out / "config.toml").read_text()
-        rows = read_ticks(out / "ticks.csv")  # whole, ordered, no (tick, agent) twice
-        assert len(rows) == 2 * 1500 and len(read_observations(out / "observations.csv")) == 1500
+    out, gap = tmp_path / f"race-{n}", random.Random(f"{SEED}-runs-{n}").uniform(0.0, 0.3)
+    print(f"race {n}: second run started {gap:.3f} s after the first")
+    runs = []
+    for name, seed in (("a", 1), ("b", 2)):
+        runs.append(procs.start("-m", "swarm", "run", "--in-process", "--ticks", "1500",
+                                "--seed", str(seed), "--run-id", f"race-{n}-{name}",
+                                "--out", str(out)))
+        time.sleep(gap)
+    (code_a, err_a), (code_b, err_b) = _outcomes(*runs)
+    assert sorted((code_a, code_b)) == [0, 2], (err_a, err_b)
+    winner, loser = (0, 1) if code_a == 0 else (1, 0)
+    line = _error_line((err_a, err_b)[loser])
+    assert (f"is in use by run 'race-{n}-{'ab'[winner]}' (pid {runs[winner].pid} on host "
+            in line), line
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["run_id"] == f"race-{n}-{'ab'[winner]}" and summary["complete"]
+    assert f'run_id = "race-{n}-{"ab"[winner]}"' in (out / "config.toml").read_text()
+    rows = read_ticks(out / "ticks.csv")  # whole, ordered, no (tick, agent) twice
+    assert len(rows) == 2 * 1500 and len(read_observations(out / "observations.csv")) == 1500
 
 
 def _resumable(tmp_path: Path, procs: Procs, config: RunConfig) -> Path:
@@ -157,49 +157,49 @@ def _resumable(tmp_path: Path, procs: Procs, config: RunConfig) -> Path:
     return folder
 
 
-def test_two_resumes_or_a_run_and_a_resume_one_is_refused(tmp_path, procs):
+@pytest.mark.parametrize("n", RACES)
+def test_two_resumes_or_a_run_and_a_resume_one_is_refused(tmp_path, procs, n):
     """Two ``--resume`` of one folder, or a fresh ``--force`` run and a resume, started together:
     one refuses at once naming the other; two resumes: the other completes the run with the
     numbers of an undisturbed one."""
     print(f"FAULT_SEED={SEED} (rerun with this environment variable to replay)")
-    rng = random.Random(f"{SEED}-resumes")
+    rng = random.Random(f"{SEED}-resumes-{n}")
     config = RunConfig(run_id="resume-race", followers=2, ticks=60, start_timeout=60.0)
     reference = tmp_path / "reference"
     run_local(config, reference)
     prepared = _resumable(tmp_path, procs, config)
-    for n in range(RACES):
-        for kind in ("two resumes", "run and resume"):
-            folder, gap = tmp_path / f"{kind.replace(' ', '-')}-{n}", rng.uniform(0.0, 0.3)
-            print(f"{kind} {n}: second started {gap:.3f} s after the first")
-            shutil.copytree(prepared, folder)
-            firsts = (["--resume", str(folder)] if kind == "two resumes" else
-                      ["--config", str(folder / "config.toml"), "--out", str(folder), "--force"])
-            endpoints = [free_tcp_endpoint(), free_tcp_endpoint()]
-            worlds = []
-            for source, endpoint in ((firsts, endpoints[0]),
-                                     (["--resume", str(folder)], endpoints[1])):
-                worlds.append(procs.start("-m", "world", *source, "--listen", endpoint))
-                time.sleep(gap)
-            wait_for(lambda ws=worlds: any(w.poll() is not None for w in ws), 30,
-                     "one world to end")
-            loser = 0 if worlds[0].poll() is not None else 1
-            winner = 1 - loser
-            code, err = _outcomes(worlds[loser])[0]
-            assert code == 2, err
-            line = _error_line(err)
-            assert f"is in use by run 'resume-race' (pid {worlds[winner].pid} on" in line, line
-            assert worlds[winner].poll() is None  # the holder goes on, untouched
-            if kind == "run and resume":
-                worlds[winner].kill()
-                continue
-            agents = [procs.start(*cmd[1:]) for cmd in agent_commands(
-                folder / "config.toml", endpoints[winner], config.followers)]
-            code, err = _outcomes(worlds[winner])[0]
-            assert code == 0, err
-            for agent in agents:
-                assert agent.wait(timeout=WAIT_S) == 0
-            for name in ("ticks.csv", "observations.csv"):
-                assert (folder / name).read_bytes() == (reference / name).read_bytes()
+    for kind in ("two resumes", "run and resume"):
+        folder, gap = tmp_path / f"{kind.replace(' ', '-')}-{n}", rng.uniform(0.0, 0.3)
+        print(f"{kind} {n}: second started {gap:.3f} s after the first")
+        shutil.copytree(prepared, folder)
+        firsts = (["--resume", str(folder)] if kind == "two resumes" else
+                  ["--config", str(folder / "config.toml"), "--out", str(folder), "--force"])
+        endpoints = [free_tcp_endpoint(), free_tcp_endpoint()]
+        worlds = []
+        for source, endpoint in ((firsts, endpoints[0]),
+                                 (["--resume", str(folder)], endpoints[1])):
+            worlds.append(procs.start("-m", "world", *source, "--listen", endpoint))
+            time.sleep(gap)
+        wait_for(lambda ws=worlds: any(w.poll() is not None for w in ws), 30,
+                 "one world to end")
+        loser = 0 if worlds[0].poll() is not None else 1
+        winner = 1 - loser
+        code, err = _outcomes(worlds[loser])[0]
+        assert code == 2, err
+        line = _error_line(err)
+        assert f"is in use by run 'resume-race' (pid {worlds[winner].pid} on" in line, line
+        assert worlds[winner].poll() is None  # the holder goes on, untouched
+        if kind == "run and resume":
+            worlds[winner].kill()
+            continue
+        agents = [procs.start(*cmd[1:]) for cmd in agent_commands(
+            folder / "config.toml", endpoints[winner], config.followers)]
+        code, err = _outcomes(worlds[winner])[0]
+        assert code == 0, err
+        for agent in agents:
+            assert agent.wait(timeout=WAIT_S) == 0
+        for name in ("ticks.csv", "observations.csv"):
+            assert (folder / name).read_bytes() == (reference / name).read_bytes()
 
 
 # --- whole rows ---------------------------------------------------------------------------------
@@ -357,6 +357,8 @@ def small_disk(tmp_path):
         subprocess.run(["umount", str(mount)], capture_output=True, timeout=30)
 
 
+@pytest.mark.slow  # a real full disk; fast tier: test_failures.py (a failing results disk's
+# true reason) and test_a_short_write_is_cut_back_to_the_last_whole_record
 @pytest.mark.parametrize("layout", ["--in-process", "--processes"])
 def test_a_full_disk_leaves_whole_rows_and_the_true_reason(small_disk, procs, layout):
     out = small_disk / "run"

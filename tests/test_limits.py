@@ -18,8 +18,17 @@ from protocol import keys, limits
 from protocol import messages as messages_module
 from protocol.config import RunConfig
 from protocol.messages import (
-    MESSAGE_TYPES, Done, ErrorReply, Observation, ProtocolError, Rod, Sensing, decode, encode,
-    error_payload, safe_text,
+    MESSAGE_TYPES,
+    Done,
+    ErrorReply,
+    Observation,
+    ProtocolError,
+    Rod,
+    Sensing,
+    decode,
+    encode,
+    error_payload,
+    safe_text,
 )
 from protocol.session import MAX_MESSAGE_SIZE, zenoh_config
 from protocol.view import TICK_COLUMNS, decode_map, decode_tick, encode_map, encode_tick
@@ -82,7 +91,8 @@ def test_payload_at_the_limit_is_decoded():
 def test_sender_refuses_a_message_over_the_limit():
     wide = "\U0001f600" * limits.MAX_TEXT  # a valid text field of 4 UTF-8 bytes per character
     limit = limits.MAX_PAYLOAD_BYTES
-    with pytest.raises(ProtocolError, match=rf"done: encodes to \d+ bytes, over the {limit}-byte limit"):
+    with pytest.raises(ProtocolError,
+                       match=rf"done: encodes to \d+ bytes, over the {limit}-byte limit"):
         encode(Done(tick=1, results=wide, complete=False, reason=wide))
     # the largest message an agent actually sends fits, with room to spare
     obs = Observation(tick=limits.MAX_TICK, estimator="e" * limits.MAX_NAME,

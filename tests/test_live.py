@@ -35,20 +35,36 @@ from protocol.config import RunConfig, load_config
 from protocol.messages import ProtocolError
 from protocol.session import free_port, free_tcp_endpoint, undeclare_all, zenoh_config
 from protocol.view import (
-    MAP_CELLS, MAX_VIEW_BYTES, ROWS_PER_CHUNK, TICK_COLUMNS, decode_map, decode_tick, encode_map,
-    encode_tick, tick_payloads,
+    MAP_CELLS,
+    MAX_VIEW_BYTES,
+    ROWS_PER_CHUNK,
+    TICK_COLUMNS,
+    decode_map,
+    decode_tick,
+    encode_map,
+    encode_tick,
+    tick_payloads,
 )
 from swarm.deploy import OBSERVER
 from swarm.launch import RunCredentials, launch
 from swarm.live.draw import follower_series, heading, hillshade, map_columns
-from swarm.live.store import (COMPLETE, INCOMPLETE, NO_ESTIMATE, RUNNING, STARTING, WAITING,
-                              Frame, RunStore, load_run)
-from world.main import resolve_with_surface
-from world.sim import WorldSim
-from world.view import map_payload
+from swarm.live.store import (
+    COMPLETE,
+    INCOMPLETE,
+    NO_ESTIMATE,
+    RUNNING,
+    STARTING,
+    WAITING,
+    Frame,
+    RunStore,
+    load_run,
+)
 from tests.boundaries import check_imports
 from tests.deployment import Inbox
 from tests.waiting import until
+from world.main import resolve_with_surface
+from world.sim import WorldSim
+from world.view import map_payload
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = Path("/usr/bin/chromium")
@@ -586,6 +602,7 @@ def _external(requests: list[str], port: int) -> list[str]:
     return [u for u in requests if not u.startswith(local) and not u.startswith("data:")]
 
 
+@pytest.mark.slow  # a paced run in the browser; fast tier: the watch page follows a run
 @pytest.mark.timeout(240)
 def test_live_page_follows_a_run_and_replay_reaches_the_last_tick(browser, tmp_path):
     """A realtime 3-follower run over Zenoh with ``--live``: the page's tick advances, it draws

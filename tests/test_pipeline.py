@@ -38,26 +38,31 @@ def _same(out: Path, reference: Path, names: tuple[str, ...] = RESULTS) -> None:
 @pytest.fixture(scope="module")
 def unpipelined(tmp_path_factory):
     """The unpipelined order, in memory (tests/test_end_to_end.py shows that it equals the
-    Zenoh layouts), per number of followers."""
-    refs = {}
-    for n in (1, 3, 10):
-        refs[n] = tmp_path_factory.mktemp(f"ref{n}")
-        run_local(_config(n, pipelined=False), refs[n])
-    return refs
+    Zenoh layouts), per number of followers: each made on first use (10 followers is for the
+    slow tier only)."""
+    refs: dict[int, Path] = {}
+
+    def reference(n: int) -> Path:
+        if n not in refs:
+            refs[n] = tmp_path_factory.mktemp(f"ref{n}")
+            run_local(_config(n, pipelined=False), refs[n])
+        return refs[n]
+
+    return reference
 
 
-@pytest.mark.parametrize("followers", [1, 3, 10])
+@pytest.mark.parametrize("followers", [1, 3, pytest.param(10, marks=pytest.mark.slow)])
 def test_in_memory_wavefront_matches(tmp_path, unpipelined, followers):
     run_local(_config(followers, pipelined=True), tmp_path)
-    _same(tmp_path, unpipelined[followers])
+    _same(tmp_path, unpipelined(followers))
 
 
 @pytest.mark.parametrize("in_process", [True, False], ids=["in-process", "processes"])
-@pytest.mark.parametrize("followers", [1, 3, 10])
+@pytest.mark.parametrize("followers", [1, 3, pytest.param(10, marks=pytest.mark.slow)])
 def test_pipelined_run_matches_unpipelined(tmp_path, unpipelined, followers, in_process):
     summary = launch(_config(followers, pipelined=True), tmp_path / "run", in_process=in_process)
     assert summary["complete"], summary["reason"]
-    _same(tmp_path / "run", unpipelined[followers])
+    _same(tmp_path / "run", unpipelined(followers))
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +90,7 @@ def test_unpipelined_over_zenoh_matches(tmp_path, unpipelined):
     """The comparison option: ``pipelined = false`` still gives the same numbers."""
     summary = launch(_config(3, pipelined=False), tmp_path / "run", in_process=True)
     assert summary["complete"], summary["reason"]
-    _same(tmp_path / "run", unpipelined[3])
+    _same(tmp_path / "run", unpipelined(3))
 
 
 def test_the_column_really_overlaps_ticks(tmp_path, monkeypatch):

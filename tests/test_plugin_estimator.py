@@ -36,9 +36,11 @@ def test_plugin_runs_over_zenoh_as_processes(tmp_path):
         assert {r["estimator"] for r in csv.DictReader(fh) if r["agent"] == "1"} == {SPEC}
     # The in-memory layout gives the same numbers.
     run_local(config, tmp_path / "local")
-    assert (tmp_path / "local" / "ticks.csv").read_text() == (tmp_path / "procs" / "ticks.csv").read_text()
+    assert ((tmp_path / "local" / "ticks.csv").read_text()
+            == (tmp_path / "procs" / "ticks.csv").read_text())
     on_disk = json.loads((tmp_path / "procs" / "summary.json").read_text())
-    assert on_disk["followers"]["1"]["mean_required_range"] < on_disk["followers"]["1"]["mean_persist_range"]
+    follower = on_disk["followers"]["1"]
+    assert follower["mean_required_range"] < follower["mean_persist_range"]
 
 
 def test_a_plugin_name_at_the_limit_runs_over_zenoh(tmp_path):

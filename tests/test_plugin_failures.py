@@ -20,13 +20,25 @@ def _stderr_lines(capsys) -> list[str]:
     return [line for line in err.splitlines() if line]
 
 
-@pytest.mark.parametrize("mode", ["lockstep", "realtime"])
-@pytest.mark.parametrize("layout", ["--in-process", "--processes"])
-@pytest.mark.parametrize("estimator, said", [
-    ("json:loads", "estimator 'json:loads': its factory loads raised TypeError: the JSON object "
-                   "must be str, bytes or bytearray, not AgentSettings"),
-    (FAILS, f"estimator '{FAILS}': propose raised at tick 5: KeyError: \"no such column 'x'\""),
-], ids=["factory", "method"])
+FAILING = {
+    "factory": ("json:loads", "estimator 'json:loads': its factory loads raised TypeError: the "
+                              "JSON object must be str, bytes or bytearray, not AgentSettings"),
+    "method": (FAILS, f"estimator '{FAILS}': propose raised at tick 5: KeyError: "
+                      "\"no such column 'x'\""),
+}
+FAST = {("factory", "--in-process", "lockstep"), ("method", "--processes", "realtime")}
+"""The fast tier's cases: each failure, layout and mode once; the other six are slow."""
+
+
+def _cases():
+    for kind, (estimator, said) in FAILING.items():
+        for layout in ("--in-process", "--processes"):
+            for mode in ("lockstep", "realtime"):
+                yield pytest.param(layout, mode, estimator, said, id=f"{kind}-{layout}-{mode}",
+                                   marks=() if (kind, layout, mode) in FAST else pytest.mark.slow)
+
+
+@pytest.mark.parametrize("layout, mode, estimator, said", list(_cases()))
 def test_a_failing_plugin_ends_the_run_in_one_line(tmp_path, capsys, layout, mode, estimator,
                                                    said):
     pace = ["--time-scale", "0.2"] if mode == "realtime" else []

@@ -7,8 +7,16 @@ import math
 import numpy as np
 import pytest
 
-from agents.policies import (Auto, NotReady, Persist, Proposal, Stay, Unwrapper, make_policy,
-                             relative)
+from agents.policies import (
+    Auto,
+    NotReady,
+    Persist,
+    Proposal,
+    Stay,
+    Unwrapper,
+    make_policy,
+    relative,
+)
 from protocol.config import AgentSettings, RunConfig
 from protocol.messages import Sensing
 from swarm.local import run_local

@@ -7,11 +7,36 @@ import msgpack
 import pytest
 
 from protocol import keys
-from protocol.config import RunConfig, config_from_dict, dump_config, load_agent_settings, load_config
+from protocol.config import (
+    RunConfig,
+    config_from_dict,
+    dump_config,
+    load_agent_settings,
+    load_config,
+)
 from protocol.messages import (
-    MESSAGE_TYPES, ActResult, ActSensing, Control, Done, Drive, ErrorReply, Joined, JoinRequest,
-    Missed, Move, Observation, ProtocolError, Rod, SenseRequest, Sensing, Snap, TickStart, decode,
-    encode, from_body, to_body,
+    MESSAGE_TYPES,
+    ActResult,
+    ActSensing,
+    Control,
+    Done,
+    Drive,
+    ErrorReply,
+    Joined,
+    JoinRequest,
+    Missed,
+    Move,
+    Observation,
+    ProtocolError,
+    Rod,
+    SenseRequest,
+    Sensing,
+    Snap,
+    TickStart,
+    decode,
+    encode,
+    from_body,
+    to_body,
 )
 from protocol.session import free_tcp_endpoint, zenoh_config
 

@@ -4,11 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from world import random_waves
-from world.random_waves import RandomWaves
 from protocol.config import RunConfig
 from swarm.local import run_local
+from world import random_waves
 from world.geometry import integrate_geodesic, metric
+from world.random_waves import RandomWaves
 from world.surfaces import make_surface
 
 

@@ -115,7 +115,8 @@ class Run:
                 proc.wait(timeout=10)
 
     def failure_logs(self) -> str:
-        return "\n".join(f"--- {p.name}\n{p.read_text()[-1500:]}" for p in sorted(self.logs.iterdir()))
+        return "\n".join(f"--- {p.name}\n{p.read_text()[-1500:]}"
+                         for p in sorted(self.logs.iterdir()))
 
 
 def _draws(kind: str, stream: str = "") -> list[tuple[str, int, list[tuple[int, float, int]]]]:

@@ -132,6 +132,7 @@ def test_a_paused_follower_never_makes_its_successor_miss_in_realtime(tmp_path, 
     assert max(missed[1]) < ticks - 5  # and it was back, settling, before the end
 
 
+@pytest.mark.slow  # 60 realtime ticks; fast tier: test_attacks' dead follower (realtime)
 def test_a_killed_follower_is_recorded_and_a_realtime_run_goes_on(tmp_path, runs):
     kill_after = random.Random(f"{SEED}-kill").randrange(5, 20)
     print(f"FAULT_SEED={SEED}: follower 1 killed after tick {kill_after}")

@@ -126,8 +126,9 @@ def test_a_planted_pickle_is_refused_and_never_runs(tmp_path):
     (folder / "state").mkdir()
     state_path(folder / "state", 1).write_bytes(pickle.dumps(Payload()))
     endpoint = free_tcp_endpoint()
-    world = subprocess.Popen([sys.executable, "-m", "world", "--config", str(folder / "config.toml"),
-                              "--listen", endpoint, "--out", str(folder / "out")], cwd=ROOT,
+    world = subprocess.Popen([sys.executable, "-m", "world",
+                              "--config", str(folder / "config.toml"), "--listen", endpoint,
+                              "--out", str(folder / "out")], cwd=ROOT,
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         follower = subprocess.run(

@@ -344,10 +344,10 @@ def _point(p: ArrayLike) -> tuple[float, float]:
 
 @register_jitable
 def _span(knots: np.ndarray, start: int, n_knots: int, u: float) -> int:
-    """Index ``l`` (into the whole params array) of the knot interval holding ``u``.
+    """Index ``j`` (into the whole params array) of the knot interval holding ``u``.
 
-    ``knots[start : start + n_knots]`` is a cubic knot vector; ``l`` satisfies
-    ``t[l] <= u < t[l+1]`` clamped to the first and last nonempty intervals.
+    ``knots[start : start + n_knots]`` is a cubic knot vector; ``j`` satisfies
+    ``t[j] <= u < t[j+1]`` clamped to the first and last nonempty intervals.
     """
     low, high = start + 3, start + n_knots - 4
     if u >= knots[high]:
@@ -364,18 +364,18 @@ def _span(knots: np.ndarray, start: int, n_knots: int, u: float) -> int:
 
 
 @register_jitable
-def _cubic_basis(t: np.ndarray, l: int, u: float) -> tuple[float, ...]:
-    """Cubic B-spline basis on knot interval ``l`` and its two derivatives at ``u``.
+def _cubic_basis(t: np.ndarray, j: int, u: float) -> tuple[float, ...]:
+    """Cubic B-spline basis on knot interval ``j`` and its two derivatives at ``u``.
 
-    Returns 12 floats: ``N_{l-3+r,3}(u)``, then their first, then their second derivatives
+    Returns 12 floats: ``N_{j-3+r,3}(u)``, then their first, then their second derivatives
     (r = 0 … 3). The Cox–de Boor recursion written out for degree 3; every denominator spans
-    the nonempty interval ``[t_l, t_{l+1}]``, so none is zero.
+    the nonempty interval ``[t_j, t_{j+1}]``, so none is zero.
     """
-    tm2, tm1, t0, t1, t2, t3 = t[l - 2], t[l - 1], t[l], t[l + 1], t[l + 2], t[l + 3]
+    tm2, tm1, t0, t1, t2, t3 = t[j - 2], t[j - 1], t[j], t[j + 1], t[j + 2], t[j + 3]
     inv_w = 1.0 / (t1 - t0)
-    a1, b1 = (t1 - u) * inv_w, (u - t0) * inv_w  # N_{l-1,1}, N_{l,1}
+    a1, b1 = (t1 - u) * inv_w, (u - t0) * inv_w  # N_{j-1,1}, N_{j,1}
     g1, g2 = a1 / (t1 - tm1), b1 / (t2 - t0)
-    n20 = (t1 - u) * g1  # N_{l-2,2}, N_{l-1,2}, N_{l,2}; their derivatives are 2·(…)
+    n20 = (t1 - u) * g1  # N_{j-2,2}, N_{j-1,2}, N_{j,2}; their derivatives are 2·(…)
     n21 = (u - tm1) * g1 + (t2 - u) * g2
     n22 = (u - t0) * g2
     h0, h1, h2 = 1.0 / (t1 - tm2), 1.0 / (t2 - tm1), 1.0 / (t3 - t0)
@@ -458,14 +458,14 @@ def _cell(params: np.ndarray, start: int, n_knots: int, u: float,
     A point within :data:`KNOT_MARGIN` of a knot line counts as on it: the cell is then the
     one on the side the path is moving to.
     """
-    l = _span(params, start, n_knots, u)
+    j = _span(params, start, n_knots, u)
     first, last = start + 3, start + n_knots - 5
-    low, high = params[l], params[l + 1]
+    low, high = params[j], params[j + 1]
     margin = KNOT_MARGIN * (high - low)
-    if u - low <= margin and velocity < 0.0 and l > first:
-        return params[l - 1], low
-    if high - u <= margin and velocity > 0.0 and l < last:
-        return high, params[l + 2]
+    if u - low <= margin and velocity < 0.0 and j > first:
+        return params[j - 1], low
+    if high - u <= margin and velocity > 0.0 and j < last:
+        return high, params[j + 2]
     return low, high
 
 

@@ -44,8 +44,14 @@ import numpy as np
 from numba.extending import overload, register_jitable
 from numpy.typing import ArrayLike
 
-from world.dem import (DEM_KIND, DemSurface, describe_domain, knot_step_limit, knot_step_shrink,
-                       spline_derivatives)
+from world.dem import (
+    DEM_KIND,
+    DemSurface,
+    describe_domain,
+    knot_step_limit,
+    knot_step_shrink,
+    spline_derivatives,
+)
 from world.surfaces import PRESETS, Surface, preset_derivatives, surface_leader_start
 
 Context = tuple[int, np.ndarray] | Surface

@@ -1,4 +1,5 @@
-"""Entry point of the world process: ``python -m world --config run.toml [--listen EP] [--out DIR]``."""
+"""Entry point of the world process:
+``python -m world --config run.toml [--listen EP] [--out DIR]``."""
 from __future__ import annotations
 
 import argparse
@@ -10,8 +11,18 @@ from pathlib import Path
 import zenoh
 
 from protocol.cli import (
-    DONE, EXPECTED_FAILURES, REFUSED, Refused, add_log_level_flag, check_out_dir, describe, ends_with,
-    fail, refuse, run_command, setup_logging,
+    DONE,
+    EXPECTED_FAILURES,
+    REFUSED,
+    Refused,
+    add_log_level_flag,
+    check_out_dir,
+    describe,
+    ends_with,
+    fail,
+    refuse,
+    run_command,
+    setup_logging,
 )
 from protocol.config import RunConfig, dump_config, load_config, read_toml
 from protocol.distribution import require
@@ -22,7 +33,6 @@ from world import checkpoint
 from world.service import WorldService
 from world.sim import default_max_speed, resolve_leader_start
 from world.surfaces import Surface, make_surface, require_surface_extra
-
 
 DEFAULT_LISTEN = ("tcp/127.0.0.1:7447",)
 """Where the world listens as embedded router when given no ``--listen``."""
@@ -83,7 +93,8 @@ def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description="The world process: hidden surface, sensing, motion, results.")
+    p = argparse.ArgumentParser(
+        description="The world process: hidden surface, sensing, motion, results.")
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--config", help="run configuration TOML")
     source.add_argument("--resume", metavar="RUN_DIR",

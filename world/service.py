@@ -17,8 +17,20 @@ import zenoh
 from protocol import keys
 from protocol.config import RunConfig
 from protocol.messages import (
-    ACTIONS, Done, Joined, JoinRequest, Missed, Observation, ProtocolError, Rod,
-    SenseRequest, TickStart, decode, encode, error_payload, safe_text,
+    ACTIONS,
+    Done,
+    Joined,
+    JoinRequest,
+    Missed,
+    Observation,
+    ProtocolError,
+    Rod,
+    SenseRequest,
+    TickStart,
+    decode,
+    encode,
+    error_payload,
+    safe_text,
 )
 from protocol.session import token_live, undeclare_all
 from world import checkpoint
@@ -147,8 +159,8 @@ class WorldService:
         try:
             self.sim.restore(state["sim"])
         except (KeyError, TypeError, ValueError) as exc:
-            raise checkpoint.StateError(f"checkpoint {self.out_dir / checkpoint.STATE_FILE}: bad simulation "
-                                        f"state ({exc}); refusing it") from None
+            raise checkpoint.StateError(f"checkpoint {self.out_dir / checkpoint.STATE_FILE}: bad "
+                                        f"simulation state ({exc}); refusing it") from None
         try:  # every file is checked before any is changed
             self.recorder.open(resume_offsets=state["offsets"], resume_ticks=self.sim.tick + 1)
         except DamagedRecord as exc:
@@ -257,7 +269,8 @@ class WorldService:
                 if agent >= self.sim.n_agents:
                     raise ValueError(f"unknown agent id {agent}")
                 self._check_report("rod", agent, msg.tick)
-                if abs(msg.length - self.config.spacing) > 1e-12 or msg.side != self.config.side_sign:
+                if (abs(msg.length - self.config.spacing) > 1e-12
+                        or msg.side != self.config.side_sign):
                     raise ValueError(f"agent {agent}'s rod does not match the run's length/side")
                 if agent in self._rods.setdefault(msg.tick, set()):
                     raise ValueError(f"agent {agent} already published its rod for tick {msg.tick}")

@@ -188,7 +188,8 @@ class WorldSim:
         )
         positions, headings = geometry.column(surface, start[:2], start[2:], n, config.spacing,
                                               self.side)
-        self.agents = [AgentState(pos=p.copy(), heading=h.copy()) for p, h in zip(positions, headings)]
+        self.agents = [AgentState(pos=p.copy(), heading=h.copy())
+                       for p, h in zip(positions, headings)]
         self.leader_velocity = start[2:].copy()
         self.leader_time = 0.0
         self._leader_at: dict[int, tuple[np.ndarray, float]] = {}  # (velocity, time) per tick
@@ -370,7 +371,8 @@ class WorldSim:
     def restore(self, state: dict) -> None:
         """Continue from a :meth:`state` snapshot (floats round-trip exactly through JSON)."""
         if len(state["agents"]) != self.n_agents:
-            raise ValueError(f"checkpoint has {len(state['agents'])} agents, config {self.n_agents}")
+            raise ValueError(f"checkpoint has {len(state['agents'])} agents, "
+                             f"config {self.n_agents}")
         self.tick = self.complete = int(state["tick"])
         self.leader_velocity = np.array(state["leader_velocity"], dtype=float)
         self.leader_time = float(state["leader_time"])
@@ -389,7 +391,8 @@ class WorldSim:
         """Refuse a request out of turn; an agent's first request for the tick after the one it
         settled at begins that tick for it."""
         if not 0 <= agent < self.n_agents:
-            raise RequestError(f"unknown agent id {agent} (this run has agents 0..{self.n_agents - 1})")
+            raise RequestError(f"unknown agent id {agent} "
+                               f"(this run has agents 0..{self.n_agents - 1})")
         self.check_not_ended(tick)
         state = self.agents[agent]
         if tick < state.tick:
@@ -580,7 +583,8 @@ class WorldSim:
         return cfg.estimator == "edmd" and cfg.dictionary == "c" and cfg.velocity == "oracle"
 
     def move(self, agent: int, tick: int, offset: tuple[float, float]) -> None:
-        """Follower moves by the local-frame ``offset`` toward its estimate (with actuation noise)."""
+        """Follower moves by the local-frame ``offset`` toward its estimate (with actuation
+        noise)."""
         self._check_request(agent, tick)
         self._check_follower_turn(agent, tick)
         state, cfg = self.agents[agent], self.config
@@ -735,7 +739,8 @@ class WorldSim:
     # --- helpers -------------------------------------------------------------------------------
 
     def _leader_rod(self, agent: int, tick: int) -> tuple[np.ndarray, np.ndarray]:
-        """End and end tangent of agent ``agent - 1``'s rod where it settled at ``tick`` (cached)."""
+        """End and end tangent of agent ``agent - 1``'s rod where it settled at ``tick``
+        (cached)."""
         key = (agent, tick)
         if key not in self._rod_cache:
             leader = self.agents[agent - 1]

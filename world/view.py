@@ -20,7 +20,14 @@ from protocol import keys
 from protocol.config import RunConfig
 from protocol.folder import write_atomic
 from protocol.view import (
-    MAP_CELLS, MAP_FILE, MAX_VIEW_TEXT, VIEW_VERSION, check_map, encode_map, encode_tick, tick_payloads,
+    MAP_CELLS,
+    MAP_FILE,
+    MAX_VIEW_TEXT,
+    VIEW_VERSION,
+    check_map,
+    encode_map,
+    encode_tick,
+    tick_payloads,
 )
 from world.surfaces import DEM_PREFIX, Surface
 

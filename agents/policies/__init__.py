@@ -13,21 +13,36 @@
 from __future__ import annotations
 
 from agents.policies.auto import COMBINE, Auto
-from agents.policies.base import (FallbackToPersist, NotReady, Persist, Policy, Proposal, Stay,
-                                  Unwrapper, polar, reconstructed_pre, relative)
+from agents.policies.base import (
+    FallbackToPersist,
+    NotReady,
+    Persist,
+    Policy,
+    Proposal,
+    Stay,
+    Unwrapper,
+    polar,
+    reconstructed_pre,
+    relative,
+)
 from agents.policies.classical import ARX, ConstantVelocity, GaussianProcess, Kalman
-from agents.policies.dictionaries import (EDMDPolicy, RelativeCartesian, RelativePolar,
-                                         make_dictionary, paper_edmd)
+from agents.policies.dictionaries import (
+    EDMDPolicy,
+    RelativeCartesian,
+    RelativePolar,
+    make_dictionary,
+    paper_edmd,
+)
 from agents.policies.motion import MotionGP, RatioGP
 from agents.policies.plugin import load_estimator
 from protocol.config import AUTO, CLASSICAL, OWN_MOTION, AgentSettings
 from protocol.sensing import reading_variance as sensor_variance
 
 __all__ = ["ARX", "Auto", "ConstantVelocity", "EDMDPolicy", "FallbackToPersist",
-           "GaussianProcess", "Kalman", "MotionGP", "NotReady", "Persist", "Policy", "Proposal", "RatioGP", "Stay",
-           "Unwrapper", "auto_candidates", "classical", "load_estimator", "make_dictionary",
-           "make_auto", "make_policy", "move_variance", "paper_edmd", "polar", "reading_variance", "reconstructed_pre",
-           "relative"]
+           "GaussianProcess", "Kalman", "MotionGP", "NotReady", "Persist", "Policy", "Proposal",
+           "RatioGP", "Stay", "Unwrapper", "auto_candidates", "classical", "load_estimator",
+           "make_dictionary", "make_auto", "make_policy", "move_variance", "paper_edmd", "polar",
+           "reading_variance", "reconstructed_pre", "relative"]
 
 
 def reading_variance(settings: AgentSettings) -> float:

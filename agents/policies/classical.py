@@ -137,6 +137,11 @@ def _gp_kernel(n: int, ell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             np.exp(-0.5 * ((t - float(n)) / ell) ** 2), np.eye(n))
 
 
+def _cholesky_solve(chol: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``C^-1 b`` for ``C = chol @ chol.T`` (``chol`` lower triangular)."""
+    return np.linalg.solve(chol.T, np.linalg.solve(chol, b))
+
+
 def _gp_coordinate(t: np.ndarray, basis: np.ndarray, y: np.ndarray, noise: float) -> float:
     scale = float(np.var(y)) + 1e-300
     best = None
@@ -146,11 +151,10 @@ def _gp_coordinate(t: np.ndarray, basis: np.ndarray, y: np.ndarray, noise: float
         # s2 is unknown, so the samples' variance stands in for it here.
         cov = k + (noise / scale + GP_JITTER) * eye
         chol = np.linalg.cholesky(cov)
-        solve = lambda b: np.linalg.solve(chol.T, np.linalg.solve(chol, b))  # noqa: E731
-        ci_h, ci_y = solve(basis), solve(y)
+        ci_h, ci_y = _cholesky_solve(chol, basis), _cholesky_solve(chol, y)
         beta = np.linalg.lstsq(basis.T @ ci_h, basis.T @ ci_y, rcond=None)[0]
         resid = y - basis @ beta
-        ci_r = solve(resid)
+        ci_r = _cholesky_solve(chol, resid)
         s2 = max(float(resid @ ci_r) / t.size, 1e-300)
         nll = t.size * math.log(s2) + 2.0 * float(np.sum(np.log(np.diag(chol))))
         if best is None or nll < best[0]:
@@ -284,9 +288,10 @@ class ARX(Policy):
 
     def _fit(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The least-squares coefficients (p, 2), the pseudoinverse (p, rows) and the fitted
-        regressors (rows, p) (their product projects onto the regressors' span), remembered until ``record`` or ``skip`` changes the data: ``auto``
-        asks for a proposal twice a tick (its proposal, then its score in ``record``, before
-        the policy learns), from the same data."""
+        regressors (rows, p) (their product projects onto the regressors' span), remembered
+        until ``record`` or ``skip`` changes the data: ``auto`` asks for a proposal twice a tick
+        (its proposal, then its score in ``record``, before the policy learns), from the same
+        data."""
         if self._fitted is not None:
             return self._fitted
         n_pairs = len(self.us) - self.order + 1  # pairs (phi_i -> x_{i+1}), i = order-1 .. j-1

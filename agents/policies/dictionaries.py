@@ -264,7 +264,8 @@ class EDMDPolicy(Policy):
             self.edmd.observe(self.dictionary.bridge(self.edmd.predict()))
 
 
-def paper_edmd(letter: str, comm_period: float, velocity: str = "lagged", **estimator) -> EDMDPolicy:
+def paper_edmd(letter: str, comm_period: float, velocity: str = "lagged",
+               **estimator) -> EDMDPolicy:
     """EDMD on dictionary ``letter`` named as before the split (``edmd-b``, ``edmd-c-lagged``)."""
     dictionary = make_dictionary(letter, comm_period, velocity, **estimator)
     return EDMDPolicy(dictionary, name=f"edmd-{dictionary.name}", **estimator)

@@ -32,7 +32,8 @@ def load_estimator(spec: str, settings: AgentSettings) -> Policy:
         If ``spec`` is malformed, cannot be imported, or does not give a policy.
     """
     if not isinstance(spec, str) or not PLUGIN_ESTIMATOR.match(spec):
-        raise ValueError(f"estimator must be a built-in name or 'package.module:Name', got {spec!r}")
+        raise ValueError("estimator must be a built-in name or 'package.module:Name', "
+                         f"got {spec!r}")
     module_name, attr = spec.split(":")
     try:
         module = importlib.import_module(module_name)

@@ -18,8 +18,17 @@ import numpy as np
 
 from protocol.distribution import needs
 from swarm.live.draw import (
-    agent_color, choice_points, contour_levels, empty_map_columns, fit_view, follower_series,
-    height_grid, hillshade, log_span, map_columns, sparse_labels,
+    agent_color,
+    choice_points,
+    contour_levels,
+    empty_map_columns,
+    fit_view,
+    follower_series,
+    height_grid,
+    hillshade,
+    log_span,
+    map_columns,
+    sparse_labels,
 )
 from swarm.live.store import COMPLETE, INCOMPLETE, REPLAY_HINT, WAITING, RunStore, Snapshot
 
