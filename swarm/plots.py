@@ -29,7 +29,7 @@ from protocol.config import RunConfig, load_config
 from protocol.folder import write_atomic
 from world.dem import DemSurface
 from world.results import read_ticks
-from world.surfaces import make_surface
+from world.surfaces import Surface, make_surface
 from world.view import height_grid
 
 DPI = 110
@@ -221,6 +221,25 @@ def terrain_relief(ax, dem: DemSurface, low: np.ndarray, high: np.ndarray,
     return image, contours
 
 
+def _terrain_map(fig, ax, rows: list[dict], config: RunConfig,
+                 aspect: float) -> tuple[Surface, str, list]:
+    """Draw a run's terrain under ``ax`` (contour lines or a DEM's relief, with its colour
+    bar), fitted to every settled and ideal position at ``aspect`` and equal axes, and the
+    leader's path; return the surface, the length unit's label and the leader's rows."""
+    positions = np.array([(r[f"{c}_x"], r[f"{c}_y"]) for r in rows for c in ("pos", "ideal")
+                          if r.get(f"{c}_x") is not None])
+    low, high = _box(positions, margin=config.spacing, aspect=aspect)
+    surface = make_surface(config.surface, config.surface_params)
+    length = f"({DEM_UNITS[0]})" if isinstance(surface, DemSurface) else LENGTH
+    contours = _surface_contours(ax, surface, low, high)
+    fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {length}")
+    lead = sorted((r for r in rows if r["agent"] == 0), key=lambda r: r["tick"])
+    ax.plot([r["pos_x"] for r in lead], [r["pos_y"] for r in lead], "k.-", lw=1, ms=4,
+            label="leader")
+    ax.set(xlim=(low[0], high[0]), ylim=(low[1], high[1]), aspect="equal")
+    return surface, length, lead
+
+
 @_styled
 def plot_effectiveness(run_dir: str | Path, path: str | Path,
                        followers: Sequence[int] | None = None, title: str | None = None) -> Path:
@@ -239,16 +258,7 @@ def plot_effectiveness(run_dir: str | Path, path: str | Path,
     fig = _figure(width, 10.0)
     grid = fig.add_gridspec(3, len(followers), height_ratios=(1.6, 1, 1))
     ax = fig.add_subplot(grid[0, :])
-    positions = np.array([(r[f"{c}_x"], r[f"{c}_y"]) for r in rows for c in ("pos", "ideal")
-                          if r.get(f"{c}_x") is not None])
-    low, high = _box(positions, margin=config.spacing, aspect=3.3)
-    surface = make_surface(config.surface, config.surface_params)
-    length = f"({DEM_UNITS[0]})" if isinstance(surface, DemSurface) else LENGTH
-    contours = _surface_contours(ax, surface, low, high)
-    fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {length}")
-    lead = sorted((r for r in rows if r["agent"] == 0), key=lambda r: r["tick"])
-    ax.plot([r["pos_x"] for r in lead], [r["pos_y"] for r in lead], "k.-", lw=1, ms=4,
-            label="leader")
+    surface, length, lead = _terrain_map(fig, ax, rows, config, aspect=3.3)
     ax.plot(lead[0]["pos_x"], lead[0]["pos_y"], "ks", mfc="none", ms=10, label="leader at tick 0")
     for k in range(1, config.followers + 1):
         mine = sorted((r for r in rows if r["agent"] == k), key=lambda r: r["tick"])
@@ -257,8 +267,7 @@ def plot_effectiveness(run_dir: str | Path, path: str | Path,
         est = [r for r in mine if r["est_x"] is not None]
         ax.plot([r["est_x"] for r in est], [r["est_y"] for r in est], "x", color=ESTIMATE_COLOR,
                 ms=5, mew=1.2, label="estimated" if k == 1 else None)
-    ax.set(xlim=(low[0], high[0]), ylim=(low[1], high[1]), aspect="equal",
-           xlabel=f"x {length}", ylabel=f"y {length}",
+    ax.set(xlabel=f"x {length}", ylabel=f"y {length}",
            title=f"leader and {config.followers} follower(s) over the "
                  f"{'hillshaded relief' if isinstance(surface, DemSurface) else 'contour lines'}, "
                  f"estimator {_estimator_label(config)}")
@@ -368,16 +377,7 @@ def plot_driven_paths(run_dir: str | Path, path: str | Path) -> Path:
                                      f"one (follower {k}, tick {j})")
     fig = _figure(13.0, 6.5)
     ax = fig.add_subplot()
-    positions = np.array([(r[f"{c}_x"], r[f"{c}_y"]) for r in rows for c in ("pos", "ideal")
-                          if r.get(f"{c}_x") is not None])
-    low, high = _box(positions, margin=config.spacing, aspect=2.0)
-    surface = make_surface(config.surface, config.surface_params)
-    length = f"({DEM_UNITS[0]})" if isinstance(surface, DemSurface) else LENGTH
-    contours = _surface_contours(ax, surface, low, high)
-    fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {length}")
-    lead = sorted((r for r in rows if r["agent"] == 0), key=lambda r: r["tick"])
-    ax.plot([r["pos_x"] for r in lead], [r["pos_y"] for r in lead], "k.-", lw=1, ms=4,
-            label="leader")
+    _, length, _ = _terrain_map(fig, ax, rows, config, aspect=2.0)
     for k in range(1, config.followers + 1):
         mine = sorted((r for r in rows if r["agent"] == k), key=lambda r: r["tick"])
         ax.plot([r["ideal_x"] for r in mine], [r["ideal_y"] for r in mine], "o",
@@ -388,8 +388,7 @@ def plot_driven_paths(run_dir: str | Path, path: str | Path) -> Path:
                 label="driven paths" if k == 1 else None)
         ax.plot([r["pos_x"] for r in mine], [r["pos_y"] for r in mine], "x",
                 color=ESTIMATE_COLOR, ms=4, mew=1, label="settled" if k == 1 else None)
-    ax.set(xlim=(low[0], high[0]), ylim=(low[1], high[1]), aspect="equal",
-           xlabel=f"x {length}", ylabel=f"y {length}")
+    ax.set(xlabel=f"x {length}", ylabel=f"y {length}")
     ax.legend(loc="best", framealpha=0.9)
     fig.suptitle(f"{config.surface}: driving followers ({config.control_steps} control + "
                  f"{config.snap_steps} correction steps per T_c = {config.comm_period:g}, top "

@@ -17,29 +17,10 @@ from protocol.config import RunConfig, dump_config
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.launch import agent_commands, launch
 from swarm.local import run_local
-from tests.waiting import children, running, signalled, wait_for
+from tests.waiting import Procs, children, running, signalled, wait_for
 from world.results import read_ticks
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-class Procs:
-    """Start processes; on exit kill whatever is still running."""
-
-    def __init__(self) -> None:
-        self.procs: list[subprocess.Popen] = []
-
-    def start(self, cmd: list[str], **kwargs) -> subprocess.Popen:
-        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                text=True, **kwargs)
-        self.procs.append(proc)
-        return proc
-
-    def close(self) -> None:
-        for proc in self.procs:
-            if proc.poll() is None:
-                proc.kill()
-            proc.communicate(timeout=10)
 
 
 @pytest.fixture

@@ -4,11 +4,13 @@ instead of hanging."""
 from __future__ import annotations
 
 import subprocess
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 POLL_S = 0.05
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def until(condition: Callable[[], object], timeout: float) -> bool:
@@ -60,3 +62,27 @@ def signalled(proc: subprocess.Popen, signum: int, timeout: float) -> tuple[int,
             proc.kill()
             proc.communicate(timeout=10)
     return code, out, err
+
+
+class Procs:
+    """Processes a test starts (from the repository's root, output captured as text); on
+    :meth:`close` whatever still runs is killed and reaped."""
+
+    def __init__(self) -> None:
+        self.procs: list[subprocess.Popen] = []
+
+    def start(self, cmd: list[str], **kwargs) -> subprocess.Popen:
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True, **kwargs)
+        self.procs.append(proc)
+        return proc
+
+    def python(self, *args: str, **kwargs) -> subprocess.Popen:
+        """``python ARGS`` with this interpreter."""
+        return self.start([sys.executable, *args], **kwargs)
+
+    def close(self) -> None:
+        for proc in self.procs:
+            if proc.poll() is None:
+                proc.kill()
+            proc.communicate(timeout=10)
