@@ -238,7 +238,8 @@ def test_every_estimator_of_a_figure_gets_its_own_style():
     assert set(styles) == set(names) and len(set(styles.values())) == len(names)
 
 
-@pytest.mark.parametrize("surfaces", [("elliptic",), ("elliptic", "hyperbolic", "wavy")])
+@pytest.mark.parametrize("surfaces", [  # the three-surface layout: the slow tier
+    ("elliptic",), pytest.param(("elliptic", "hyperbolic", "wavy"), marks=pytest.mark.slow)])
 def test_figure_legends_and_titles_lie_inside_their_figures(surfaces, tmp_path, monkeypatch):
     """Every table figure drawn from the committed tables, for one surface (as ``--quick``
     draws them) and for three: each figure's and each panel's legend and title lie inside

@@ -138,7 +138,13 @@ REFUSALS = {  # python -m ARGS ({tmp}: the test's folder), and the extra it need
 }
 
 
-@pytest.mark.parametrize("name", list(REFUSALS))
+FAST_REFUSALS = ("run-dem", "world-dem", "run-live", "compare-scheduler", "deploy")
+"""One refusal per extra (and the world's path) in the fast tier; the others are slow."""
+
+
+@pytest.mark.parametrize("name", [name if name in FAST_REFUSALS
+                                  else pytest.param(name, marks=pytest.mark.slow)
+                                  for name in REFUSALS])
 def test_a_feature_without_its_extra_is_refused_in_one_line(core_env, tmp_path, name):
     """Exit 2 and the one line naming the extra, before anything is written (at most the
     empty output folder the command checks first)."""

@@ -665,6 +665,7 @@ def test_live_page_follows_a_run_and_replay_reaches_the_last_tick(browser, tmp_p
     assert _external(requests, port) == []
 
 
+@pytest.mark.slow  # the fitting and the labels are fast unit tests above; this is the browser
 @pytest.mark.timeout(240)
 def test_live_page_of_a_dem_run(browser, tmp_path):
     """``swarm run --live`` on the committed DEM with 8 followers: the page shows the relief
