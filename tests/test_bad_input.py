@@ -40,29 +40,41 @@ values = st.recursive(scalars, lambda inner: st.one_of(
     max_leaves=20)
 
 
-@settings(max_examples=400, deadline=None)
-@given(st.binary(max_size=200))
-def test_fuzz_random_bytes(data):
-    try:
-        decode(data, ALL_TYPES)
-    except ProtocolError:
-        pass
-
-
-@settings(max_examples=400, deadline=None)
-@given(st.dictionaries(st.sampled_from(["v", "type", "tick", "r", "theta", "rod", "phase",
+FUZZ_EXAMPLES = [100, pytest.param(1000, marks=pytest.mark.slow)]
+"""Examples per fuzz test: a hundred in the fast tier, a thousand in the slow one."""
+MAPS = st.dictionaries(st.sampled_from(["v", "type", "tick", "r", "theta", "rod", "phase",
                                         "action", "offset", "t", "length", "side", "error",
-                                        "code", "agent", "x"]), values, max_size=8),
-       st.sampled_from(list(MESSAGE_TYPES)))
-def test_fuzz_structured_maps(body, type_name):
+                                        "code", "agent", "x"]), values, max_size=8)
+
+
+@pytest.mark.parametrize("examples", FUZZ_EXAMPLES)
+def test_fuzz_random_bytes(examples):
+    @settings(max_examples=examples, deadline=None)
+    @given(st.binary(max_size=200))
+    def check(data):
+        try:
+            decode(data, ALL_TYPES)
+        except ProtocolError:
+            pass
+
+    check()
+
+
+@pytest.mark.parametrize("examples", FUZZ_EXAMPLES)
+def test_fuzz_structured_maps(examples):
     """Plausible-looking maps: either a valid message that re-encodes identically, or a
     ProtocolError; nothing else ever escapes."""
-    body = {"v": 1, "type": type_name, **body}
-    try:
-        msg = decode(msgpack.packb(body, use_bin_type=True), ALL_TYPES)
-    except ProtocolError:
-        return
-    assert decode(encode(msg), type(msg)) == msg
+    @settings(max_examples=examples, deadline=None)
+    @given(MAPS, st.sampled_from(list(MESSAGE_TYPES)))
+    def check(body, type_name):
+        body = {"v": 1, "type": type_name, **body}
+        try:
+            msg = decode(msgpack.packb(body, use_bin_type=True), ALL_TYPES)
+        except ProtocolError:
+            return
+        assert decode(encode(msg), type(msg)) == msg
+
+    check()
 
 
 @pytest.fixture
