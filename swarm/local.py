@@ -13,7 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from agents.follower import follower_tick
-from agents.policies import Policy, make_policy
+from agents.policies import Policy, estimator_settings, make_policy
 from protocol.config import AgentSettings, RunConfig
 from protocol.folder import FolderLock
 from protocol.messages import (
@@ -67,9 +67,11 @@ def run_local(config: RunConfig, out_dir: str | Path | None = None,
     may, and then every agent that may begin its next tick does it (pipelined, agent ``k``
     does tick ``s - k`` in step ``s``; unpipelined, one agent at a time).
     ``policy_factory`` builds each follower's policy (default: the one the config names);
-    estimator studies pass their own. ``link_factory`` builds each follower's link (one that
-    also notes what the world did, for figures of what happens within a tick). ``out_dir``'s
-    one-writer lock is held meanwhile (:class:`protocol.folder.FolderLock`).
+    estimator studies pass their own. It is given the settings an estimator sees
+    (:func:`agents.policies.estimator_settings`: no top speed). ``link_factory`` builds each
+    follower's link (one that also notes what the world did, for figures of what happens
+    within a tick). ``out_dir``'s one-writer lock is held meanwhile
+    (:class:`protocol.folder.FolderLock`).
     """
     if out_dir is None:
         return _simulate(config, None, policy_factory, link_factory)
@@ -84,7 +86,7 @@ def _simulate(config: RunConfig, out_dir: str | Path | None,
     config, surface = resolve_with_surface(config)
     sim = WorldSim(config, surface)
     settings = AgentSettings.from_config(config)
-    policies = [policy_factory(settings) for _ in range(config.followers)]
+    policies = [policy_factory(estimator_settings(settings)) for _ in range(config.followers)]
     links = [LocalLink(sim, 0)] + [link_factory(sim, k)
                                    for k in range(1, config.followers + 1)]
     recorder = RunRecorder(out_dir, config)

@@ -68,3 +68,17 @@ class FailsAtTick(MeanStep):
         if len(self.history) > self.n:
             raise KeyError("no such column 'x'")
         return super().propose(pre)
+
+
+SETTINGS_SEEN: list = []
+"""The settings every :class:`NotesItsSettings` was built with (a test reads them)."""
+
+
+class NotesItsSettings(MeanStep):
+    """Notes the settings its factory was given in :data:`SETTINGS_SEEN`."""
+
+    name = "notes-its-settings"
+
+    def __init__(self, settings, n: int = 4) -> None:
+        super().__init__(settings, n)
+        SETTINGS_SEEN.append(settings)

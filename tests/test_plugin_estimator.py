@@ -14,6 +14,7 @@ from protocol.config import AgentSettings, RunConfig
 from protocol.limits import MAX_NAME, NAME_RULE
 from swarm.launch import launch
 from swarm.local import run_local
+from world.main import resolve_with_surface
 
 SPEC = "tests.example_estimator:MeanStep"
 
@@ -87,3 +88,21 @@ def test_an_unimportable_plugin_is_reported_by_swarm_run_in_one_line(tmp_path, c
                              "estimator 'tests.nowhere:X': cannot import 'tests.nowhere'")
     assert err[0].endswith(f"(see {tmp_path / 'o' / 'logs' / 'agent-1.log'}) (agent 1 had not "
                            "come up)")
+
+
+def test_a_plugin_is_not_told_the_top_speed_of_a_drive_run():
+    """A drive run's default top speed is twice the leader's speed on the hidden surface: the
+    driving controller gets it, an estimator (here a plug-in) does not."""
+    from tests import example_estimator
+
+    spec = "tests.example_estimator:NotesItsSettings"
+    config = RunConfig(motion="drive", surface="wavy", followers=2, ticks=6, estimator=spec)
+    resolved, _ = resolve_with_surface(config)
+    assert resolved.max_speed is not None and AgentSettings.from_config(resolved).max_speed
+    example_estimator.SETTINGS_SEEN.clear()
+    make_policy(AgentSettings.from_config(resolved))
+    summary, _ = run_local(config)
+    assert summary["complete"]
+    seen = example_estimator.SETTINGS_SEEN
+    assert len(seen) == 3 and all(s.motion == "drive" for s in seen)
+    assert [s.max_speed for s in seen] == [None, None, None]

@@ -12,6 +12,8 @@
 """
 from __future__ import annotations
 
+import dataclasses
+
 from agents.policies.auto import COMBINE, Auto
 from agents.policies.base import (
     FallbackToPersist,
@@ -40,9 +42,9 @@ from protocol.sensing import reading_variance as sensor_variance
 
 __all__ = ["ARX", "Auto", "ConstantVelocity", "EDMDPolicy", "FallbackToPersist",
            "GaussianProcess", "Kalman", "MotionGP", "NotReady", "Persist", "Policy", "Proposal",
-           "RatioGP", "Stay", "Unwrapper", "auto_candidates", "classical", "load_estimator",
-           "make_dictionary", "make_auto", "make_policy", "move_variance", "paper_edmd", "polar",
-           "reading_variance", "reconstructed_pre", "relative"]
+           "RatioGP", "Stay", "Unwrapper", "auto_candidates", "classical", "estimator_settings",
+           "load_estimator", "make_dictionary", "make_auto", "make_policy", "move_variance",
+           "paper_edmd", "polar", "reading_variance", "reconstructed_pre", "relative"]
 
 
 def reading_variance(settings: AgentSettings) -> float:
@@ -123,9 +125,21 @@ def make_auto(settings: AgentSettings, candidates: list[Policy] | None = None,
     return Auto(auto_candidates(settings) if candidates is None else candidates, **options)
 
 
+def estimator_settings(settings: AgentSettings) -> AgentSettings:
+    """``settings`` as an estimator sees them: without ``max_speed``.
+
+    A drive run's default top speed is derived from the leader's speed on the hidden surface
+    (twice ``|v|_g`` at its start, resolved by the world and sent on join); the driving
+    controller needs it (:mod:`agents.drive`), but it is no sensor reading, so no policy,
+    built-in or plug-in, is given it."""
+    return dataclasses.replace(settings, max_speed=None)
+
+
 def make_policy(settings: AgentSettings) -> Policy:
-    """The policy a follower runs, from its settings; it falls back to ``persist`` (flagged)
-    while it cannot predict, and its proposals name what was followed."""
+    """The policy a follower runs, from its settings (:func:`estimator_settings`: never the
+    top speed); it falls back to ``persist`` (flagged) while it cannot predict, and its
+    proposals name what was followed."""
+    settings = estimator_settings(settings)
     name = settings.estimator
     if name == "stay":
         policy: Policy = Stay()
