@@ -232,6 +232,47 @@ def test_with_every_sigma_positive_no_drive_reading_is_exact():
             assert np.all(np.asarray(got, dtype=float) != np.asarray(exact, dtype=float)), name
 
 
+class OdometryLink(LocalLink):
+    """Notes a driving follower's odometry: its velocity readings (``pre``, ``settled``), its
+    step readings, and where it settled."""
+
+    def __init__(self, sim, agent, seen):
+        super().__init__(sim, agent)
+        self.seen = seen
+
+    def sense(self, tick, phase):
+        reply = super().sense(tick, phase)
+        self.seen[self.agent, tick, phase] = reply.velocity
+        return reply
+
+    def act(self, request):
+        reply = super().act(request)
+        key = (self.agent, request.tick)
+        if isinstance(request, Control):
+            self.seen.setdefault((*key, "steps"), []).append(reply.odometry)
+        elif isinstance(request, Snap):
+            self.seen[*key, "settled"] = reply.velocity
+            self.seen[*key, "pos"] = self.sim.agents[self.agent].pos.copy()
+        return reply
+
+
+def test_a_driving_follower_has_one_odometer():
+    """The velocity reading over a comm interval is the sum of the step odometry readings the
+    robot got in that tick over ``T_c`` (the same draws, not a second instrument), and it is
+    one reading: the same at settling and before the next tick."""
+    config = RunConfig(motion="drive", surface="wavy", followers=2, ticks=10, seed=4, **NOISE)
+    seen: dict = {}
+    run_local(config, link_factory=lambda sim, k: OdometryLink(sim, k, seen))
+    for k in (1, 2):
+        for j in range(1, config.ticks - 1):
+            reading = np.asarray(seen[k, j, "settled"])
+            assert seen[k, j, "settled"] == seen[k, j + 1, "pre"]
+            summed = np.sum(seen[k, j, "steps"], axis=0) / config.comm_period
+            assert np.abs(reading - summed).max() < 1e-12
+            exact = (seen[k, j, "pos"] - seen[k, j - 1, "pos"]) / config.comm_period
+            assert np.all(reading != exact)
+
+
 def test_without_noise_the_readings_are_exact_and_the_actuation_too():
     """σ = 0: the world drives exactly the commanded (v, ω) (the arc length driven is the
     commanded speeds times the step duration)."""

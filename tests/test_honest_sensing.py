@@ -13,6 +13,7 @@ import pytest
 from agents.follower import follower_tick
 from agents.policies import make_policy
 from protocol.config import AgentSettings, RunConfig
+from protocol.messages import Move, Snap
 from swarm.local import LocalLink, run_local
 from world.main import resolve_with_surface
 from world.sim import WorldSim
@@ -144,6 +145,33 @@ def test_errors_travel_down_the_column():
         for k in means:
             means[k] += [r["formation_error"] for r in rows if r["agent"] == k]
     assert np.mean(means[2]) > 1.2 * np.mean(means[1])
+
+
+def test_the_readings_of_one_interval_are_one_odometry_reading():
+    """The odometry's noise belongs to the interval it measures: the settled reading of tick
+    ``j`` and the pre and moved readings of tick ``j + 1`` read one displacement, and are the
+    same (noisy) reading, so averaging them gains nothing."""
+    config, surface = resolve_with_surface(RunConfig(surface="wavy", ticks=10, seed=5,
+                                                     **EVERY_SIGMA))
+    sim = WorldSim(config, surface)
+    readings, positions = {}, {}
+    for tick in range(config.ticks):
+        sim.start_tick(tick)
+        sim.drive(0, tick, sim.time_of(tick))
+        readings[tick, "pre"] = sim.sense(1, tick, "pre").velocity
+        if tick >= config.init_ticks:
+            readings[tick, "moved"] = sim.act(1, Move(tick=tick, offset=(0.01, 0.0))).velocity
+        readings[tick, "settled"] = sim.act(1, Snap(tick=tick)).velocity
+        positions[tick] = sim.agents[1].pos.copy()
+        sim.finish_tick(tick)
+    for j in range(1, config.ticks - 1):
+        reading = readings[j, "settled"]
+        assert reading == readings[j + 1, "pre"]
+        if j + 1 >= config.init_ticks:
+            assert reading == readings[j + 1, "moved"]
+        exact = (positions[j] - positions[j - 1]) / config.comm_period
+        assert np.all(np.asarray(reading) != exact)
+        assert reading != readings[j + 1, "settled"]
 
 
 def test_every_sigma_zero_gives_the_noise_free_numbers_bit_for_bit():

@@ -19,7 +19,7 @@ from protocol.folder import write_atomic
 from world.results import RESULT_FILES, SUMMARY_FILE
 
 STATE_FILE = "world_state.json"
-SCHEMA = 1
+SCHEMA = 2  # 2: a driving follower's summed odometry errors are in the sim state
 
 
 class StateError(ValueError):

@@ -99,6 +99,8 @@ class DriveTick:
     path_length: float = 0.0
     saturated: int = 0
     controls: list[ControlStep] = field(default_factory=list)  # the steps driven so far
+    # the errors of the step odometry readings sent so far, summed (xy)
+    odometry_error: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
 
 @dataclass
@@ -115,6 +117,8 @@ class AgentState:
     settled: dict[int, np.ndarray] = field(default_factory=dict)
     headings: dict[int, np.ndarray] = field(default_factory=dict)
     records: dict[int, TickRecord] = field(default_factory=dict)
+    # a driving follower's: its step odometry readings' errors summed over each settled tick
+    odometry_errors: dict[int, np.ndarray] = field(default_factory=dict)
     begun: tuple = ()  # (pos, heading[, leader velocity, leader time]) when ``tick`` began
     estimate: np.ndarray | None = None
     acted: str = ""
@@ -245,7 +249,7 @@ class WorldSim:
         if agent == 0:
             self.leader_velocity, self.leader_time = state.begun[2].copy(), state.begun[3]
             self._leader_at.pop(tick, None)
-        for record in (state.settled, state.headings, state.records):
+        for record in (state.settled, state.headings, state.records, state.odometry_errors):
             record.pop(tick, None)
         state.reset_tick()
         state.tick = tick - 1
@@ -259,6 +263,8 @@ class WorldSim:
         state.settled[tick] = state.pos.copy()
         state.headings[tick] = state.heading.copy()
         drive = None
+        if self.config.motion == "drive" and agent > 0:
+            state.odometry_errors[tick] = state.drive.odometry_error.copy()
         if self.config.motion == "drive" and agent > 0 and not state.missed:
             d = state.drive
             snap_error = None if state.lost else _dist(state.pos, self._leader_rod(agent, tick)[0])
@@ -318,6 +324,7 @@ class WorldSim:
         for state in self.agents:  # keep only what velocities and baselines still need
             _drop_ticks_before(state.settled, j - 1)
             _drop_ticks_before(state.headings, j - 1)
+            _drop_ticks_before(state.odometry_errors, j - 1)
             _drop_ticks_before(state.records, j)  # j's: control_rows
         _drop_ticks_before(self._leader_at, j)
         for key in [key for key in self._rod_cache if key[1] < j]:  # the next floor reads j's
@@ -363,7 +370,9 @@ class WorldSim:
             "leader_time": time,
             "agents": [
                 {"pos": pos.tolist(), "heading": heading.tolist(),
-                 "settled": {str(t): p.tolist() for t, p in a.settled.items() if t <= j}}
+                 "settled": {str(t): p.tolist() for t, p in a.settled.items() if t <= j},
+                 "odometry_errors": {str(t): e.tolist() for t, e in a.odometry_errors.items()
+                                     if t <= j}}
                 for a, (pos, heading) in zip(self.agents, poses)
             ],
         }
@@ -384,6 +393,8 @@ class WorldSim:
             agent.settled = {int(t): np.array(p, dtype=float) for t, p in saved["settled"].items()}
             agent.headings = {self.tick: agent.heading.copy()}
             agent.records = {}
+            agent.odometry_errors = {int(t): np.array(e, dtype=float)
+                                     for t, e in saved["odometry_errors"].items()}
 
     # --- requests ------------------------------------------------------------------------------
 
@@ -529,7 +540,7 @@ class WorldSim:
         rod = None
         if self._sees_rod(tick, _norm(offset)):
             rod = _tup(offset + self._rod_error(agent, tick, phase, offset))
-        velocity = self._odometry(agent, tick, phase)
+        velocity = self._odometry(agent, tick)
         oracle = None
         if self._sends_oracle() and self.is_settled(agent, tick):
             oracle = (self.ideal[agent, tick + 1] - state.pos) / cfg.comm_period
@@ -647,11 +658,13 @@ class WorldSim:
 
         Its odometry reads the step's displacement (local frame) with noise of σ
         ``noise_velocity · √(δ T_c)`` per coordinate (δ the step's duration): a random walk
-        whose spread over a comm interval is that of the odometry of design §5 over one interval
-        (``noise_velocity · T_c``). The first step carries the move phase's goal, which the
-        world records as the estimate (from tick ``init_ticks`` on); after the move phase's
-        last step the world notes how far the follower is from that goal (``reach_error``) and
-        whether the rod end is in range (else the correction window is skipped: a lost tick).
+        whose spread over the move phase (one comm interval of driving) is that of the odometry
+        of design §5 over one interval (``noise_velocity · T_c``); the tick's velocity reading
+        is these readings summed (:meth:`_odometry`). The first step carries the move phase's
+        goal, which the world records as the estimate (from tick ``init_ticks`` on); after the
+        move phase's last step the world notes how far the follower is from that goal
+        (``reach_error``) and whether the rod end is in range (else the correction window is
+        skipped: a lost tick).
         """
         tick, step = request.tick, request.step
         self._check_request(agent, tick)
@@ -698,9 +711,9 @@ class WorldSim:
                 drive.reach_error = _dist(pos, drive.goal)
             drive.sees_rod = self._sees_rod(tick, _dist(self._leader_rod(agent, tick)[0], pos))
         sigma = cfg.noise_velocity * math.sqrt(duration * cfg.comm_period)
-        odometry = pos - start + gaussian(cfg.seed, agent, tick, "odometry", "moved", sigma, 2,
-                                          step=step)
-        return self._step_sensing(agent, tick, step, odometry)
+        error = gaussian(cfg.seed, agent, tick, "odometry", "moved", sigma, 2, step=step)
+        drive.odometry_error = drive.odometry_error + error
+        return self._step_sensing(agent, tick, step, pos - start + error)
 
     def _settle_driven(self, agent: int, tick: int) -> bool:
         """A driving follower ends its tick where its control steps took it, keeping its own
@@ -783,15 +796,29 @@ class WorldSim:
         """Every tick before :attr:`end_tick` is complete: the run ends here."""
         return self.end_tick is not None and self.complete + 1 >= self.end_tick
 
-    def _odometry(self, agent: int, tick: int, phase: str) -> tuple[float, float] | None:
-        settled = self.agents[agent].settled
+    def _odometry(self, agent: int, tick: int) -> tuple[float, float] | None:
+        """The odometry's velocity reading over the last comm interval ``agent`` completed by
+        ``tick`` (the one ending at ``tick`` once it settled there, else at ``tick - 1``),
+        None before it completed one. Its noise belongs to the interval, not to the request:
+        every reading of one interval (``settled`` at its end, ``pre`` and ``moved`` in the
+        tick after) is the same reading.
+
+        A teleport follower's is one draw per interval, σ ``noise_velocity`` per coordinate.
+        A driving follower has one odometer: its reading is the sum of the step readings it got
+        in the interval's tick (:meth:`control`) over ``T_c``, the true displacement plus their
+        summed errors."""
+        cfg, state = self.config, self.agents[agent]
+        settled = state.settled
         last = tick if tick in settled else tick - 1
         if last not in settled or last - 1 not in settled:
             return None
-        v = (settled[last] - settled[last - 1]) / self.config.comm_period
-        if self.config.noise_velocity != 0:
-            v = v + gaussian(self.config.seed, agent, tick, "velocity", phase,
-                             self.config.noise_velocity, 2)
+        v = (settled[last] - settled[last - 1]) / cfg.comm_period
+        if cfg.noise_velocity != 0:
+            if cfg.motion == "drive":
+                v = v + state.odometry_errors[last] / cfg.comm_period
+            else:
+                v = v + gaussian(cfg.seed, agent, last, "velocity", "settled",
+                                 cfg.noise_velocity, 2)
         return _tup(v)
 
     def _gps(self, agent: int, tick: int, phase: str, channel: str,
