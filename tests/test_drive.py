@@ -3,6 +3,7 @@ follower's controller, what is measured, honest noise, refusals, and convergence
 teleport run as the control steps grow."""
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -18,6 +19,7 @@ from swarm.local import LocalLink, run_local
 from tests.make_dem_data import HILLS, HILLS_LEADER_START
 from world import geometry, motion
 from world.main import resolve_with_surface
+from world.noise import CHANNELS, PHASES, gaussian
 from world.results import read_controls, read_ticks
 from world.sim import RequestError, WorldSim
 from world.surfaces import make_surface
@@ -230,6 +232,16 @@ def test_with_every_sigma_positive_no_drive_reading_is_exact():
         for name, (got, exact) in readings.items():
             assert got is not None, name
             assert np.all(np.asarray(got, dtype=float) != np.asarray(exact, dtype=float)), name
+
+
+def test_every_control_step_draws_from_a_noise_block_of_its_own():
+    """No value of a control step's block is the tick's (numpy seeds ``[s, a, t, 0]`` exactly
+    like ``[s, a, t]``: step 0 must not be keyed by its bare index), nor another step's."""
+    for channel, phase in itertools.product(CHANNELS, PHASES):
+        blocks = [gaussian(7, 1, 5, channel, phase, 1.0, 3, step=step)
+                  for step in (None, 0, 1, 2)]
+        for a, b in itertools.combinations(blocks, 2):
+            assert np.all(a != b), (channel, phase)
 
 
 class OdometryLink(LocalLink):

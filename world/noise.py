@@ -1,12 +1,13 @@
 """Sensor and actuation noise streams keyed by (seed, agent, tick, channel, phase) (design §5).
 
 Every draw of one agent in one tick comes from one block of standard normals drawn by a
-``numpy.random.Generator`` seeded with ``(seed, agent, tick)`` (a driving follower's control
-step adds the step index: ``(seed, agent, tick, step)``); each (channel, phase) pair owns a
-fixed slot of :data:`SLOT` values in it. So a draw depends only on its key, never on the order
-in which processes ask (any process layout gives the same run), and a tick's many readings
-cost one generator (seeding one is most of a draw's cost) — the block is remembered for the
-few ticks that still ask for it.
+``numpy.random.Generator`` seeded with ``(seed, agent, tick)``; each control step of a driving
+follower has a block of its own, seeded with ``(seed, agent, tick, step + 1)`` (numpy seeds
+``[s, a, t, 0]`` exactly like ``[s, a, t]``: step 0 keyed by its index would share the tick's
+block). Each (channel, phase) pair owns a fixed slot of :data:`SLOT` values in a block. So a
+draw depends only on its key, never on the order in which processes ask (any process layout
+gives the same run), and a tick's many readings cost one generator (seeding one is most of a
+draw's cost) — the block is remembered for the few ticks that still ask for it.
 """
 from __future__ import annotations
 
@@ -40,13 +41,15 @@ def gaussian(
     step: int | None = None,
 ) -> np.ndarray:
     """Draw ``size`` N(0, sigma²) values from the stream named by the key (``step``, a control
-    step's index, extends the key; None leaves the key as it was before drive existed).
+    step's index, selects that step's block; None: the tick's block).
 
     Returns zeros (without touching a generator) when ``sigma`` is 0.
 
     >>> a = gaussian(7, 1, 5, "range", "pre", 0.1)
     >>> b = gaussian(7, 1, 5, "range", "pre", 0.1)
     >>> bool(a[0] == b[0]) and bool(a[0] != gaussian(7, 2, 5, "range", "pre", 0.1)[0])
+    True
+    >>> bool(a[0] != gaussian(7, 1, 5, "range", "pre", 0.1, step=0)[0])
     True
     """
     if channel not in CHANNELS:
@@ -62,7 +65,7 @@ def gaussian(
     if step is not None and step < 0:
         raise ValueError(f"step must be non-negative, got {step}")
     start = (CHANNELS[channel] * len(PHASES) + PHASES[phase]) * SLOT
-    key = (seed, agent, tick) if step is None else (seed, agent, tick, step)
+    key = (seed, agent, tick) if step is None else (seed, agent, tick, step + 1)
     return sigma * _block(key)[start:start + size]
 
 
