@@ -60,8 +60,9 @@ MIN_MANOEUVRE = 1e-6
 class Limits:
     """What bounds a driving follower: its top speed (m of arc per time unit), its top turn
     rate (rad per time unit), the duration of one control step, and the sideways offset
-    (m) below which a point-turn manoeuvre is not worth it (the declared spread of a rod-end
-    reading: a smaller offset may be noise)."""
+    (m) below which a point-turn manoeuvre is not worth it (the declared spread of a
+    range/bearing reading at the rod's length ``d``, both coordinates together: a smaller
+    offset may be noise; a rod-end reading, taken closer, spreads less)."""
 
     max_speed: float
     max_turn: float

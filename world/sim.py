@@ -13,7 +13,9 @@ the order in which agents got there (:attr:`WorldSim.end_tick`, design §7).
 Sensing is honest (design §5): every reading an agent gets passes through its own noise channel
 (:mod:`world.noise`) — the leader's range and bearing, the rod end's range and bearing, odometry,
 GPS — and every move, the snap included, through actuation noise. With every σ = 0 each noise
-term is an exact zero, so the numbers are the noise-free ones bit for bit.
+term is an exact zero, so the numbers are the noise-free ones bit for bit, with one exception
+that no noise is behind: a driving robot's slope reading is ``tan(arctan ∇F)`` (the tilt
+sensor reads angles, :meth:`_attitude`), which can differ from ``∇F`` in the last bit.
 
 With ``motion = "drive"`` (design §4) a follower is a unicycle robot (:mod:`world.motion`): it
 sends :meth:`control` steps (speed and turn rate, within the run's limits, with actuation noise
@@ -488,7 +490,9 @@ class WorldSim:
         """Where ``persist`` and the *sensing floor* would have put follower ``agent`` at
         ``tick`` (``j``), from the same noisy readings and actuation the follower had (design §6,
         §7). Both start where the follower settled at ``j - 1`` (``prev``) and suffer its
-        actuation noise of the move.
+        actuation noise of the move. A drive run has no such noise (``noise_move`` is refused
+        with ``motion = "drive"``): there both are placed without any movement error, while the
+        follower's own position carries its driving's (reach and snap shortfalls, odometry).
 
         ``persist`` moves by ``rel_pre - rel(settled_{j-1})``. The floor knows the formation's
         true motion — the leader as seen from the ideal position (``x = l - ideal``) and the

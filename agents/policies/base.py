@@ -62,12 +62,18 @@ def relative(s: Sensing) -> np.ndarray:
 
 
 def reconstructed_pre(settled: Sensing, target: np.ndarray) -> Sensing:
-    """The leader as seen from where the follower stood before moving, from the settled reading.
+    """The leader as seen from where the follower stood before moving, approximated from the
+    settled reading: ``relative(settled) + target``.
 
-    After a snap the follower stands at its ideal position, ``target`` away from where it
-    stood, so the leader relative to its old place is ``relative(settled) + target`` (with the
-    settled reading's sensor noise in place of the pre reading's). This lets ``record`` score
-    what a policy would have proposed without keeping anything from ``propose``.
+    ``target`` is the follower's ideal position relative to where it stood, so the sum is exact
+    only if it settled exactly there and ``target`` is exact: with no noise, a teleport snap.
+    Otherwise it carries, besides the settled reading's sensor noise (in place of the pre
+    reading's), the distance from where the follower settled to its ideal position (a snap's
+    landing error; a driving follower's shortfall after its correction window) and the error
+    of ``target`` (the rod-end reading after the move, and the move's actuation noise or a
+    driving follower's odometry error as far as :func:`agents.follower.displacement` does not
+    correct them). This lets ``record`` score what a policy would have proposed without
+    keeping anything from ``propose``.
 
     Examples
     --------
