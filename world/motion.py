@@ -102,11 +102,10 @@ def _drive_state(ctx: Context, x: float, y: float, hx: float, hy: float, v: floa
 _drive_state_compiled = numba.njit(cache=True)(_drive_state)
 
 
-def substeps(v: float, omega: float, duration: float, refine: int = 1) -> int:
+def substeps(v: float, omega: float, duration: float) -> int:
     """How many RK4 substeps a control step takes: at most :data:`ARC_STEP` of arc and
-    :data:`TURN_STEP` of turn each, times ``refine`` (a finer integration, for tests)."""
-    return refine * max(1, math.ceil(max(abs(v) * duration / ARC_STEP,
-                                         abs(omega) * duration / TURN_STEP)))
+    :data:`TURN_STEP` of turn each."""
+    return max(1, math.ceil(max(abs(v) * duration / ARC_STEP, abs(omega) * duration / TURN_STEP)))
 
 
 def unit_heading(surface: Surface, p: ArrayLike, heading: ArrayLike) -> np.ndarray:
@@ -120,7 +119,7 @@ def unit_heading(surface: Surface, p: ArrayLike, heading: ArrayLike) -> np.ndarr
 
 
 def drive(surface: Surface, p: ArrayLike, heading: ArrayLike, v: float, omega: float,
-          duration: float, refine: int = 1) -> tuple[np.ndarray, np.ndarray]:
+          duration: float) -> tuple[np.ndarray, np.ndarray]:
     """Drive the unicycle at speed ``v`` and turn rate ``ω`` for ``duration``.
 
     Parameters
@@ -136,8 +135,6 @@ def drive(surface: Surface, p: ArrayLike, heading: ArrayLike, v: float, omega: f
         Turn rate, radians (in the metric) per time unit, positive to the left.
     duration : float
         ``>= 0``.
-    refine : int
-        Substep refinement factor (1 in a run; 2 halves the substeps, for tests).
 
     Returns
     -------
@@ -162,7 +159,7 @@ def drive(surface: Surface, p: ArrayLike, heading: ArrayLike, v: float, omega: f
     integrate = _drive_state_compiled if isinstance(ctx, tuple) else _drive_state
     status, x, y, hx, hy = integrate(ctx, float(point[0]), float(point[1]), float(h[0]),
                                      float(h[1]), float(v), float(omega), float(duration),
-                                     substeps(v, omega, duration, refine))
+                                     substeps(v, omega, duration))
     _check_status(status, x, y, "the robot's path")
     end = np.array([x, y])
     return end, unit_heading(surface, end, (hx, hy))
