@@ -123,6 +123,12 @@ def goal_heading(heading: float, chord: np.ndarray, previous: np.ndarray | None,
     return wrap(end)
 
 
+def _arc_length(chord: float, half_turn: float) -> float:
+    """The length of the circular arc of chord ``chord`` that turns by ``2 · half_turn``:
+    ``chord · α / sin α`` (the chord itself for a straight line)."""
+    return chord if half_turn == 0.0 else chord * half_turn / math.sin(half_turn)
+
+
 def _arc_to(position: np.ndarray, heading: float, point: np.ndarray) -> tuple[float, float]:
     """Length and turn of the circular arc from ``position`` (tangent ``heading``) through
     ``point`` (ahead of it)."""
@@ -131,30 +137,49 @@ def _arc_to(position: np.ndarray, heading: float, point: np.ndarray) -> tuple[fl
     if chord == 0.0:
         return 0.0, 0.0
     alpha = wrap(math.atan2(offset[1], offset[0]) - heading)
-    length = chord if alpha == 0.0 else chord * alpha / math.sin(alpha)
-    return length, 2.0 * alpha
+    return _arc_length(chord, alpha), 2.0 * alpha
 
 
-def biarc_first_arc(position: np.ndarray, heading: float, goal: np.ndarray,
-                    goal_heading: float) -> tuple[float, float, float, float]:
-    """The first arc of the biarc from ``position`` (tangent ``heading``) to ``goal`` (tangent
-    ``goal_heading``), the goal ahead: the two circular arcs with a common tangent whose
-    tangent segments have equal lengths. Returns the two arcs' (length, turn)."""
+def _biarc_junction(position: np.ndarray, heading: float, goal: np.ndarray,
+                    goal_heading: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where the two arcs of the biarc from ``position`` (tangent ``heading``) to ``goal``
+    (tangent ``goal_heading``), the goal ahead, meet, and their common tangent there (a chart
+    vector): the biarc whose tangent segments have equal lengths. None if the goal is where
+    the robot stands."""
     t0, t1 = _unit(heading), _unit(goal_heading)
     v = goal - position
     vv, vt, c = float(v @ v), float(v @ (t0 + t1)), float(t0 @ t1)
     if vv == 0.0:
-        return 0.0, 0.0, 0.0, wrap(goal_heading - heading)
+        return None
     if 1.0 - c < 1e-12:
         d = vv / (2.0 * vt)
     else:
         d = (-vt + math.sqrt(vt * vt + 2.0 * (1.0 - c) * vv)) / (2.0 * (1.0 - c))
     q0, q1 = position + d * t0, goal - d * t1
-    junction = 0.5 * (q0 + q1)
-    middle = math.atan2(q1[1] - q0[1], q1[0] - q0[0])
-    first = _arc_to(position, heading, junction)
-    second = _arc_to(junction, middle, goal)
-    return first[0], first[1], second[0], second[1]
+    return 0.5 * (q0 + q1), q1 - q0
+
+
+def biarc_first_arc(position: np.ndarray, heading: float, goal: np.ndarray,
+                    goal_heading: float) -> tuple[float, float]:
+    """Length and turn of the first arc of the biarc from ``position`` (tangent ``heading``)
+    to ``goal`` (tangent ``goal_heading``), the goal ahead: the arc the controller drives
+    (:func:`biarc` gives both)."""
+    junction = _biarc_junction(position, heading, goal, goal_heading)
+    return (0.0, 0.0) if junction is None else _arc_to(position, heading, junction[0])
+
+
+def biarc(position: np.ndarray, heading: float, goal: np.ndarray,
+          goal_heading: float) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The two arcs, (length, turn) each, of the biarc from ``position`` (tangent ``heading``)
+    to ``goal`` (tangent ``goal_heading``), the goal ahead: two circular arcs with a common
+    tangent, whose tangent segments have equal lengths (a goal where the robot stands: a turn
+    in place)."""
+    junction = _biarc_junction(position, heading, goal, goal_heading)
+    if junction is None:
+        return (0.0, 0.0), (0.0, wrap(goal_heading - heading))
+    point, tangent = junction
+    return (_arc_to(position, heading, point),
+            _arc_to(point, math.atan2(tangent[1], tangent[0]), goal))
 
 
 def _turn_steps(angle: float, limits: Limits) -> int:
@@ -211,8 +236,7 @@ def pose_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: 
         turn = wrap(goal_heading - heading)
         along = wrap(heading + turn / 2.0 - goal_heading)
         chord = ahead / math.cos(along) if abs(along) < math.pi / 2 else 0.0
-        length = chord if turn == 0.0 else chord * (turn / 2.0) / math.sin(turn / 2.0)
-        speed, rate = length / tau, turn / tau
+        speed, rate = _arc_length(chord, turn / 2.0) / tau, turn / tau
     else:
         s_turn = min(MAX_S_TURN, limits.max_turn * tau / 2.0)
         speed, rate = _approach(position, heading, goal, goal_heading, ahead, aside, s_turn,
@@ -259,7 +283,7 @@ def _approach(position: np.ndarray, heading: float, goal: np.ndarray, goal_headi
         aside = math.copysign(reach, aside)  # the part an S-curve reaches
     axis = _unit(goal_heading)
     target = position + ahead * axis + aside * np.array([-axis[1], axis[0]])
-    length, turn, _, _ = biarc_first_arc(position, heading, target, goal_heading)
+    length, turn = biarc_first_arc(position, heading, target, goal_heading)
     first = steps_left / 2 * step  # the biarc's two arcs share the time left
     return length / first, turn / first
 

@@ -9,7 +9,14 @@ import math
 import numpy as np
 import pytest
 
-from agents.drive import Limits, biarc_first_arc, goal_heading, metric_angle, pose_command
+from agents.drive import (
+    Limits,
+    biarc,
+    biarc_first_arc,
+    goal_heading,
+    metric_angle,
+    pose_command,
+)
 from agents.follower import follower_tick
 from agents.policies import make_policy
 from protocol.config import AgentSettings, RunConfig
@@ -97,7 +104,8 @@ def test_a_biarc_joins_two_poses():
     heading."""
     plane = make_surface("plane", {"a": 0.0, "b": 0.0})
     goal, goal_psi = np.array([1.0, 0.4]), 0.3
-    l1, t1, l2, t2 = biarc_first_arc(np.zeros(2), 0.0, goal, goal_psi)
+    (l1, t1), (l2, t2) = biarc(np.zeros(2), 0.0, goal, goal_psi)
+    assert biarc_first_arc(np.zeros(2), 0.0, goal, goal_psi) == (l1, t1)
     p, h = motion.drive(plane, [0.0, 0.0], [1.0, 0.0], l1, t1, 1.0)
     p, h = motion.drive(plane, p, h, l2, t2, 1.0)
     assert np.abs(p - goal).max() < 1e-9
