@@ -533,17 +533,30 @@ class WorldSim:
                                         cfg.noise_bearing, FLOOR_JITTER) for o in offsets]
         return np.linalg.solve(sum(precisions), sum(p @ e for p, e in zip(precisions, errors)))
 
+    def _readings(self, agent: int, tick: int, phase: str, step: int | None = None) -> dict:
+        """The readings every sensing of follower ``agent`` carries (in ``phase`` of ``tick``,
+        after control step ``step`` if given), as :class:`Sensing` fields: the leader's range
+        and bearing, the rod end's offset when it is in range, and a driving robot's compass
+        and slope."""
+        state = self.agents[agent]
+        leader_pos = self.agents[agent - 1].settled[tick]
+        r, theta = self._relative_reading(agent, tick, phase, leader_pos, state.pos, step)
+        offset = self._leader_rod(agent, tick)[0] - state.pos
+        rod = None
+        if self._sees_rod(tick, _norm(offset)):
+            rod = _tup(offset + self._rod_error(agent, tick, phase, offset, step))
+        compass = slope = None
+        if self.config.motion == "drive":
+            compass, slope = self._attitude(agent, tick, phase, step)
+        return {"tick": tick, "r": r, "theta": theta, "rod": rod, "compass": compass,
+                "slope": slope}
+
     def sense(self, agent: int, tick: int, phase: str) -> Sensing:
         """What follower ``agent``'s sensors read now, in its local frame (design §5)."""
         self._check_request(agent, tick)
         self._check_follower_turn(agent, tick, settled_ok=phase == "settled")
         cfg, state = self.config, self.agents[agent]
-        leader_pos = self.agents[agent - 1].settled[tick]
-        r, theta = self._relative_reading(agent, tick, phase, leader_pos, state.pos)
-        offset = self._leader_rod(agent, tick)[0] - state.pos
-        rod = None
-        if self._sees_rod(tick, _norm(offset)):
-            rod = _tup(offset + self._rod_error(agent, tick, phase, offset))
+        readings = self._readings(agent, tick, phase)
         velocity = self._odometry(agent, tick)
         oracle = None
         if self._sends_oracle() and self.is_settled(agent, tick):
@@ -555,14 +568,10 @@ class WorldSim:
         gps = leader_gps = None
         if cfg.gps:
             gps = self._gps(agent, tick, phase, "gps", state.pos)
-            leader_gps = self._gps(agent, tick, phase, "leader-gps", leader_pos)
-        compass = slope = None
-        if cfg.motion == "drive":
-            compass, slope = self._attitude(agent, tick, phase)
-        return Sensing(
-            tick=tick, r=r, theta=theta, rod=rod, velocity=velocity, oracle_velocity=_tup(oracle),
-            gps=gps, leader_gps=leader_gps, compass=compass, slope=slope,
-        )
+            leader_gps = self._gps(agent, tick, phase, "leader-gps",
+                                   self.agents[agent - 1].settled[tick])
+        return Sensing(**readings, velocity=velocity, oracle_velocity=_tup(oracle), gps=gps,
+                       leader_gps=leader_gps)
 
     def _attitude(self, agent: int, tick: int, phase: str,
                   step: int | None = None) -> tuple[float, tuple[float, float]]:
@@ -577,20 +586,6 @@ class WorldSim:
         tilt = np.arctan(np.asarray(self.surface.gradient(state.pos), dtype=float))
         tilt = tilt + gaussian(cfg.seed, agent, tick, "slope", phase, sigma, 2, step=step)
         return math.atan2(math.sin(angle), math.cos(angle)), _tup(np.tan(tilt))
-
-    def _step_sensing(self, agent: int, tick: int, step: int, odometry: np.ndarray) -> Sensing:
-        """What a driving follower's sensors read after control step ``step``: its leader
-        and the rod end (range/bearing), compass, slope and the step's ``odometry``."""
-        state = self.agents[agent]
-        leader_pos = self.agents[agent - 1].settled[tick]
-        r, theta = self._relative_reading(agent, tick, "moved", leader_pos, state.pos, step)
-        offset = self._leader_rod(agent, tick)[0] - state.pos
-        rod = None
-        if self._sees_rod(tick, _norm(offset)):
-            rod = _tup(offset + self._rod_error(agent, tick, "moved", offset, step))
-        compass, slope = self._attitude(agent, tick, "moved", step)
-        return Sensing(tick=tick, r=r, theta=theta, rod=rod, compass=compass, slope=slope,
-                       odometry=_tup(odometry))
 
     def _sends_oracle(self) -> bool:
         """The oracle velocity is sent only to dictionary c's ``oracle`` variant (design §5)."""
@@ -717,7 +712,8 @@ class WorldSim:
         sigma = cfg.noise_velocity * math.sqrt(duration * cfg.comm_period)
         error = gaussian(cfg.seed, agent, tick, "odometry", "moved", sigma, 2, step=step)
         drive.odometry_error = drive.odometry_error + error
-        return self._step_sensing(agent, tick, step, pos - start + error)
+        return Sensing(**self._readings(agent, tick, "moved", step),
+                       odometry=_tup(pos - start + error))
 
     def _settle_driven(self, agent: int, tick: int) -> bool:
         """A driving follower ends its tick where its control steps took it, keeping its own
