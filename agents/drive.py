@@ -46,9 +46,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agents.policies import move_variance, reading_variance
 from protocol.config import AgentSettings
 from protocol.messages import ActSensing, Control, Sensing
-from protocol.sensing import reading_variance
 
 MAX_S_TURN = math.pi / 2
 """The sharpest turn of a sideways correction (an S-curve's first arc), radians."""
@@ -62,21 +62,28 @@ class Limits:
     rate (rad per time unit), the duration of one control step, and the sideways offset
     (m) below which a point-turn manoeuvre is not worth it (the declared spread of a
     range/bearing reading at the rod's length ``d``, both coordinates together: a smaller
-    offset may be noise; a rod-end reading, taken closer, spreads less)."""
+    offset may be noise; a rod-end reading, taken closer, spreads less). With them, the
+    declared variance of a tick's chord (both coordinates together: two range/bearing readings
+    and two moves), below which a chord cannot be told from standing still
+    (:func:`goal_heading`)."""
 
     max_speed: float
     max_turn: float
     step: float
     tolerance: float = 0.0
+    chord_variance: float = 0.0
 
     @classmethod
     def from_settings(cls, settings: AgentSettings) -> Limits:
+        """A follower's limits from its settings (built once per follower: they do not change
+        within a run)."""
         if settings.max_speed is None:
             raise ValueError("settings.max_speed must be resolved (the world tells it on join)")
-        spread = math.sqrt(2.0 * reading_variance(settings.spacing, settings.noise_range,
-                                                  settings.noise_bearing))
+        reading = reading_variance(settings)
         return cls(settings.max_speed, settings.max_turn,
-                   settings.comm_period / settings.control_steps, max(spread, MIN_MANOEUVRE))
+                   settings.comm_period / settings.control_steps,
+                   max(math.sqrt(2.0 * reading), MIN_MANOEUVRE),
+                   2.0 * (reading + move_variance(settings)))
 
 
 def wrap(angle: float) -> float:
@@ -297,36 +304,56 @@ class Driven:
     travelled: np.ndarray
 
 
+@dataclass(frozen=True)
+class _Reckoned:
+    """What a driving follower knows of its pose within a tick: its dead-reckoned position
+    (local frame, from the tick's start), its compass heading and the slope under it."""
+
+    position: np.ndarray
+    heading: float
+    slope: np.ndarray
+
+
+def _drive_phase(act: Callable[[Control], ActSensing], tick: int, first: int, steps: int,
+                 pose: _Reckoned, target: np.ndarray, target_heading: float, limits: Limits,
+                 reread: bool) -> tuple[_Reckoned, ActSensing | None]:
+    """Drive ``steps`` control steps (numbered from ``first``) towards ``target`` with
+    ``target_heading``, re-aiming at the rod end after every step if ``reread``; return the
+    pose after them and the last reply (None if no step)."""
+    reply = None
+    for left in range(steps, 0, -1):
+        step = first + steps - left
+        v, omega = pose_command(pose.position, pose.heading, pose.slope, target, target_heading,
+                                left, limits)
+        given = (float(target[0]), float(target[1])) if step == 0 else None
+        reply = act(Control(tick=tick, step=step, speed=v, turn=omega, goal=given))
+        pose = _Reckoned(pose.position + np.asarray(reply.odometry), reply.compass,
+                         np.asarray(reply.slope))
+        if reread and reply.rod is not None:
+            target = pose.position + np.asarray(reply.rod)
+    return pose, reply
+
+
 def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndarray,
-               settings: AgentSettings, chord_variance: float) -> Driven:
+               settings: AgentSettings, limits: Limits) -> Driven:
     """Drive one tick's control steps: to ``goal`` (an offset from where the follower stands
     at ``pre``), then onto the rod end (re-read after every step) if it is in range after the
-    move phase. ``act`` sends one :class:`Control` and returns the world's reply."""
+    move phase. ``act`` sends one :class:`Control` and returns the world's reply; ``limits``
+    are the follower's (:meth:`Limits.from_settings`)."""
     if pre.compass is None or pre.slope is None:
         raise ValueError("a driving follower's sensing must carry its compass and slope")
-    limits = Limits.from_settings(settings)
-    start_heading = pre.compass
-    position, heading, slope = np.zeros(2), pre.compass, np.asarray(pre.slope)
-    target = np.asarray(goal, dtype=float)
     previous = None if pre.velocity is None else settings.comm_period * np.asarray(pre.velocity)
-    target_heading = goal_heading(start_heading, target, previous, chord_variance)
-    step, reply = 0, None
-    n_move = settings.control_steps
-    for phase_steps in (n_move, settings.snap_steps):
-        for left in range(phase_steps, 0, -1):
-            v, omega = pose_command(position, heading, slope, target, target_heading, left,
-                                    limits)
-            given = (float(target[0]), float(target[1])) if step == 0 else None
-            reply = act(Control(tick=pre.tick, step=step, speed=v, turn=omega, goal=given))
-            position = position + np.asarray(reply.odometry)
-            heading, slope = reply.compass, np.asarray(reply.slope)
-            step += 1
-            if step > n_move and reply.rod is not None:  # snap phase: re-read the rod end
-                target = position + np.asarray(reply.rod)
-        if step == n_move:
-            moved, travelled = reply.sensing, position.copy()
-            if moved.rod is None:
-                break  # out of range: no correction (a lost tick)
-            target = position + np.asarray(moved.rod)
-            target_heading = goal_heading(start_heading, target, previous, chord_variance)
+
+    def heading_at(target: np.ndarray) -> float:
+        return goal_heading(pre.compass, target, previous, limits.chord_variance)
+
+    target = np.asarray(goal, dtype=float)
+    pose = _Reckoned(np.zeros(2), pre.compass, np.asarray(pre.slope))
+    pose, reply = _drive_phase(act, pre.tick, 0, settings.control_steps, pose, target,
+                               heading_at(target), limits, reread=False)
+    moved, travelled = reply.sensing, pose.position.copy()
+    if moved.rod is not None:  # else out of range: no correction (a lost tick)
+        target = pose.position + np.asarray(moved.rod)
+        _drive_phase(act, pre.tick, settings.control_steps, settings.snap_steps, pose, target,
+                     heading_at(target), limits, reread=True)
     return Driven(moved, travelled)

@@ -25,7 +25,7 @@ import zenoh
 
 from agents.checkpoint import Entry, StateLog, replay
 from agents.cli import parser, run_cli
-from agents.drive import drive_tick
+from agents.drive import Limits, drive_tick
 from agents.link import AgentAbort, AgentLink, MarkedMissed, Rejoin, RunFinished
 from agents.policies import NotReady, Policy, make_policy, move_variance, reading_variance, relative
 from protocol.config import AgentSettings
@@ -67,9 +67,10 @@ def displacement(offset: np.ndarray, pre: Sensing, moved: Sensing,
     return target + weight * (relative(pre) - relative(moved) - offset)
 
 
-def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings,
-                  tick: int) -> TickOutcome:
-    """Run one tick of the follower."""
+def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick: int,
+                  limits: Limits | None = None) -> TickOutcome:
+    """Run one tick of the follower; a driving follower's ``limits`` (built once,
+    :meth:`agents.drive.Limits.from_settings`) must be given."""
     pre = link.sense(tick, "pre")
     try:  # during the initial ticks the prediction is only scored, not followed
         proposal = policy.propose(pre)
@@ -78,9 +79,10 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings,
     except NotReady:
         offset, prediction, followed, fallback = np.zeros(2), None, "", False
     if settings.motion == "drive":  # control steps to the estimate, then onto the rod end
+        if limits is None:
+            raise ValueError("a driving follower's limits must be given")
         goal = np.asarray(pre.rod) if tick < settings.init_ticks else offset
-        chord_variance = 2.0 * (reading_variance(settings) + move_variance(settings))
-        driven = drive_tick(link.act, pre, goal, settings, chord_variance)
+        driven = drive_tick(link.act, pre, goal, settings, limits)
         offset, moved = driven.travelled, driven.moved
     elif tick < settings.init_ticks:
         offset, moved = np.zeros(2), pre
@@ -163,6 +165,7 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
         while True:
             state, policy, last, tick, settings = _join(link, settings, agent_id, policy, last,
                                                         state_dir, again)
+            limits = Limits.from_settings(settings) if settings.motion == "drive" else None
             timeout = settings.start_timeout
             try:
                 while True:
@@ -175,7 +178,7 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
                         policy.skip()
                     last = tick - 1
                     try:
-                        outcome = follower_tick(link, policy, settings, tick)
+                        outcome = follower_tick(link, policy, settings, tick, limits)
                     except MarkedMissed:
                         entry = Entry(tick=tick, skips=skips, settled=None, target=None)
                         outcome = None

@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+from agents.drive import Limits
 from agents.follower import follower_tick
 from agents.policies import Policy, estimator_settings, make_policy
 from protocol.config import AgentSettings, RunConfig
@@ -86,6 +87,7 @@ def _simulate(config: RunConfig, out_dir: str | Path | None,
     config, surface = resolve_with_surface(config)
     sim = WorldSim(config, surface)
     settings = AgentSettings.from_config(config)
+    limits = Limits.from_settings(settings) if settings.motion == "drive" else None
     policies = [policy_factory(estimator_settings(settings)) for _ in range(config.followers)]
     links = [LocalLink(sim, 0)] + [link_factory(sim, k)
                                    for k in range(1, config.followers + 1)]
@@ -99,7 +101,7 @@ def _simulate(config: RunConfig, out_dir: str | Path | None,
         if k == 0:
             links[0].act(Drive(tick=tick, t=sim.time_of(tick)))
             return
-        outcome = follower_tick(links[k], policies[k - 1], settings, tick)
+        outcome = follower_tick(links[k], policies[k - 1], settings, tick, limits)
         observations.setdefault(tick, []).append((k, LocalLink.wire(outcome.observation)))
 
     def ends_before(tick: int) -> bool:

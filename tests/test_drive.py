@@ -229,11 +229,12 @@ def test_with_every_sigma_positive_no_drive_reading_is_exact():
     seen: list = []
     links = [TruthLink(sim, k, seen) for k in (1, 2)]
     policies = [make_policy(settings) for _ in links]
+    limits = Limits.from_settings(settings)
     for tick in range(config.ticks):
         sim.start_tick(tick)
         sim.drive(0, tick, sim.time_of(tick))
         for link, policy in zip(links, policies, strict=True):
-            follower_tick(link, policy, settings, tick)
+            follower_tick(link, policy, settings, tick, limits)
         sim.finish_tick(tick)
     assert len(seen) == 8 * 2 * 12
     for readings in seen:
