@@ -129,7 +129,7 @@ def _simulate(config: RunConfig, out_dir: str | Path | None,
             except RunEnded:
                 continue
             through[k] += 1
-    complete, reason = sim.end_tick is None, sim.end_reason
+    complete, reason = sim.end_tick is None, sim.end_detail
     if out_dir is not None:
         recorder.write_summary(complete=complete, reason=reason, final=True)
         recorder.close()

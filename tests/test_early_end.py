@@ -4,6 +4,7 @@ numbers whatever the layout, the pipelining or the repeat."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -11,7 +12,9 @@ import pytest
 from protocol.config import RunConfig
 from swarm.cli import main
 from swarm.launch import launch
-from swarm.local import run_local
+from swarm.local import LocalLink, run_local
+from world.main import resolve_with_surface
+from world.sim import RunEnded, WorldSim
 
 HILLS = Path(__file__).parent / "data" / "hills.tif"  # 50 m x 40 m
 RESULTS = ("ticks.csv", "observations.csv")
@@ -57,6 +60,49 @@ def test_the_end_is_where_it_is_met_first(reference, case):
         assert ticks == 34  # x = 6 + 1.28 j leaves [0, 50] between ticks 34 and 35
     else:
         assert "agent 1's rod leaves" in reason or "agent 2 would leave" in reason, reason
+
+
+class NotesTheEnd(LocalLink):
+    """A follower's link that notes the message of every RunEnded its requests met."""
+
+    told: list[str] = []
+
+    def sense(self, tick, phase):
+        try:
+            return super().sense(tick, phase)
+        except RunEnded as exc:
+            self.told.append(str(exc))
+            raise
+
+    def act(self, request):
+        try:
+            return super().act(request)
+        except RunEnded as exc:
+            self.told.append(str(exc))
+            raise
+
+
+def test_agents_are_told_why_the_run_ends_not_where(tmp_path):
+    """Absolute coordinates are the world's: its summary says where the swarm met the end of
+    the domain, the agents are told only why (the same text goes into ``world/done``): a
+    follower whose rod end or move leaves the domain, and the leader leaving it."""
+    decimal = re.compile(r"\d\.\d")
+    NotesTheEnd.told = []
+    summary, _ = run_local(_config("rod-leaves", pipelined=False), tmp_path,
+                           link_factory=NotesTheEnd)
+    told = NotesTheEnd.told
+    assert told and not summary["complete"]
+    assert decimal.search(summary["reason"]), summary["reason"]
+    assert not any(decimal.search(text) for text in told), told
+    assert all(summary["reason"].startswith(text + ": ") for text in told)
+    config, surface = resolve_with_surface(_config("leader-leaves"))
+    sim = WorldSim(config, surface)
+    with pytest.raises(RunEnded) as ended:
+        for tick in range(config.ticks):
+            sim.open_tick(tick)
+            sim.drive(0, tick, sim.time_of(tick))
+    assert str(ended.value) == sim.end_reason == "the leader left the surface's domain"
+    assert decimal.search(sim.end_detail) and sim.end_detail.startswith(sim.end_reason + ": ")
 
 
 @pytest.mark.parametrize("case", list(CASES))

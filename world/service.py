@@ -443,7 +443,7 @@ class WorldService:
                     if self._ended is not None:
                         return self._ended
                     if self.sim.over:
-                        return self.sim.end_reason
+                        return self.sim.end_detail
                     if self.sim.complete >= last:
                         return None
                     if min(self._through) > self.sim.complete:
@@ -493,12 +493,19 @@ class WorldService:
             if self._ended is not None:
                 return self._ended
             if self.sim.over:
-                return self.sim.end_reason
+                return self.sim.end_detail
             self._complete_tick(tick)
             next_start = self._tick_started + self.period
             while self._ended is None and (left := next_start - time.monotonic()) > 0:
                 self._cond.wait(left)
         return None
+
+    def _told(self, reason: str) -> str:
+        """What agents are told of why the run ended: the swarm's meeting the end of the
+        surface's domain without where (``WorldSim.end_reason``; absolute coordinates are
+        the world's), any other reason as it is."""
+        ended = self.sim.end_tick is not None and reason == self.sim.end_detail
+        return self.sim.end_reason if ended else reason
 
     @property
     def period(self) -> float:
@@ -559,7 +566,7 @@ class WorldService:
             self.recorder.write_summary(complete=complete, reason=reason, wall_time=self._wall(),
                                         final=True)
         done = encode(Done(tick=max(self.recorder.ticks_done - 1, 0), results=str(self.out_dir),
-                           complete=complete, reason=safe_text(reason)))
+                           complete=complete, reason=safe_text(self._told(reason))))
         with self._cond:
             self._finished = done
         self._done_pub.put(done)

@@ -8,7 +8,9 @@ different ticks (pipelined lockstep, design §4); each begins a tick with its fi
 it. Requests that break the protocol's rules raise :class:`RequestError` (answered as an
 error reply); conditions that end the run (leaving the surface's domain) raise
 :class:`RunEnded`, and the run then ends at the earliest tick such a condition met, whatever
-the order in which agents got there (:attr:`WorldSim.end_tick`, design §7).
+the order in which agents got there (:attr:`WorldSim.end_tick`, design §7). Agents are told why
+(:attr:`WorldSim.end_reason`), never where: absolute coordinates are the world's
+(:attr:`WorldSim.end_detail`, for its log and ``summary.json``).
 
 Sensing is honest (design §5): every reading an agent gets passes through its own noise channel
 (:mod:`world.noise`) — the leader's range and bearing, the rod end's range and bearing, odometry,
@@ -51,7 +53,8 @@ class TickMissed(RequestError):
 
 class RunEnded(RuntimeError):
     """A condition that ends the run early (the result is written, marked incomplete): the
-    run keeps the ticks before the earliest one at which such a condition was met."""
+    run keeps the ticks before the earliest one at which such a condition was met. Its message
+    is what agents are told (:attr:`WorldSim.end_reason`: no absolute coordinates)."""
 
 
 @dataclass(frozen=True)
@@ -201,9 +204,11 @@ class WorldSim:
         self._leader_at: dict[int, tuple[np.ndarray, float]] = {}  # (velocity, time) per tick
         self.tick = -1  # the newest tick opened (agents may be behind it)
         self.complete = -1  # the newest tick every agent is through (its rows are out)
-        # the earliest tick at which the run met a condition that ends it, and why
+        # the earliest tick at which the run met a condition that ends it, why (as agents are
+        # told it: no absolute coordinates), and why and where (the world's log and summary)
         self.end_tick: int | None = None
         self.end_reason = ""
+        self.end_detail = ""
         self._rod_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
     # --- ticks ---------------------------------------------------------------------------------
@@ -442,7 +447,7 @@ class WorldSim:
                     self.surface, leader.pos, self.leader_velocity, target - self.leader_time
                 )
             except geometry.SurfaceDomainError as exc:
-                raise self._end(tick, f"the leader left the surface's domain: {exc}") from None
+                raise self._end(tick, "the leader left the surface's domain", exc) from None
             leader.heading = self.leader_velocity.copy()
             self.leader_time = target
         self._settle(0, tick)
@@ -696,7 +701,8 @@ class WorldSim:
         try:
             pos, heading = motion.drive(self.surface, start, state.heading, v, omega, duration)
         except motion.SurfaceDomainError as exc:
-            raise self._end(tick, f"agent {agent} drove off the surface's domain: {exc}") from None
+            raise self._end(tick, f"agent {agent} drove off the surface's domain",
+                            exc) from None
         state.pos, state.heading = pos, heading
         state.acted = "control"
         drive.step += 1
@@ -763,8 +769,8 @@ class WorldSim:
                     self.config.spacing, self.side
                 )
             except geometry.SurfaceDomainError as exc:
-                raise self._end(tick, f"agent {agent - 1}'s rod leaves the surface's domain: "
-                                      f"{exc}") from None
+                raise self._end(tick, f"agent {agent - 1}'s rod leaves the surface's domain",
+                                exc) from None
         return self._rod_cache[key]
 
     def _sees_rod(self, tick: int, distance: float) -> bool:
@@ -775,15 +781,20 @@ class WorldSim:
         contains = getattr(self.surface, "contains", None)
         if contains is not None and not contains(pos):
             raise self._end(self.agents[agent].tick,
-                            f"agent {agent} would leave the surface's domain at {pos.tolist()}")
+                            f"agent {agent} would leave the surface's domain",
+                            f"position {pos.tolist()}")
         self.agents[agent].pos = np.asarray(pos, dtype=float).copy()
 
-    def _end(self, tick: int, reason: str) -> RunEnded:
+    def _end(self, tick: int, reason: str, where: str | Exception) -> RunEnded:
         """Record that the run meets a condition that ends it at ``tick`` and return the error
         to raise. The earliest such tick wins (an agent behind in a pipelined run may meet one
-        after an agent ahead did), so the run keeps the same ticks whatever the order."""
+        after an agent ahead did), so the run keeps the same ticks whatever the order.
+
+        ``reason`` is what agents are told; ``where`` (the error that says where, or the
+        position) is added for the world's own record (:attr:`end_detail`)."""
         if self.end_tick is None or tick < self.end_tick:
             self.end_tick, self.end_reason = tick, reason
+            self.end_detail = f"{reason}: {where}"
         return RunEnded(reason)
 
     def check_not_ended(self, tick: int) -> None:
