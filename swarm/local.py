@@ -104,9 +104,6 @@ def _simulate(config: RunConfig, out_dir: str | Path | None,
         outcome = follower_tick(links[k], policies[k - 1], settings, tick, limits)
         observations.setdefault(tick, []).append((k, LocalLink.wire(outcome.observation)))
 
-    def ends_before(tick: int) -> bool:
-        return sim.end_tick is not None and tick >= sim.end_tick
-
     # the service's tick order (world.schedule); an action that meets a condition ending the
     # run leaves its agent where it was, and the world keeps the earliest such tick
     through, last = [-1] * sim.n_agents, config.ticks - 1
@@ -116,10 +113,11 @@ def _simulate(config: RunConfig, out_dir: str | Path | None,
             tick_rows = sim.finish_tick(tick)
             rows.extend(tick_rows)
             recorder.add_tick(tick_rows, observations.pop(tick, []), sim.control_rows(tick))
-        if may_open(through, sim.tick, last, config.pipelined) and not ends_before(sim.tick + 1):
+        if (may_open(through, sim.tick, last, config.pipelined)
+                and not sim.ends_before(sim.tick + 1)):
             sim.open_tick(sim.tick + 1)
         ready = [k for k in range(sim.n_agents)
-                 if through[k] < sim.tick and not ends_before(through[k] + 1)
+                 if through[k] < sim.tick and not sim.ends_before(through[k] + 1)
                  and predecessor_through(through, k, through[k] + 1)]
         if not ready and not sim.over and sim.complete < last and min(through) <= sim.complete:
             raise RuntimeError(f"no agent can go on at tick {sim.complete + 1}")

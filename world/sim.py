@@ -797,9 +797,13 @@ class WorldSim:
             self.end_detail = f"{reason}: {where}"
         return RunEnded(reason)
 
+    def ends_before(self, tick: int) -> bool:
+        """Whether the run ends before tick ``tick`` (at :attr:`end_tick` or earlier)."""
+        return self.end_tick is not None and tick >= self.end_tick
+
     def check_not_ended(self, tick: int) -> None:
-        """Raise RunEnded if the run ends before ``tick`` (:attr:`end_tick`)."""
-        if self.end_tick is not None and tick >= self.end_tick:
+        """Raise RunEnded if the run ends before ``tick`` (:meth:`ends_before`)."""
+        if self.ends_before(tick):
             raise RunEnded(self.end_reason)
 
     @property
