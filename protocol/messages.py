@@ -173,12 +173,15 @@ _KINDS = {
 }
 
 
-def _kind(name: str, default: Any = ...) -> Any:
+def _kind(name: str, default: Any = ..., optional: bool = False) -> Any:
+    """A message field of kind ``name`` (a key of the checks), with ``default`` if given;
+    ``optional``: a decoder fills in the default when a sender omits the field."""
     if name not in _KINDS:
         raise ValueError(f"unknown field kind {name!r}")
+    metadata = {"kind": name, "optional": True} if optional else {"kind": name}
     if default is ...:
-        return field(metadata={"kind": name})
-    return field(default=default, metadata={"kind": name})
+        return field(metadata=metadata)
+    return field(default=default, metadata=metadata)
 
 
 # --- messages ----------------------------------------------------------------------------------
@@ -239,11 +242,9 @@ class Sensing(Message):
     oracle_velocity: tuple[float, float] | None = _kind("vec2?", None)
     gps: tuple[float, float, float] | None = _kind("vec3?", None)
     leader_gps: tuple[float, float, float] | None = _kind("vec3?", None)
-    compass: float | None = field(default=None, metadata={"kind": "finite?", "optional": True})
-    slope: tuple[float, float] | None = field(default=None,
-                                              metadata={"kind": "vec2?", "optional": True})
-    odometry: tuple[float, float] | None = field(default=None,
-                                                 metadata={"kind": "vec2?", "optional": True})
+    compass: float | None = _kind("finite?", None, optional=True)
+    slope: tuple[float, float] | None = _kind("vec2?", None, optional=True)
+    odometry: tuple[float, float] | None = _kind("vec2?", None, optional=True)
 
 
 @dataclass(frozen=True)
@@ -326,7 +327,7 @@ class Joined(Message):
     until: int = _kind("count", 0)
     world: int = _kind("count", 0)
     start: str = _kind("text", "")
-    max_speed: float | None = field(default=None, metadata={"kind": "limit?", "optional": True})
+    max_speed: float | None = _kind("limit?", None, optional=True)
 
     @property
     def through(self) -> int:
@@ -382,8 +383,8 @@ class Observation(Message):
     measurement: tuple[float, ...] | None = _kind("vec?", None)
     prediction: tuple[float, ...] | None = _kind("vec?", None)
     lost: bool = _kind("flag", False)
-    followed: str = field(default="", metadata={"kind": "text", "optional": True})
-    fallback: bool = field(default=False, metadata={"kind": "flag", "optional": True})
+    followed: str = _kind("text", "", optional=True)
+    fallback: bool = _kind("flag", False, optional=True)
 
 
 @dataclass(frozen=True)
