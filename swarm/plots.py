@@ -27,8 +27,9 @@ from matplotlib.ticker import NullLocator
 
 from protocol.config import RunConfig, load_config
 from protocol.folder import write_atomic
+from protocol.record import CONTROLS_FILE, TICKS_FILE, read_controls, read_ticks
+from world import geometry, motion
 from world.dem import DemSurface
-from world.results import read_ticks
 from world.surfaces import Surface, make_surface
 from world.view import height_grid
 
@@ -336,54 +337,79 @@ def plot_required_range(run_dir: str | Path, path: str | Path) -> Path:
     return _save(fig, path)
 
 
-def driven_paths(config: RunConfig, ticks: int) -> dict[int, np.ndarray]:
-    """Where each driving follower was after every control step of ticks ``0 … ticks-1``
-    (absolute xy, shape (steps, 2) per follower), from a run of ``config`` in memory: the
-    results are a function of the configuration and seed, so this is the recorded run."""
-    from swarm.local import LocalLink, run_local
+def driven_paths(config: RunConfig, surface: Surface, rows: list[dict],
+                 controls: list[dict]) -> dict[int, list[np.ndarray]]:
+    """Every driving follower's path, control step by control step, rebuilt from the record.
 
-    paths: dict[int, list] = {k: [] for k in range(1, config.followers + 1)}
+    Tick ``j`` starts from the pose the follower settled at in tick ``j - 1`` (``ticks.csv``'s
+    position and heading; tick 0 from its place in the starting column,
+    :func:`world.geometry.column`) and drives each of the tick's steps in ``controls.csv`` at
+    its achieved speed and turn rate for ``T_c / control_steps`` (:func:`world.motion.drive`,
+    as the world moved it). A tick's path therefore ends where the follower settled, lost and
+    missed ticks included (a missed tick keeps the steps it drove).
 
-    class PathLink(LocalLink):
-        def act(self, request):
-            reply = super().act(request)
-            paths[self.agent].append(self.sim.agents[self.agent].pos.copy())
-            return reply
+    Parameters
+    ----------
+    config : RunConfig
+        The run's resolved configuration (``config.toml``).
+    surface : Surface
+        The run's surface.
+    rows, controls : list of dict
+        ``ticks.csv`` and ``controls.csv`` rows (:func:`protocol.record.read_ticks`,
+        :func:`protocol.record.read_controls`).
 
-    run_local(config.replace(ticks=max(ticks, config.init_ticks)), link_factory=PathLink)
-    return {k: np.array(p) for k, p in paths.items()}
+    Returns
+    -------
+    dict of int to list of ndarray
+        Per follower ``k``, per tick of ``rows`` in order, the positions (1 + steps, 2):
+        where the tick began, then after each of its steps.
+    """
+    if config.leader_start is None:
+        raise ValueError("config.leader_start must be resolved (a run's config.toml is)")
+    if any(r.get("heading_x") is None for r in rows):
+        raise ValueError("ticks.csv holds no settled headings (written by an earlier version)")
+    start = np.asarray(config.leader_start, dtype=float)
+    positions, headings = geometry.column(surface, start[:2], start[2:], config.followers,
+                                          config.spacing, config.side_sign)
+    steps: dict[tuple[int, int], list[dict]] = {}
+    for c in controls:
+        steps.setdefault((c["tick"], c["agent"]), []).append(c)
+    duration = config.comm_period / config.control_steps
+    paths: dict[int, list[np.ndarray]] = {}
+    for k in range(1, config.followers + 1):
+        pos, heading = positions[k], headings[k]
+        paths[k] = []
+        for row in sorted((r for r in rows if r["agent"] == k), key=lambda r: r["tick"]):
+            points = [pos]
+            for c in steps.get((row["tick"], k), ()):
+                pos, heading = motion.drive(surface, pos, heading, c["achieved_speed"],
+                                            c["achieved_turn"], duration)
+                points.append(pos)
+            paths[k].append(np.array(points))
+            pos = np.array([row["pos_x"], row["pos_y"]])
+            heading = np.array([row["heading_x"], row["heading_y"]])
+    return paths
 
 
 @_styled
 def plot_driven_paths(run_dir: str | Path, path: str | Path) -> Path:
-    """A drive run's paths: every follower's path control step by control step (blue) over
-    the terrain, against its ideal positions (red), with the leader (black)."""
+    """A drive run's paths: every follower's path control step by control step (blue,
+    :func:`driven_paths`) from where it started, over the terrain, against its ideal
+    positions (red), with the leader (black)."""
     run_dir = Path(run_dir)
-    rows = read_ticks(run_dir / "ticks.csv")
+    rows = read_ticks(run_dir / TICKS_FILE)
     config = load_config(run_dir / "config.toml")
     if config.motion != "drive":
         raise ValueError(f"run_dir {run_dir} is not a drive run (motion {config.motion!r})")
-    ticks = 1 + max(r["tick"] for r in rows)
-    paths = driven_paths(config, ticks)
-    settled = {(r["tick"], r["agent"]): (r["pos_x"], r["pos_y"]) for r in rows}
-    for k, steps in paths.items():  # the replay must be the recorded run
-        per_tick = len(steps) // max(ticks, config.init_ticks)
-        for j in range(ticks):
-            end = steps[(j + 1) * per_tick - 1] if per_tick else None
-            if end is not None and not np.allclose(end, settled[(j, k)], rtol=0, atol=1e-9):
-                lost = any(r["lost"] for r in rows if r["agent"] == k)
-                if not lost:
-                    raise ValueError(f"{run_dir}: the replayed run differs from the recorded "
-                                     f"one (follower {k}, tick {j})")
     fig = _figure(13.0, 6.5)
     ax = fig.add_subplot()
-    _, length, _ = _terrain_map(fig, ax, rows, config, aspect=2.0)
+    surface, length, _ = _terrain_map(fig, ax, rows, config, aspect=2.0)
+    paths = driven_paths(config, surface, rows, read_controls(run_dir / CONTROLS_FILE))
     for k in range(1, config.followers + 1):
         mine = sorted((r for r in rows if r["agent"] == k), key=lambda r: r["tick"])
         ax.plot([r["ideal_x"] for r in mine], [r["ideal_y"] for r in mine], "o",
                 color=IDEAL_COLOR, ms=3.5, label="ideal positions" if k == 1 else None)
-        start = np.array([[mine[0]["pos_x"], mine[0]["pos_y"]]])
-        steps = np.concatenate([start, paths[k]])
+        steps = np.concatenate([paths[k][0][:1], *(tick[1:] for tick in paths[k])])
         ax.plot(steps[:, 0], steps[:, 1], "-", color=ESTIMATE_COLOR, lw=0.8,
                 label="driven paths" if k == 1 else None)
         ax.plot([r["pos_x"] for r in mine], [r["pos_y"] for r in mine], "x",
