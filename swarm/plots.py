@@ -27,7 +27,7 @@ from matplotlib.ticker import NullLocator
 
 from protocol.config import RunConfig, load_config
 from protocol.folder import write_atomic
-from protocol.record import CONTROLS_FILE, TICKS_FILE, read_controls, read_ticks
+from protocol.record import CONTROLS_FILE, SUMMARY_FILE, TICKS_FILE, read_controls, read_ticks
 from world import geometry, motion
 from world.dem import DemSurface
 from world.surfaces import Surface, make_surface
@@ -222,15 +222,14 @@ def terrain_relief(ax, dem: DemSurface, low: np.ndarray, high: np.ndarray,
     return image, contours
 
 
-def _terrain_map(fig, ax, rows: list[dict], config: RunConfig,
-                 aspect: float) -> tuple[Surface, str, list]:
+def _terrain_map(fig, ax, rows: list[dict], config: RunConfig, surface: Surface,
+                 aspect: float) -> tuple[str, list]:
     """Draw a run's terrain under ``ax`` (contour lines or a DEM's relief, with its colour
     bar), fitted to every settled and ideal position at ``aspect`` and equal axes, and the
-    leader's path; return the surface, the length unit's label and the leader's rows."""
+    leader's path; return the length unit's label and the leader's rows."""
     positions = np.array([(r[f"{c}_x"], r[f"{c}_y"]) for r in rows for c in ("pos", "ideal")
                           if r.get(f"{c}_x") is not None])
     low, high = _box(positions, margin=config.spacing, aspect=aspect)
-    surface = make_surface(config.surface, config.surface_params)
     length = f"({DEM_UNITS[0]})" if isinstance(surface, DemSurface) else LENGTH
     contours = _surface_contours(ax, surface, low, high)
     fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {length}")
@@ -238,10 +237,23 @@ def _terrain_map(fig, ax, rows: list[dict], config: RunConfig,
     ax.plot([r["pos_x"] for r in lead], [r["pos_y"] for r in lead], "k.-", lw=1, ms=4,
             label="leader")
     ax.set(xlim=(low[0], high[0]), ylim=(low[1], high[1]), aspect="equal")
-    return surface, length, lead
+    return length, lead
 
 
-@_styled
+def _run_record(run_dir: Path) -> tuple[list[dict], RunConfig]:
+    """``run_dir``'s ``ticks.csv`` rows and configuration."""
+    return read_ticks(run_dir / TICKS_FILE), load_config(run_dir / "config.toml")
+
+
+def _run_summary(run_dir: Path) -> dict:
+    return json.loads((run_dir / SUMMARY_FILE).read_text())
+
+
+def _run_surface(config: RunConfig) -> Surface:
+    """The run's surface (built once per :func:`plot_run`: a DEM's means a spline fit)."""
+    return make_surface(config.surface, config.surface_params)
+
+
 def plot_effectiveness(run_dir: str | Path, path: str | Path,
                        followers: Sequence[int] | None = None, title: str | None = None) -> Path:
     """The paper's effectiveness figure for one run.
@@ -251,15 +263,21 @@ def plot_effectiveness(run_dir: str | Path, path: str | Path,
     (default the first three): distance and bearing of its leader seen from the ideal position
     (red) and from the estimate (blue), per tick.
     """
-    run_dir = Path(run_dir)
-    rows = read_ticks(run_dir / "ticks.csv")
-    config = load_config(run_dir / "config.toml")
+    rows, config = _run_record(Path(run_dir))
+    return _draw_effectiveness(rows, config, _run_surface(config), path, followers, title)
+
+
+@_styled
+def _draw_effectiveness(rows: list[dict], config: RunConfig, surface: Surface, path: str | Path,
+                        followers: Sequence[int] | None = None,
+                        title: str | None = None) -> Path:
+    """:func:`plot_effectiveness`'s figure, from the run's record already read."""
     followers = list(followers or range(1, min(config.followers, 3) + 1))
     width = 13.0
     fig = _figure(width, 10.0)
     grid = fig.add_gridspec(3, len(followers), height_ratios=(1.6, 1, 1))
     ax = fig.add_subplot(grid[0, :])
-    surface, length, lead = _terrain_map(fig, ax, rows, config, aspect=3.3)
+    length, lead = _terrain_map(fig, ax, rows, config, surface, aspect=3.3)
     ax.plot(lead[0]["pos_x"], lead[0]["pos_y"], "ks", mfc="none", ms=10, label="leader at tick 0")
     for k in range(1, config.followers + 1):
         mine = sorted((r for r in rows if r["agent"] == k), key=lambda r: r["tick"])
@@ -298,14 +316,18 @@ def plot_effectiveness(run_dir: str | Path, path: str | Path,
     return _save(fig, path)
 
 
-@_styled
 def plot_required_range(run_dir: str | Path, path: str | Path) -> Path:
     """Required sensing range of one run: per-follower means against the two baselines
     (bars, from ``summary.json``) and per tick (lines, from ``ticks.csv``)."""
     run_dir = Path(run_dir)
-    summary = json.loads((run_dir / "summary.json").read_text())
-    rows = read_ticks(run_dir / "ticks.csv")
-    config = load_config(run_dir / "config.toml")
+    rows, config = _run_record(run_dir)
+    return _draw_required_range(rows, config, _run_summary(run_dir), path)
+
+
+@_styled
+def _draw_required_range(rows: list[dict], config: RunConfig, summary: dict,
+                         path: str | Path) -> Path:
+    """:func:`plot_required_range`'s figure, from the run's record already read."""
     fig = _figure(12.0, 4.6)
     bars, lines = fig.subplots(1, 2, width_ratios=(1, 1.4))
     followers = sorted(summary["followers"], key=int)
@@ -391,20 +413,26 @@ def driven_paths(config: RunConfig, surface: Surface, rows: list[dict],
     return paths
 
 
-@_styled
 def plot_driven_paths(run_dir: str | Path, path: str | Path) -> Path:
     """A drive run's paths: every follower's path control step by control step (blue,
     :func:`driven_paths`) from where it started, over the terrain, against its ideal
     positions (red), with the leader (black)."""
     run_dir = Path(run_dir)
-    rows = read_ticks(run_dir / TICKS_FILE)
-    config = load_config(run_dir / "config.toml")
+    rows, config = _run_record(run_dir)
     if config.motion != "drive":
         raise ValueError(f"run_dir {run_dir} is not a drive run (motion {config.motion!r})")
+    return _draw_driven_paths(rows, config, _run_surface(config),
+                              read_controls(run_dir / CONTROLS_FILE), path)
+
+
+@_styled
+def _draw_driven_paths(rows: list[dict], config: RunConfig, surface: Surface,
+                       controls: list[dict], path: str | Path) -> Path:
+    """:func:`plot_driven_paths`'s figure, from the run's record already read."""
     fig = _figure(13.0, 6.5)
     ax = fig.add_subplot()
-    surface, length, _ = _terrain_map(fig, ax, rows, config, aspect=2.0)
-    paths = driven_paths(config, surface, rows, read_controls(run_dir / CONTROLS_FILE))
+    length, _ = _terrain_map(fig, ax, rows, config, surface, aspect=2.0)
+    paths = driven_paths(config, surface, rows, controls)
     for k in range(1, config.followers + 1):
         mine = sorted((r for r in rows if r["agent"] == k), key=lambda r: r["tick"])
         ax.plot([r["ideal_x"] for r in mine], [r["ideal_y"] for r in mine], "o",
@@ -430,7 +458,7 @@ def plot_run(run_dir: str | Path, force: bool = False) -> list[Path]:
     (unless ``force``: draw them anew).
     """
     run_dir = Path(run_dir)
-    missing = [n for n in ("config.toml", "ticks.csv", "summary.json")
+    missing = [n for n in ("config.toml", TICKS_FILE, SUMMARY_FILE)
                if not (run_dir / n).is_file()]
     if missing:
         raise ValueError(f"run_dir {run_dir} is not a results folder "
@@ -439,9 +467,14 @@ def plot_run(run_dir: str | Path, force: bool = False) -> list[Path]:
     effectiveness, required = (out / f"{name}.png" for name in ("effectiveness", "required_range"))
     if not force and (effectiveness.exists() or required.exists()):
         raise ValueError(f"{out} holds the run's figures already; draw them anew with --force")
-    figures = [plot_effectiveness(run_dir, effectiveness), plot_required_range(run_dir, required)]
-    if load_config(run_dir / "config.toml").motion == "drive":
-        figures.append(plot_driven_paths(run_dir, out / "driven_paths.png"))
+    rows, config = _run_record(run_dir)
+    surface = _run_surface(config)
+    figures = [_draw_effectiveness(rows, config, surface, effectiveness),
+               _draw_required_range(rows, config, _run_summary(run_dir), required)]
+    if config.motion == "drive":
+        figures.append(_draw_driven_paths(rows, config, surface,
+                                          read_controls(run_dir / CONTROLS_FILE),
+                                          out / "driven_paths.png"))
     return figures
 
 
