@@ -31,7 +31,7 @@ from protocol.record import CONTROLS_FILE, SUMMARY_FILE, TICKS_FILE, read_contro
 from world import geometry, motion
 from world.dem import DemSurface
 from world.surfaces import Surface, make_surface
-from world.view import height_grid
+from world.view import height_grid, widen_to_aspect
 
 DPI = 110
 STYLE = {"font.size": 12, "axes.titlesize": 13, "axes.labelsize": 12, "legend.fontsize": 11,
@@ -176,15 +176,6 @@ def leader_relative(rows: list[dict], follower: int) -> dict[str, np.ndarray]:
             "r_est": np.hypot(*to_est.T), "theta_est": theta_est}
 
 
-def _box(points: np.ndarray, margin: float, aspect: float) -> tuple[np.ndarray, np.ndarray]:
-    """Corners (2,), (2,) of the bounding box of ``points`` (m, 2) grown by ``margin``, then
-    widened in x or y to the width/height ratio ``aspect``."""
-    low, high = np.nanmin(points, axis=0) - margin, np.nanmax(points, axis=0) + margin
-    centre, size = (low + high) / 2, high - low
-    size = np.maximum(size, [size[1] * aspect, size[0] / aspect])
-    return centre - size / 2, centre + size / 2
-
-
 def _surface_contours(ax, surface, low: np.ndarray, high: np.ndarray):
     """Contour lines of ``surface`` over the box ``low``..``high`` (NaN outside its domain);
     over a DEM, on its hillshaded relief (:func:`terrain_relief`)."""
@@ -229,7 +220,8 @@ def _terrain_map(fig, ax, rows: list[dict], config: RunConfig, surface: Surface,
     leader's path; return the length unit's label and the leader's rows."""
     positions = np.array([(r[f"{c}_x"], r[f"{c}_y"]) for r in rows for c in ("pos", "ideal")
                           if r.get(f"{c}_x") is not None])
-    low, high = _box(positions, margin=config.spacing, aspect=aspect)
+    low, high = widen_to_aspect(np.nanmin(positions, axis=0) - config.spacing,
+                                np.nanmax(positions, axis=0) + config.spacing, aspect)
     length = f"({DEM_UNITS[0]})" if isinstance(surface, DemSurface) else LENGTH
     contours = _surface_contours(ax, surface, low, high)
     fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {length}")
