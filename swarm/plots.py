@@ -5,7 +5,7 @@ backend switch. Every PNG is written atomically (temporary file, then rename), l
 of a results folder. Lengths are in the surface's length units, times in its time units
 (the leader's speed is about one length unit per time unit).
 
-Table figures take the rows of a table as read back by :func:`swarm.experiment.read_table`
+Table figures take the rows of a table as read back by :func:`swarm.grid.read_table`
 (dicts; missing numbers are NaN), so they draw exactly what the tables hold.
 """
 from __future__ import annotations

@@ -97,8 +97,9 @@ def export_run(run_dir: str | Path, out: str | Path | None = None, *,
                force: bool = False) -> Path:
     """Write the bag of the finished run in ``run_dir`` to ``out`` (default ``run_dir/bag``).
 
-    Raises ValueError (one line) for a folder that is no finished run, an existing ``out``
-    without ``force``, or a missing ``[ros]`` extra (:class:`protocol.distribution.MissingExtra`).
+    Raises ValueError (one line) for a folder that is no finished run or an existing ``out``
+    without ``force``; :class:`protocol.distribution.MissingExtra` (an ImportError) without
+    the ``[ros]`` extra.
     """
     from world.main import resolve_with_surface
     from world.ros2 import EXPORT_TERRAIN_CELLS, RosScene, stamp_ns
