@@ -144,7 +144,7 @@ def leader_relative(rows: list[dict], follower: int) -> dict[str, np.ndarray]:
     Parameters
     ----------
     rows : list of dict
-        ``ticks.csv`` rows (:func:`world.results.read_ticks`).
+        ``ticks.csv`` rows (:func:`protocol.record.read_ticks`).
     follower : int
         Follower id k >= 1.
 

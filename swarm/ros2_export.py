@@ -24,7 +24,7 @@ import numpy as np
 
 from protocol import ros2
 from protocol.config import load_config
-from world.results import CONTROLS_FILE, SUMMARY_FILE, TICKS_FILE, read_controls, read_ticks
+from protocol.record import CONTROLS_FILE, SUMMARY_FILE, TICKS_FILE, read_controls, read_ticks
 
 BAG_VERSION = 9  # rosbag2's metadata version of Jazzy
 BAG_FILES = {"metadata.yaml"}
