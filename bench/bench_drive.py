@@ -15,36 +15,14 @@ Figures depend on the machine and its load; nothing here is asserted.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.bench_world import sensing_round_trip, tick_wall_time  # noqa: E402
 from protocol.config import RunConfig  # noqa: E402
-from swarm.launch import launch  # noqa: E402
-
-
-def _bench_world():
-    spec = importlib.util.spec_from_file_location("bench_world", ROOT / "bench" / "bench_world.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def column(followers: int, ticks: int, **options) -> float:
-    """Seconds per tick of a column of ``followers`` follower processes."""
-    stamps: list[float] = []
-    with tempfile.TemporaryDirectory() as tmp:
-        summary = launch(RunConfig(run_id=f"bd{followers}", followers=followers, ticks=ticks,
-                                   agent_timeout=60.0, start_timeout=180.0, **options),
-                         Path(tmp) / "run", on_tick=lambda j: stamps.append(time.perf_counter()))
-    if not summary["complete"]:
-        raise RuntimeError(summary["reason"])
-    return (stamps[-1] - stamps[0]) / (len(stamps) - 1)
 
 
 def main() -> None:
@@ -56,14 +34,15 @@ def main() -> None:
 
     drive = RunConfig(motion="drive")
     trips = drive.control_steps + drive.snap_steps + 2
-    rtt = _bench_world().sensing_round_trip(1000)
+    rtt = sensing_round_trip(1000)
     bound_ms = trips * rtt["bare_us"] / 1e3
     print(f"bare get round trip {rtt['bare_us']:.0f} us; a drive tick's bound "
           f"({drive.control_steps} control + {drive.snap_steps} snap + 2) x get = "
           f"{bound_ms:.2f} ms per follower-tick", flush=True)
     n = args.followers
     for label, options in (("drive", {"motion": "drive"}), ("teleport", {})):
-        per_tick = column(n, args.ticks, **options) * 1e3
+        per_tick = tick_wall_time(n, args.ticks, agent_timeout=60.0, start_timeout=180.0,
+                                  **options) * 1e3
         per_follower = per_tick / n
         print(f"{n} {label} followers: {per_tick:.1f} ms per tick, {per_follower:.3f} ms per "
               f"follower-tick, {per_follower / bound_ms:.2f} x the drive bound", flush=True)

@@ -17,7 +17,6 @@ Figures depend on the machine and its load; nothing here is asserted.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 import tempfile
 import time
@@ -26,17 +25,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.bench_world import sensing_round_trip  # noqa: E402
 from protocol.config import RunConfig  # noqa: E402
 from swarm import launch as launch_module  # noqa: E402
 
 FIVE_TRIPS = str(ROOT / "bench" / "five_trips_follower.py")
-
-
-def _bench_world():
-    spec = importlib.util.spec_from_file_location("bench_world", ROOT / "bench" / "bench_world.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def chain(followers: int, pipelined: bool, five_trips: bool, ticks: int) -> float:
@@ -80,7 +73,7 @@ def main() -> None:
     p.add_argument("--grid", action="store_true", help="also time the full paper grid")
     args = p.parse_args()
 
-    rtt = _bench_world().sensing_round_trip(1000)
+    rtt = sensing_round_trip(1000)
     bound_ms = 3 * rtt["bare_us"] / 1e3
     print(f"bare get round trip {rtt['bare_us']:.0f} us (world sensing query "
           f"{rtt['world_us']:.0f} us); bound 3 x get = {bound_ms:.2f} ms per follower-tick\n")

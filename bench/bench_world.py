@@ -86,11 +86,14 @@ def sensing_round_trip(n: int = 2000) -> dict:
     return {"world_us": w, "bare_us": b, "ratio": w / b}
 
 
-def tick_wall_time(followers: int, ticks: int = 40) -> float:
-    """Seconds per lockstep tick with ``followers`` follower processes."""
+def tick_wall_time(followers: int, ticks: int = 40, **options) -> float:
+    """Seconds per lockstep tick with ``followers`` follower processes (first to last
+    completed tick: start-up excluded); ``options`` are further :class:`RunConfig` fields
+    (``motion="drive"``, longer timeouts for a big column)."""
     stamps: list[float] = []
     with tempfile.TemporaryDirectory() as tmp:
-        summary = launch(RunConfig(run_id=f"bench{followers}", followers=followers, ticks=ticks),
+        summary = launch(RunConfig(run_id=f"bench{followers}", followers=followers, ticks=ticks,
+                                   **options),
                          Path(tmp) / "run", on_tick=lambda j: stamps.append(time.perf_counter()))
     if not summary["complete"]:
         raise RuntimeError(summary["reason"])

@@ -35,8 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.config import RunConfig, write_atomic
-from swarm.grid import estimator_options, is_nan, table_number, write_table
+from protocol.config import RunConfig, estimator_options
+from protocol.folder import write_atomic
+from swarm.grid import number, table_number, write_table
 
 TOLERANCE = 0.10
 """A top speed suffices when the formation error is within this fraction of the best top
@@ -152,17 +153,13 @@ def _execute(run: StudyRun) -> dict:
         "ticks": summary["ticks_completed"],
         "mean_required_range": mean("mean_required_range"),
         "mean_formation_error": mean("mean_formation_error"),
-        "last_formation_error": _number(followers[-1].get("mean_formation_error")),
+        "last_formation_error": number(followers[-1].get("mean_formation_error")),
         "mean_reach_error": mean("mean_reach_error"),
         "mean_snap_error": mean("mean_snap_error"),
         "saturated_steps": sum(f.get("saturated_steps", 0) for f in followers),
         "path_length": mean("path_length"),
         "complete": int(summary["complete"]),
     }
-
-
-def _number(value) -> float:
-    return math.nan if value is None else float(value)
 
 
 def run_study(spec: DriveStudySpec, workers: int | None = None,
@@ -210,7 +207,7 @@ def minimum_speeds(rows: list[dict], spec: DriveStudySpec) -> list[dict]:
 def draw_study(rows: list[dict], spec: DriveStudySpec, path: Path) -> Path:
     """The study's figure: formation error (top) and required range (bottom) against the
     control steps, the top speed (at the base comm period) and the comm period (at the base
-    top speed); colour the surface, marker the estimator; dotted: the teleporting column."""
+    top speed); colour the surface, marker the estimator."""
     from swarm.plots import ESTIMATOR_STYLE, _figure, _log_y, _save, _styled
 
     @_styled
@@ -343,7 +340,7 @@ def run_drive_study(out_dir: str | Path, spec: DriveStudySpec = DriveStudySpec()
     report = write_report(out, rows, minimum, spec, wall)
     return {"tables": tables, "figures": {"drive": figure}, "report": report,
             "runs": len(rows), "runs_time": runs_time, "wall_time": wall,
-            "incomplete": sum(1 for r in rows if not r["complete"] or is_nan(r["ticks"]))}
+            "incomplete": sum(1 for r in rows if not r["complete"])}
 
 
 def quick(spec: DriveStudySpec) -> DriveStudySpec:

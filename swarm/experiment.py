@@ -155,7 +155,7 @@ def effectiveness_rows(outcomes: Iterable[RunOutcome], runs_dir: Path) -> list[d
         if outcome.run.labels["estimator"] != "edmd-b":
             continue
         surface = outcome.run.labels["surface"]
-        numbers = (effectiveness_numbers(effectiveness_run(runs_dir.parent, surface),
+        numbers = (effectiveness_numbers(runs_dir / outcome.run.folder,
                                          range(1, outcome.run.config.followers + 1))
                    if outcome.ok else dict.fromkeys(EFFECTIVENESS_NUMBERS, math.nan))
         rows.append({"surface": surface, **numbers, "run": outcome.run.folder})

@@ -5,7 +5,7 @@ backend switch. Every PNG is written atomically (temporary file, then rename), l
 of a results folder. Lengths are in the surface's length units, times in its time units
 (the leader's speed is about one length unit per time unit).
 
-Table figures take the rows of a table as read back by :func:`swarm.experiment.read_table`
+Table figures take the rows of a table as read back by :func:`swarm.grid.read_table`
 (dicts; missing numbers are NaN), so they draw exactly what the tables hold.
 """
 from __future__ import annotations
@@ -27,10 +27,11 @@ from matplotlib.ticker import NullLocator
 
 from protocol.config import RunConfig, load_config
 from protocol.folder import write_atomic
+from protocol.record import CONTROLS_FILE, SUMMARY_FILE, TICKS_FILE, read_controls, read_ticks
+from world import geometry, motion
 from world.dem import DemSurface
-from world.results import read_ticks
 from world.surfaces import Surface, make_surface
-from world.view import height_grid
+from world.view import height_grid, widen_to_aspect
 
 DPI = 110
 STYLE = {"font.size": 12, "axes.titlesize": 13, "axes.labelsize": 12, "legend.fontsize": 11,
@@ -143,7 +144,7 @@ def leader_relative(rows: list[dict], follower: int) -> dict[str, np.ndarray]:
     Parameters
     ----------
     rows : list of dict
-        ``ticks.csv`` rows (:func:`world.results.read_ticks`).
+        ``ticks.csv`` rows (:func:`protocol.record.read_ticks`).
     follower : int
         Follower id k >= 1.
 
@@ -173,15 +174,6 @@ def leader_relative(rows: list[dict], follower: int) -> dict[str, np.ndarray]:
     theta_est = theta_ideal + np.remainder(theta_est - theta_ideal + np.pi, 2 * np.pi) - np.pi
     return {"tick": ticks, "r_ideal": np.hypot(*to_ideal.T), "theta_ideal": theta_ideal,
             "r_est": np.hypot(*to_est.T), "theta_est": theta_est}
-
-
-def _box(points: np.ndarray, margin: float, aspect: float) -> tuple[np.ndarray, np.ndarray]:
-    """Corners (2,), (2,) of the bounding box of ``points`` (m, 2) grown by ``margin``, then
-    widened in x or y to the width/height ratio ``aspect``."""
-    low, high = np.nanmin(points, axis=0) - margin, np.nanmax(points, axis=0) + margin
-    centre, size = (low + high) / 2, high - low
-    size = np.maximum(size, [size[1] * aspect, size[0] / aspect])
-    return centre - size / 2, centre + size / 2
 
 
 def _surface_contours(ax, surface, low: np.ndarray, high: np.ndarray):
@@ -221,15 +213,15 @@ def terrain_relief(ax, dem: DemSurface, low: np.ndarray, high: np.ndarray,
     return image, contours
 
 
-def _terrain_map(fig, ax, rows: list[dict], config: RunConfig,
-                 aspect: float) -> tuple[Surface, str, list]:
+def _terrain_map(fig, ax, rows: list[dict], config: RunConfig, surface: Surface,
+                 aspect: float) -> tuple[str, list]:
     """Draw a run's terrain under ``ax`` (contour lines or a DEM's relief, with its colour
     bar), fitted to every settled and ideal position at ``aspect`` and equal axes, and the
-    leader's path; return the surface, the length unit's label and the leader's rows."""
+    leader's path; return the length unit's label and the leader's rows."""
     positions = np.array([(r[f"{c}_x"], r[f"{c}_y"]) for r in rows for c in ("pos", "ideal")
                           if r.get(f"{c}_x") is not None])
-    low, high = _box(positions, margin=config.spacing, aspect=aspect)
-    surface = make_surface(config.surface, config.surface_params)
+    low, high = widen_to_aspect(np.nanmin(positions, axis=0) - config.spacing,
+                                np.nanmax(positions, axis=0) + config.spacing, aspect)
     length = f"({DEM_UNITS[0]})" if isinstance(surface, DemSurface) else LENGTH
     contours = _surface_contours(ax, surface, low, high)
     fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {length}")
@@ -237,10 +229,23 @@ def _terrain_map(fig, ax, rows: list[dict], config: RunConfig,
     ax.plot([r["pos_x"] for r in lead], [r["pos_y"] for r in lead], "k.-", lw=1, ms=4,
             label="leader")
     ax.set(xlim=(low[0], high[0]), ylim=(low[1], high[1]), aspect="equal")
-    return surface, length, lead
+    return length, lead
 
 
-@_styled
+def _run_record(run_dir: Path) -> tuple[list[dict], RunConfig]:
+    """``run_dir``'s ``ticks.csv`` rows and configuration."""
+    return read_ticks(run_dir / TICKS_FILE), load_config(run_dir / "config.toml")
+
+
+def _run_summary(run_dir: Path) -> dict:
+    return json.loads((run_dir / SUMMARY_FILE).read_text())
+
+
+def _run_surface(config: RunConfig) -> Surface:
+    """The run's surface (built once per :func:`plot_run`: a DEM's means a spline fit)."""
+    return make_surface(config.surface, config.surface_params)
+
+
 def plot_effectiveness(run_dir: str | Path, path: str | Path,
                        followers: Sequence[int] | None = None, title: str | None = None) -> Path:
     """The paper's effectiveness figure for one run.
@@ -250,15 +255,21 @@ def plot_effectiveness(run_dir: str | Path, path: str | Path,
     (default the first three): distance and bearing of its leader seen from the ideal position
     (red) and from the estimate (blue), per tick.
     """
-    run_dir = Path(run_dir)
-    rows = read_ticks(run_dir / "ticks.csv")
-    config = load_config(run_dir / "config.toml")
+    rows, config = _run_record(Path(run_dir))
+    return _draw_effectiveness(rows, config, _run_surface(config), path, followers, title)
+
+
+@_styled
+def _draw_effectiveness(rows: list[dict], config: RunConfig, surface: Surface, path: str | Path,
+                        followers: Sequence[int] | None = None,
+                        title: str | None = None) -> Path:
+    """:func:`plot_effectiveness`'s figure, from the run's record already read."""
     followers = list(followers or range(1, min(config.followers, 3) + 1))
     width = 13.0
     fig = _figure(width, 10.0)
     grid = fig.add_gridspec(3, len(followers), height_ratios=(1.6, 1, 1))
     ax = fig.add_subplot(grid[0, :])
-    surface, length, lead = _terrain_map(fig, ax, rows, config, aspect=3.3)
+    length, lead = _terrain_map(fig, ax, rows, config, surface, aspect=3.3)
     ax.plot(lead[0]["pos_x"], lead[0]["pos_y"], "ks", mfc="none", ms=10, label="leader at tick 0")
     for k in range(1, config.followers + 1):
         mine = sorted((r for r in rows if r["agent"] == k), key=lambda r: r["tick"])
@@ -297,14 +308,18 @@ def plot_effectiveness(run_dir: str | Path, path: str | Path,
     return _save(fig, path)
 
 
-@_styled
 def plot_required_range(run_dir: str | Path, path: str | Path) -> Path:
     """Required sensing range of one run: per-follower means against the two baselines
     (bars, from ``summary.json``) and per tick (lines, from ``ticks.csv``)."""
     run_dir = Path(run_dir)
-    summary = json.loads((run_dir / "summary.json").read_text())
-    rows = read_ticks(run_dir / "ticks.csv")
-    config = load_config(run_dir / "config.toml")
+    rows, config = _run_record(run_dir)
+    return _draw_required_range(rows, config, _run_summary(run_dir), path)
+
+
+@_styled
+def _draw_required_range(rows: list[dict], config: RunConfig, summary: dict,
+                         path: str | Path) -> Path:
+    """:func:`plot_required_range`'s figure, from the run's record already read."""
     fig = _figure(12.0, 4.6)
     bars, lines = fig.subplots(1, 2, width_ratios=(1, 1.4))
     followers = sorted(summary["followers"], key=int)
@@ -336,54 +351,85 @@ def plot_required_range(run_dir: str | Path, path: str | Path) -> Path:
     return _save(fig, path)
 
 
-def driven_paths(config: RunConfig, ticks: int) -> dict[int, np.ndarray]:
-    """Where each driving follower was after every control step of ticks ``0 … ticks-1``
-    (absolute xy, shape (steps, 2) per follower), from a run of ``config`` in memory: the
-    results are a function of the configuration and seed, so this is the recorded run."""
-    from swarm.local import LocalLink, run_local
+def driven_paths(config: RunConfig, surface: Surface, rows: list[dict],
+                 controls: list[dict]) -> dict[int, list[np.ndarray]]:
+    """Every driving follower's path, control step by control step, rebuilt from the record.
 
-    paths: dict[int, list] = {k: [] for k in range(1, config.followers + 1)}
+    Tick ``j`` starts from the pose the follower settled at in tick ``j - 1`` (``ticks.csv``'s
+    position and heading; tick 0 from its place in the starting column,
+    :func:`world.geometry.column`) and drives each of the tick's steps in ``controls.csv`` at
+    its achieved speed and turn rate for ``T_c / control_steps`` (:func:`world.motion.drive`,
+    as the world moved it). A tick's path therefore ends where the follower settled, lost and
+    missed ticks included (a missed tick keeps the steps it drove).
 
-    class PathLink(LocalLink):
-        def act(self, request):
-            reply = super().act(request)
-            paths[self.agent].append(self.sim.agents[self.agent].pos.copy())
-            return reply
+    Parameters
+    ----------
+    config : RunConfig
+        The run's resolved configuration (``config.toml``).
+    surface : Surface
+        The run's surface.
+    rows, controls : list of dict
+        ``ticks.csv`` and ``controls.csv`` rows (:func:`protocol.record.read_ticks`,
+        :func:`protocol.record.read_controls`).
 
-    run_local(config.replace(ticks=max(ticks, config.init_ticks)), link_factory=PathLink)
-    return {k: np.array(p) for k, p in paths.items()}
+    Returns
+    -------
+    dict of int to list of ndarray
+        Per follower ``k``, per tick of ``rows`` in order, the positions (1 + steps, 2):
+        where the tick began, then after each of its steps.
+    """
+    if config.leader_start is None:
+        raise ValueError("config.leader_start must be resolved (a run's config.toml is)")
+    if any(r.get("heading_x") is None for r in rows):
+        raise ValueError("ticks.csv holds no settled headings (written by an earlier version)")
+    start = np.asarray(config.leader_start, dtype=float)
+    positions, headings = geometry.column(surface, start[:2], start[2:], config.followers,
+                                          config.spacing, config.side_sign)
+    steps: dict[tuple[int, int], list[dict]] = {}
+    for c in controls:
+        steps.setdefault((c["tick"], c["agent"]), []).append(c)
+    duration = config.comm_period / config.control_steps
+    paths: dict[int, list[np.ndarray]] = {}
+    for k in range(1, config.followers + 1):
+        pos, heading = positions[k], headings[k]
+        paths[k] = []
+        for row in sorted((r for r in rows if r["agent"] == k), key=lambda r: r["tick"]):
+            points = [pos]
+            for c in steps.get((row["tick"], k), ()):
+                pos, heading = motion.drive(surface, pos, heading, c["achieved_speed"],
+                                            c["achieved_turn"], duration)
+                points.append(pos)
+            paths[k].append(np.array(points))
+            pos = np.array([row["pos_x"], row["pos_y"]])
+            heading = np.array([row["heading_x"], row["heading_y"]])
+    return paths
+
+
+def plot_driven_paths(run_dir: str | Path, path: str | Path) -> Path:
+    """A drive run's paths: every follower's path control step by control step (blue,
+    :func:`driven_paths`) from where it started, over the terrain, against its ideal
+    positions (red), with the leader (black)."""
+    run_dir = Path(run_dir)
+    rows, config = _run_record(run_dir)
+    if config.motion != "drive":
+        raise ValueError(f"run_dir {run_dir} is not a drive run (motion {config.motion!r})")
+    return _draw_driven_paths(rows, config, _run_surface(config),
+                              read_controls(run_dir / CONTROLS_FILE), path)
 
 
 @_styled
-def plot_driven_paths(run_dir: str | Path, path: str | Path) -> Path:
-    """A drive run's paths: every follower's path control step by control step (blue) over
-    the terrain, against its ideal positions (red), with the leader (black)."""
-    run_dir = Path(run_dir)
-    rows = read_ticks(run_dir / "ticks.csv")
-    config = load_config(run_dir / "config.toml")
-    if config.motion != "drive":
-        raise ValueError(f"run_dir {run_dir} is not a drive run (motion {config.motion!r})")
-    ticks = 1 + max(r["tick"] for r in rows)
-    paths = driven_paths(config, ticks)
-    settled = {(r["tick"], r["agent"]): (r["pos_x"], r["pos_y"]) for r in rows}
-    for k, steps in paths.items():  # the replay must be the recorded run
-        per_tick = len(steps) // max(ticks, config.init_ticks)
-        for j in range(ticks):
-            end = steps[(j + 1) * per_tick - 1] if per_tick else None
-            if end is not None and not np.allclose(end, settled[(j, k)], rtol=0, atol=1e-9):
-                lost = any(r["lost"] for r in rows if r["agent"] == k)
-                if not lost:
-                    raise ValueError(f"{run_dir}: the replayed run differs from the recorded "
-                                     f"one (follower {k}, tick {j})")
+def _draw_driven_paths(rows: list[dict], config: RunConfig, surface: Surface,
+                       controls: list[dict], path: str | Path) -> Path:
+    """:func:`plot_driven_paths`'s figure, from the run's record already read."""
     fig = _figure(13.0, 6.5)
     ax = fig.add_subplot()
-    _, length, _ = _terrain_map(fig, ax, rows, config, aspect=2.0)
+    length, _ = _terrain_map(fig, ax, rows, config, surface, aspect=2.0)
+    paths = driven_paths(config, surface, rows, controls)
     for k in range(1, config.followers + 1):
         mine = sorted((r for r in rows if r["agent"] == k), key=lambda r: r["tick"])
         ax.plot([r["ideal_x"] for r in mine], [r["ideal_y"] for r in mine], "o",
                 color=IDEAL_COLOR, ms=3.5, label="ideal positions" if k == 1 else None)
-        start = np.array([[mine[0]["pos_x"], mine[0]["pos_y"]]])
-        steps = np.concatenate([start, paths[k]])
+        steps = np.concatenate([paths[k][0][:1], *(tick[1:] for tick in paths[k])])
         ax.plot(steps[:, 0], steps[:, 1], "-", color=ESTIMATE_COLOR, lw=0.8,
                 label="driven paths" if k == 1 else None)
         ax.plot([r["pos_x"] for r in mine], [r["pos_y"] for r in mine], "x",
@@ -404,7 +450,7 @@ def plot_run(run_dir: str | Path, force: bool = False) -> list[Path]:
     (unless ``force``: draw them anew).
     """
     run_dir = Path(run_dir)
-    missing = [n for n in ("config.toml", "ticks.csv", "summary.json")
+    missing = [n for n in ("config.toml", TICKS_FILE, SUMMARY_FILE)
                if not (run_dir / n).is_file()]
     if missing:
         raise ValueError(f"run_dir {run_dir} is not a results folder "
@@ -413,9 +459,14 @@ def plot_run(run_dir: str | Path, force: bool = False) -> list[Path]:
     effectiveness, required = (out / f"{name}.png" for name in ("effectiveness", "required_range"))
     if not force and (effectiveness.exists() or required.exists()):
         raise ValueError(f"{out} holds the run's figures already; draw them anew with --force")
-    figures = [plot_effectiveness(run_dir, effectiveness), plot_required_range(run_dir, required)]
-    if load_config(run_dir / "config.toml").motion == "drive":
-        figures.append(plot_driven_paths(run_dir, out / "driven_paths.png"))
+    rows, config = _run_record(run_dir)
+    surface = _run_surface(config)
+    figures = [_draw_effectiveness(rows, config, surface, effectiveness),
+               _draw_required_range(rows, config, _run_summary(run_dir), required)]
+    if config.motion == "drive":
+        figures.append(_draw_driven_paths(rows, config, surface,
+                                          read_controls(run_dir / CONTROLS_FILE),
+                                          out / "driven_paths.png"))
     return figures
 
 

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from protocol.folder import write_atomic
+from protocol.record import TICKS_FILE, read_ticks
 from swarm.grid import is_nan, read_table
 
 EFFECTIVENESS_NUMBERS = ("r_error", "r_follower", "theta_error", "theta_follower",
@@ -68,9 +69,8 @@ def effectiveness_numbers(run_dir: Path, followers: Iterable[int]) -> dict[str, 
     degrees, follower ``theta_follower`` at ``theta_tick``) over ``followers``, and the fastest
     change of a measured bearing (``turn`` degrees per tick, at ``turn_tick``)."""
     from swarm.plots import leader_relative
-    from world.results import read_ticks
 
-    ticks = read_ticks(run_dir / "ticks.csv")
+    ticks = read_ticks(run_dir / TICKS_FILE)
     worst = {"r": (0.0, 0, 0), "theta": (0.0, 0, 0)}  # error, follower, tick
     turn = (0.0, 0)  # fastest bearing change per tick, at which tick
     for k in followers:

@@ -24,7 +24,7 @@ import numpy as np
 
 from protocol import ros2
 from protocol.config import load_config
-from world.results import CONTROLS_FILE, SUMMARY_FILE, TICKS_FILE, read_controls, read_ticks
+from protocol.record import CONTROLS_FILE, SUMMARY_FILE, TICKS_FILE, read_controls, read_ticks
 
 BAG_VERSION = 9  # rosbag2's metadata version of Jazzy
 BAG_FILES = {"metadata.yaml"}
@@ -97,8 +97,9 @@ def export_run(run_dir: str | Path, out: str | Path | None = None, *,
                force: bool = False) -> Path:
     """Write the bag of the finished run in ``run_dir`` to ``out`` (default ``run_dir/bag``).
 
-    Raises ValueError (one line) for a folder that is no finished run, an existing ``out``
-    without ``force``, or a missing ``[ros]`` extra (:class:`protocol.distribution.MissingExtra`).
+    Raises ValueError (one line) for a folder that is no finished run or an existing ``out``
+    without ``force``; :class:`protocol.distribution.MissingExtra` (an ImportError) without
+    the ``[ros]`` extra.
     """
     from world.main import resolve_with_surface
     from world.ros2 import EXPORT_TERRAIN_CELLS, RosScene, stamp_ns

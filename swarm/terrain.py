@@ -1,7 +1,7 @@
 """Real terrain: ``python -m swarm experiment terrain --dem PATH`` and the DEM helpers it needs.
 
 The experiment runs the column over a DEM (:mod:`world.dem`) through the paper experiment's
-grid runner (:func:`swarm.experiment.run_grid`: every run over Zenoh, world as embedded
+grid runner (:func:`swarm.grid.run_grid`: every run over Zenoh, world as embedded
 router) and writes, into ``D``:
 
 - ``tables/terrain_comm_period.csv``: follower 1's mean required sensing range per comm period

@@ -21,13 +21,14 @@ from agents.follower import follower_tick
 from agents.policies import make_policy
 from protocol.config import AgentSettings, RunConfig
 from protocol.messages import Control, Move, Snap
+from protocol.record import read_controls, read_ticks
 from swarm.cli import main as swarm_main
 from swarm.local import LocalLink, run_local
+from swarm.plots import driven_paths
 from tests.make_dem_data import HILLS, HILLS_LEADER_START
 from world import geometry, motion
 from world.main import resolve_with_surface
 from world.noise import CHANNELS, PHASES, gaussian
-from world.results import read_controls, read_ticks
 from world.sim import RequestError, WorldSim
 from world.surfaces import make_surface
 
@@ -354,6 +355,30 @@ def test_controls_csv_holds_every_step_the_followers_commanded(tmp_path):
     run_local(RunConfig(surface="wavy", followers=2, ticks=4), tmp_path / "teleport")
     assert not (tmp_path / "teleport" / "controls.csv").exists()
 
+
+
+def test_the_driven_paths_are_rebuilt_from_the_record(tmp_path):
+    """``swarm plot``'s driven paths come from ``controls.csv`` and ``ticks.csv`` alone: each
+    follower starts where the world put it, and every tick's rebuilt path ends exactly where
+    ``ticks.csv`` says the follower settled, in a noisy run that loses ticks too."""
+    config = RunConfig(motion="drive", surface="wavy", followers=2, ticks=10, seed=4,
+                       sensing_range=0.3, control_steps=5, snap_steps=3, **NOISE)
+    run_local(config, tmp_path)
+    rows, controls = read_ticks(tmp_path / "ticks.csv"), read_controls(tmp_path / "controls.csv")
+    assert any(r["lost"] for r in rows), "the run should lose a tick (sensing_range)"
+    resolved, surface = resolve_with_surface(config)
+    paths = driven_paths(resolved, surface, rows, controls)
+    world = WorldSim(resolved, surface)
+    settled = _pos(rows)
+    for k in (1, 2):
+        assert np.array_equal(paths[k][0][0], world.agents[k].pos)
+        assert len(paths[k]) == config.ticks
+        for j, tick in enumerate(paths[k]):
+            lost = next(r["lost"] for r in rows if (r["tick"], r["agent"]) == (j, k))
+            assert len(tick) == 1 + (5 if lost else 8)
+            assert np.array_equal(tick[-1], settled[j, k])
+            if j:
+                assert np.array_equal(tick[0], settled[j - 1, k])
 
 
 def test_a_slow_robot_falls_short_and_says_so():

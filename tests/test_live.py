@@ -268,6 +268,26 @@ def test_log_axis_span_from_the_series():
     assert log_span({"tick": [], "required": []}) == (1e-3, 1.0)
 
 
+def test_a_box_is_widened_about_its_centre_to_the_aspect():
+    from world.view import widen_to_aspect
+
+    low, high = np.array([0.0, 0.0]), np.array([10.0, 2.0])
+    for aspect in (0.5, 2.0, 5.0, 8.0):
+        wide_low, wide_high = widen_to_aspect(low, high, aspect)
+        width, height = wide_high - wide_low
+        assert width / height == pytest.approx(aspect)
+        assert (wide_low <= low).all() and (wide_high >= high).all()
+        np.testing.assert_allclose((wide_low + wide_high) / 2, [5.0, 1.0])
+    # at most 8:1 either way: a 5:1 box is kept, 1:20 widened to 1:8
+    assert [b.tolist() for b in widen_to_aspect(low, high, 8.0, at_most=True)] == [
+        [0.0, 0.0], [10.0, 2.0]]
+    tall_low, tall_high = widen_to_aspect(np.array([0.0, 0.0]), np.array([1.0, 20.0]), 8.0,
+                                          at_most=True)
+    assert (tall_high - tall_low).tolist() == [2.5, 20.0]
+    with pytest.raises(ValueError, match="aspect"):
+        widen_to_aspect(low, high, 0.0)
+
+
 def test_map_box_is_never_a_narrow_strip():
     from world.view import MAX_MAP_ASPECT, map_box
 

@@ -90,6 +90,7 @@ def fit_view(box: Sequence[float], points: np.ndarray, margin: float,
     if points.size:
         low = np.minimum(low, points.min(axis=0) - margin)
         high = np.maximum(high, points.max(axis=0) + margin)
+    # world.view.widen_to_aspect's formula: the observer never imports world
     width, height = high - low
     width, height = max(width, height * aspect), max(height, width / aspect)
     (cx, cy) = (low + high) / 2
