@@ -28,7 +28,7 @@ from protocol.config import RunConfig, dump_config, load_config, read_toml
 from protocol.distribution import require
 from protocol.folder import FolderLock
 from protocol.ros2 import domain_from_env
-from protocol.session import add_connection_flags, connection_config
+from protocol.session import add_connection_flags, connection_config, open_session
 from world import checkpoint
 from world.service import WorldService
 from world.sim import default_max_speed, resolve_leader_start
@@ -81,7 +81,7 @@ def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
         if not resume:
             checkpoint.claim(out_dir, force)
             dump_config(config, out_dir / "config.toml")
-        with zenoh.open(conf) as session:
+        with open_session(conf) as session:
             service = WorldService(session, config, surface, out_dir, on_tick=on_tick,
                                    resume=resume)
             try:
