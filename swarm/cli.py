@@ -252,7 +252,7 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
                          endpoint=endpoint, force=args.force, lock=lock,
                          before_agents=None if live is None else observe)
     except Refused as exc:  # e.g. a raster larger than the limit: nothing ran
-        refuse(str(exc))
+        refuse(describe(exc))
     except OSError as exc:  # the results disk failed during the run (read-only, full)
         fail(f"cannot write the results in {out}: {describe(exc)}")
     except EXPECTED_FAILURES as exc:

@@ -275,6 +275,25 @@ def test_run_refuses_to_overwrite_results_without_force(tmp_path, capsys):
     assert (out / "ticks.csv").read_bytes() != before
 
 
+def test_a_folder_holding_results_is_refused_alike_by_world_and_swarm_run(tmp_path, capsys):
+    """A folder with results but no summary (a world killed before writing one) is refused
+    before anything ran, status 2, by ``python -m world`` and ``swarm run`` alike."""
+    from protocol.session import free_tcp_endpoint
+
+    out = tmp_path / "r"
+    out.mkdir()
+    (out / "ticks.csv").write_text("kept\n")
+    dump_config(RunConfig(run_id="again", ticks=6), tmp_path / "c.toml")
+    world = subprocess.run([sys.executable, "-m", "world", "--config", str(tmp_path / "c.toml"),
+                            "--listen", free_tcp_endpoint(), "--out", str(out)],
+                           cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert world.returncode == 2, world.stderr
+    assert world.stderr.count("error:") == 1 and "already holds results" in world.stderr
+    assert main(["run", "--ticks", "6", "--in-process", "--out", str(out)]) == 2
+    assert "already holds results" in one_error_line(capsys)
+    assert (out / "ticks.csv").read_text() == "kept\n"
+
+
 @pytest.mark.parametrize("signum, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 @pytest.mark.parametrize("command", [("agents.leader",), ("world", "--out", "run")],
                          ids=["agent", "world"])

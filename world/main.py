@@ -149,10 +149,8 @@ def _serve(args: argparse.Namespace) -> int:
     except checkpoint.AlreadyComplete as exc:
         print(str(exc), file=sys.stderr)
         return DONE
-    except checkpoint.StateError as exc:  # nothing to resume, or results it must not replace
-        refuse(describe(exc))
-    except Refused as exc:  # a folder in use, a raster too large: nothing was written
-        refuse(str(exc))
+    except Refused as exc:  # a folder in use or holding results, nothing to resume, a raster
+        refuse(describe(exc))  # too large: nothing was written
     except OSError as exc:  # the results disk failed during the run (read-only, full)
         fail(f"cannot write the results in {out}: {describe(exc)}")
     except EXPECTED_FAILURES as exc:
