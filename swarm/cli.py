@@ -483,10 +483,11 @@ def cmd_drive_study(args: argparse.Namespace) -> int:
                                   dem_start=parse_leader_start(args.leader_start[0]))
     spec = quick(spec) if args.quick else spec
     out = args.out or "runs/experiment-drive"
-    result = _run_grid(lambda: run_drive_study(
-        out, spec, workers=args.workers,
-        on_run=lambda done, total: print(f"\rrun {done}/{total}", end="", file=sys.stderr,
-                                         flush=True)), out)
+    with ends_with(REFUSED, ValueError):  # the options or the DEM
+        result = _run_grid(lambda: run_drive_study(
+            out, spec, workers=args.workers,
+            on_run=lambda done, total: print(f"\rrun {done}/{total}", end="", file=sys.stderr,
+                                             flush=True)), out)
     print(file=sys.stderr)
     return _print_experiment({**result, "figure_problems": {}, "failed": []},
                              f"wall time {result['wall_time']:.1f} s ({result['runs']} runs in "
