@@ -89,6 +89,22 @@ class Refused(ValueError):
     folder another run writes into, or a raster larger than the limit."""
 
 
+@contextlib.contextmanager
+def run_failures(out: str | os.PathLike[str]) -> Iterator[None]:
+    """Within the block (a run writing its results into ``out``), end the command as a run
+    ends: :class:`Refused` input is refused (status 2, nothing was written); an ``OSError``
+    is the results disk failing during the run (read-only, full) and any other of
+    ``EXPECTED_FAILURES`` a failed run (both status 1)."""
+    try:
+        yield
+    except Refused as exc:
+        refuse(describe(exc))
+    except OSError as exc:
+        fail(f"cannot write the results in {out}: {describe(exc)}")
+    except EXPECTED_FAILURES as exc:
+        fail(describe(exc))
+
+
 INTERRUPT_GRACE_S = 8.0
 """Seconds a process may spend cleaning up after Ctrl-C or SIGTERM before it exits regardless."""
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)

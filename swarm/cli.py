@@ -7,18 +7,15 @@ import sys
 from pathlib import Path
 
 from protocol.cli import (
-    EXPECTED_FAILURES,
     FAILED,
     INTERRUPTED,
     REFUSED,
-    Refused,
     add_log_level_flag,
     check_out_dir,
-    describe,
     ends_with,
-    fail,
     refuse,
     run_command,
+    run_failures,
     setup_logging,
 )
 from protocol.config import (
@@ -248,15 +245,11 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
     bar = tqdm(total=config.ticks, desc=f"{config.surface} {config.estimator}", unit="tick",
                disable=None)
     try:
-        summary = launch(config, out, in_process=args.in_process, on_tick=lambda j: bar.update(1),
-                         endpoint=endpoint, force=args.force, lock=lock,
-                         before_agents=None if live is None else observe)
-    except Refused as exc:  # e.g. a raster larger than the limit: nothing ran
-        refuse(describe(exc))
-    except OSError as exc:  # the results disk failed during the run (read-only, full)
-        fail(f"cannot write the results in {out}: {describe(exc)}")
-    except EXPECTED_FAILURES as exc:
-        fail(describe(exc))
+        with run_failures(out):  # e.g. a raster larger than the limit: refused, nothing ran
+            summary = launch(config, out, in_process=args.in_process,
+                             on_tick=lambda j: bar.update(1), endpoint=endpoint,
+                             force=args.force, lock=lock,
+                             before_agents=None if live is None else observe)
     except KeyboardInterrupt:
         print(f"interrupted: partial result in {out}", file=sys.stderr)
         return INTERRUPTED

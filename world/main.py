@@ -12,16 +12,13 @@ import zenoh
 
 from protocol.cli import (
     DONE,
-    EXPECTED_FAILURES,
     REFUSED,
-    Refused,
     add_log_level_flag,
     check_out_dir,
-    describe,
     ends_with,
     fail,
-    refuse,
     run_command,
+    run_failures,
     setup_logging,
 )
 from protocol.config import RunConfig, dump_config, load_config, read_toml
@@ -144,17 +141,12 @@ def _serve(args: argparse.Namespace) -> int:
                                  default_listen=() if client else DEFAULT_LISTEN)
         out = check_out_dir(args.resume or args.out or default_out(config),
                             "--resume" if args.resume else "--out")
-    try:
-        summary = run_world(config, conf, out, resume=bool(args.resume), force=args.force)
-    except checkpoint.AlreadyComplete as exc:
-        print(str(exc), file=sys.stderr)
-        return DONE
-    except Refused as exc:  # a folder in use or holding results, nothing to resume, a raster
-        refuse(describe(exc))  # too large: nothing was written
-    except OSError as exc:  # the results disk failed during the run (read-only, full)
-        fail(f"cannot write the results in {out}: {describe(exc)}")
-    except EXPECTED_FAILURES as exc:
-        fail(describe(exc))
+    with run_failures(out):  # a folder in use or holding results, nothing to resume: refused
+        try:
+            summary = run_world(config, conf, out, resume=bool(args.resume), force=args.force)
+        except checkpoint.AlreadyComplete as exc:
+            print(str(exc), file=sys.stderr)
+            return DONE
     if not summary["complete"]:
         fail(f"run incomplete: {summary['reason']}")
     return DONE
