@@ -458,14 +458,19 @@ def load_config(path: str | os.PathLike[str]) -> RunConfig:
     A file over ``MAX_CONFIG_BYTES`` or nesting tables/arrays deeper than ``MAX_CONFIG_DEPTH``
     is refused before its values are looked at.
     """
-    path = Path(path)
-    return config_from_file(read_toml(path, "config file"), path)
+    return config_from_file(file_options(path), path)
 
 
-def config_from_file(data: dict[str, Any], path: str | os.PathLike[str]) -> RunConfig:
-    """The run configuration in ``data``, a TOML table read from ``path`` (its ``meta`` table
-    ignored); errors name the file."""
-    data = {k: v for k, v in data.items() if k != "meta"}
+def file_options(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The run options of the TOML file ``path``, read under the input limits
+    (:func:`read_toml`; ValueError naming the file), its ``meta`` table left out."""
+    data = read_toml(Path(path), "config file")
+    return {k: v for k, v in data.items() if k != "meta"}
+
+
+def config_from_file(data: Mapping[str, Any], path: str | os.PathLike[str]) -> RunConfig:
+    """The run configuration in ``data``, the options :func:`file_options` read from ``path``;
+    errors name the file."""
     try:
         return config_from_dict(data)
     except (TypeError, ValueError) as exc:

@@ -4,7 +4,9 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 from protocol.cli import (
     FAILED,
@@ -25,8 +27,8 @@ from protocol.config import (
     applies_to,
     config_from_dict,
     config_from_file,
+    file_options,
     flag_of,
-    read_toml,
 )
 from protocol.distribution import DISTRIBUTION, require, version
 from protocol.folder import FolderLock
@@ -78,10 +80,11 @@ def add_run_flags(p: argparse.ArgumentParser) -> None:
                    help="TOML file with any of the options; flags override it")
 
 
-def options_from_args(args: argparse.Namespace) -> dict:
-    """The run options the user gave: the ``--config`` file's, then the flags given
-    (ValueError on bad input). A value equal to its default counts as not given."""
-    data = file_options(args)
+def options_from_args(args: argparse.Namespace, file: Mapping[str, Any]) -> dict:
+    """The run options the user gave: ``file``'s (the ``--config`` file's,
+    :func:`config_file`), then the flags given (ValueError on bad input). A value equal to its
+    default counts as not given."""
+    data = dict(file)
     for name in OPTIONS:
         value = getattr(args, name, None)
         if value is not None:
@@ -98,7 +101,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
     a new run id unless one is given."""
     from swarm.launch import new_run_id
 
-    data = options_from_args(args)
+    file = config_file(args)
+    data = options_from_args(args, file)
     data.setdefault("run_id", new_run_id())
     if data.get("ros2") and "ros_domain" not in data:
         data["ros_domain"] = domain_from_env()
@@ -106,17 +110,14 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
         return config_from_dict(data)
     except ValueError:
         if args.config:  # the file alone is at fault: say so, naming it
-            config_from_file(file_options(args), args.config)
+            config_from_file(file, args.config)
         raise
 
 
-def file_options(args: argparse.Namespace) -> dict:
+def config_file(args: argparse.Namespace) -> dict:
     """The options of the ``--config`` file (none without), read under the input limits
     (ValueError naming the file)."""
-    if not args.config:
-        return {}
-    data = read_toml(Path(args.config), "config file")
-    return {k: v for k, v in data.items() if k != "meta"}
+    return file_options(args.config) if args.config else {}
 
 
 def comma_numbers(text: str, count: int) -> tuple[float, ...] | None:
@@ -400,7 +401,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
         refuse("compare takes --estimators (comma-separated), not --estimator")
     with ends_with(REFUSED, ValueError):
         _check_workers(args.workers)
-        base = options_from_args(args)
+        base = options_from_args(args, config_file(args))
         if args.seeds:
             try:
                 seeds = [int(x) for x in args.seeds.split(",")]
