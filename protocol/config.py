@@ -30,6 +30,7 @@ from typing import Any
 
 from protocol.folder import write_atomic
 from protocol.keys import check_run_id
+from protocol.ros2 import domain_from_env
 
 CLASSICAL = ("cv", "kalman", "arx", "gp")  # the classical tracking baselines (design §6)
 OWN_MOTION = ("gp-motion", "gp-ratio")  # extrapolations of the follower's own displacement
@@ -459,6 +460,16 @@ def load_config(path: str | os.PathLike[str]) -> RunConfig:
     is refused before its values are looked at.
     """
     return config_from_file(file_options(path), path)
+
+
+def with_env_domain(options: Mapping[str, Any]) -> dict[str, Any]:
+    """``options`` with ``ros_domain`` from ``ROS_DOMAIN_ID`` (:func:`protocol.ros2.
+    domain_from_env`) when they turn ROS 2 publishing on and leave the domain out: the rule of
+    every command that reads a run's options. The environment is read only then (ValueError if
+    it is bad)."""
+    if options.get("ros2") and "ros_domain" not in options:
+        return {**options, "ros_domain": domain_from_env()}
+    return dict(options)
 
 
 def file_options(path: str | os.PathLike[str]) -> dict[str, Any]:

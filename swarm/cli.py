@@ -29,10 +29,10 @@ from protocol.config import (
     config_from_file,
     file_options,
     flag_of,
+    with_env_domain,
 )
-from protocol.distribution import DISTRIBUTION, require, version
+from protocol.distribution import DISTRIBUTION, version
 from protocol.folder import FolderLock
-from protocol.ros2 import domain_from_env
 from protocol.session import add_connection_flags, connection_config
 
 
@@ -102,10 +102,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
     from swarm.launch import new_run_id
 
     file = config_file(args)
-    data = options_from_args(args, file)
+    data = with_env_domain(options_from_args(args, file))
     data.setdefault("run_id", new_run_id())
-    if data.get("ros2") and "ros_domain" not in data:
-        data["ros_domain"] = domain_from_env()
     try:
         return config_from_dict(data)
     except ValueError:
@@ -200,11 +198,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     live = endpoint = None
     with ends_with(REFUSED, ValueError, RuntimeError):
         config = config_from_args(args)
-        from world.surfaces import require_surface_extra
+        from world.main import require_extras
 
-        require_surface_extra(config.surface)  # the extras it needs, before anything runs
-        if config.ros2:
-            require("ros")
+        require_extras(config)  # before anything runs
         out = Path(args.out) if args.out else Path("runs") / config.run_id
         if args.live:  # its arguments are checked before anything is written
             from protocol.session import free_tcp_endpoint

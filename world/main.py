@@ -5,8 +5,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any
 
 import zenoh
 
@@ -21,10 +22,9 @@ from protocol.cli import (
     run_failures,
     setup_logging,
 )
-from protocol.config import RunConfig, dump_config, load_config, read_toml
+from protocol.config import RunConfig, config_from_file, dump_config, file_options, with_env_domain
 from protocol.distribution import require
 from protocol.folder import FolderLock
-from protocol.ros2 import domain_from_env
 from protocol.session import add_connection_flags, connection_config, open_session
 from world import checkpoint
 from world.service import WorldService
@@ -111,22 +111,34 @@ def main(argv: list[str] | None = None) -> int:
     return run_command(lambda: _serve(args))
 
 
-def ros_options(config: RunConfig, args: argparse.Namespace) -> RunConfig:
-    """``config`` with ``--ros2`` and ``--ros-domain`` applied; a config file that leaves the
-    domain out takes ``ROS_DOMAIN_ID``. Checks that the [ros] extra is there when needed."""
-    path = Path(args.resume) / "config.toml" if args.resume else Path(args.config)
-    changes: dict = {}
-    if args.ros2:
-        changes["ros2"] = True
-    if args.ros_domain is not None:
-        changes["ros_domain"] = args.ros_domain
-    config = config.replace(**changes)  # refuses --ros-domain without --ros2
+def require_extras(config: RunConfig) -> None:
+    """Refuse (:class:`protocol.distribution.MissingExtra`) a run whose surface or ROS 2
+    publishing needs an extra that is not installed, before anything is written."""
     require_surface_extra(config.surface)
     if config.ros2:
-        if args.ros_domain is None and "ros_domain" not in read_toml(path, "config file"):
-            config = config.replace(ros_domain=domain_from_env())
         require("ros")
-    return config
+
+
+def config_path(args: argparse.Namespace) -> Path:
+    """The run configuration the arguments name: ``--config``, or ``--resume``'s
+    ``config.toml``."""
+    return Path(args.resume) / "config.toml" if args.resume else Path(args.config)
+
+
+def ros_options(config: RunConfig, args: argparse.Namespace,
+                file: Mapping[str, Any] | None = None) -> RunConfig:
+    """``config`` with ``--ros2`` and ``--ros-domain`` applied; where neither the flags nor
+    the config file (whose options are ``file``, else read from :func:`config_path`) give the
+    domain, ROS 2 publishing takes ``ROS_DOMAIN_ID`` (:func:`protocol.config.with_env_domain`).
+    ValueError for ``--ros-domain`` without ROS 2 publishing."""
+    flags: dict[str, Any] = {}
+    if args.ros2:
+        flags["ros2"] = True
+    if args.ros_domain is not None:
+        flags["ros_domain"] = args.ros_domain
+    given = with_env_domain({**(file_options(config_path(args)) if file is None else file),
+                             **flags})
+    return config.replace(**{k: given[k] for k in ("ros2", "ros_domain") if k in given})
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -134,8 +146,10 @@ def _serve(args: argparse.Namespace) -> int:
     (the default) it listens on ``DEFAULT_LISTEN`` unless given ``--listen``; given only
     ``--connect`` it joins that router as a client (e.g. docker-compose's zenohd)."""
     with ends_with(REFUSED, ValueError):
-        config = load_config(Path(args.resume) / "config.toml" if args.resume else args.config)
-        config = ros_options(config, args)
+        path = config_path(args)
+        file = file_options(path)
+        config = ros_options(config_from_file(file, path), args, file)
+        require_extras(config)
         client = bool(args.connect) and not args.listen
         conf = connection_config(args, "client" if client else "router",
                                  default_listen=() if client else DEFAULT_LISTEN)
