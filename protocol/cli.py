@@ -1,5 +1,5 @@
-"""Command-line plumbing every process shares: the ``--log-level`` flag, the results-folder
-check, the one line that describes a failure (never a traceback, never a Rust source path) and
+"""Command-line plumbing every process shares: the ``--log-level`` flag, the one line that
+describes a failure (never a traceback, never a Rust source path) and
 the exit status of every command (design §9: 0 done, 1 failed or incomplete, 2 refused before
 anything ran, 130/143 after Ctrl-C/SIGTERM), given in one place (:func:`run_command`).
 """
@@ -12,16 +12,13 @@ import os
 import re
 import signal
 import sys
-import tempfile
 import threading
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import NoReturn
 
 import zenoh
 
 from protocol.distribution import MissingExtra
-from protocol.limits import MAX_TEXT
 
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 EXPECTED_FAILURES = (ValueError, RuntimeError, OSError, zenoh.ZError)
@@ -185,32 +182,6 @@ def describe(exc: BaseException) -> str:
     if isinstance(exc, OSError) and exc.strerror:
         return exc.strerror + (f": {exc.filename}" if exc.filename else "")
     return _one_line(str(exc)) or type(exc).__name__
-
-
-def check_out_dir(path: str | os.PathLike[str], flag: str = "--out") -> Path:
-    """Make sure ``path`` is, or can be created as, a folder this process can write into.
-
-    Raises ValueError (naming ``flag`` and the reason) when ``path`` is a file, cannot be
-    created (e.g. under ``/proc``), is not writable (read-only or full file system), or is too
-    long or unprintable to be announced in the run's ``done`` message.
-    """
-    path = Path(path)
-    text = str(path)
-    if len(text) > MAX_TEXT or not text.isprintable():
-        raise ValueError(f"{flag} must be a printable path of at most {MAX_TEXT} characters")
-    if path.exists() and not path.is_dir():
-        raise ValueError(f"{flag} {path} is a file, not a folder")
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(dir=path, prefix=".write-check.")
-        try:
-            os.write(fd, b"\n")
-        finally:
-            os.close(fd)
-            os.unlink(probe)
-    except OSError as exc:
-        raise ValueError(f"{flag} {path} cannot hold results: {describe(exc)}") from None
-    return path
 
 
 def _one_line(text: str) -> str:

@@ -13,7 +13,6 @@ from protocol.cli import (
     INTERRUPTED,
     REFUSED,
     add_log_level_flag,
-    check_out_dir,
     ends_with,
     refuse,
     run_command,
@@ -32,7 +31,7 @@ from protocol.config import (
     with_env_domain,
 )
 from protocol.distribution import DISTRIBUTION, version
-from protocol.folder import FolderLock
+from protocol.folder import FolderLock, check_out_dir
 from protocol.session import add_connection_flags, connection_config
 
 

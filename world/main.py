@@ -15,7 +15,6 @@ from protocol.cli import (
     DONE,
     REFUSED,
     add_log_level_flag,
-    check_out_dir,
     ends_with,
     fail,
     run_command,
@@ -24,7 +23,7 @@ from protocol.cli import (
 )
 from protocol.config import RunConfig, config_from_file, dump_config, file_options, with_env_domain
 from protocol.distribution import require
-from protocol.folder import FolderLock
+from protocol.folder import FolderLock, check_out_dir
 from protocol.session import add_connection_flags, connection_config, open_session
 from world import checkpoint
 from world.service import WorldService
