@@ -14,6 +14,7 @@ import signal
 import sys
 import threading
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import NoReturn
 
 import zenoh
@@ -161,6 +162,18 @@ def add_log_level_flag(parser: argparse.ArgumentParser) -> None:
     """``--log-level`` (case-insensitive); argparse refuses any other value with usage."""
     parser.add_argument("--log-level", type=str.upper, choices=LOG_LEVELS, default="WARNING",
                         metavar="LEVEL", help=f"one of {', '.join(LOG_LEVELS)} (default WARNING)")
+
+
+def default_out(run_id: str) -> Path:
+    """The results folder of run ``run_id`` when a command is given no ``--out``."""
+    return Path("runs") / run_id
+
+
+def add_results_flags(parser: argparse.ArgumentParser) -> None:
+    """``--out`` (default :func:`default_out`) and ``--force`` of a command that runs a run."""
+    parser.add_argument("--out", help=f"results folder (default {default_out('<run_id>')})")
+    parser.add_argument("--force", action="store_true",
+                        help="replace the results already in --out (default: refuse)")
 
 
 def setup_logging(level: str) -> None:

@@ -13,6 +13,8 @@ from protocol.cli import (
     INTERRUPTED,
     REFUSED,
     add_log_level_flag,
+    add_results_flags,
+    default_out,
     ends_with,
     refuse,
     run_command,
@@ -200,7 +202,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         from world.main import require_extras
 
         require_extras(config)  # before anything runs
-        out = Path(args.out) if args.out else Path("runs") / config.run_id
+        out = Path(args.out) if args.out else default_out(config.run_id)
         if args.live:  # its arguments are checked before anything is written
             from protocol.session import free_tcp_endpoint
             from swarm.live.observer import LiveView
@@ -570,10 +572,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="agents as separate processes (default)")
     layout.add_argument("--in-process", dest="in_process", action="store_true",
                         help="agents as sessions in this process")
-    run.add_argument("--out", help="results folder (default runs/<run_id>)")
+    add_results_flags(run)
     run.add_argument("--plot", action="store_true", help="draw the run's figures at the end")
-    run.add_argument("--force", action="store_true",
-                     help="replace the results already in --out (default: refuse)")
     run.add_argument("--live", action="store_true",
                      help="serve a live view of the run on localhost (kept up until Ctrl-C)")
     add_live_port(run)

@@ -15,6 +15,8 @@ from protocol.cli import (
     DONE,
     REFUSED,
     add_log_level_flag,
+    add_results_flags,
+    default_out,
     ends_with,
     fail,
     run_command,
@@ -47,10 +49,6 @@ def resolve_with_surface(config: RunConfig) -> tuple[RunConfig, Surface]:
 def resolve(config: RunConfig) -> RunConfig:
     """The config with the leader start filled in (validates the surface)."""
     return resolve_with_surface(config)[0]
-
-
-def default_out(config: RunConfig) -> Path:
-    return Path("runs") / config.run_id
 
 
 def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
@@ -95,12 +93,10 @@ def main(argv: list[str] | None = None) -> int:
     source.add_argument("--config", help="run configuration TOML")
     source.add_argument("--resume", metavar="RUN_DIR",
                         help="continue the run in RUN_DIR from its last complete tick")
-    p.add_argument("--out", help="results folder (default runs/<run_id>)")
+    add_results_flags(p)
     add_connection_flags(p, session_modes=("router", "peer", "client"),
                          default_mode="router, or client with --connect only")
     add_log_level_flag(p)
-    p.add_argument("--force", action="store_true",
-                   help="replace the results already in --out (default: refuse)")
     p.add_argument("--ros2", action="store_true", default=None,
                    help="also publish the run's ROS 2 topics (rmw_zenoh layout; [ros] extra)")
     p.add_argument("--ros-domain", type=int, help="ROS 2 domain id, 0-232 (default: the "
@@ -152,7 +148,7 @@ def _serve(args: argparse.Namespace) -> int:
         client = bool(args.connect) and not args.listen
         conf = connection_config(args, "client" if client else "router",
                                  default_listen=() if client else DEFAULT_LISTEN)
-        out = check_out_dir(args.resume or args.out or default_out(config),
+        out = check_out_dir(args.resume or args.out or default_out(config.run_id),
                             "--resume" if args.resume else "--out")
     with run_failures(out):  # a folder in use or holding results, nothing to resume: refused
         try:
