@@ -323,9 +323,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         return cmd_terrain(args)
     if args.name == "drive":
         return cmd_drive_study(args)
-    for name in TERRAIN_ONLY:
-        if getattr(args, name) is not None:
-            refuse(f"--{name.replace('_', '-')} applies only to `experiment terrain`")
+    _refuse_terrain_flags(args)
     args.out = args.out or "runs/experiment-paper"
     result = _run_grid(lambda: run_paper_experiment(
         args.out, QUICK if args.quick else FULL, workers=args.workers, scheduler=args.scheduler),
@@ -333,6 +331,14 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     timing = result["timing"]
     return _print_experiment(result, f"wall time {timing['total']:.1f} s (runs "
                                      f"{timing['runs']:.1f} s, figures {timing['figures']:.1f} s)")
+
+
+def _refuse_terrain_flags(args: argparse.Namespace, allowed: tuple[str, ...] = ()) -> None:
+    """Refuse a flag of ``experiment terrain`` (:data:`TERRAIN_ONLY`) given to another
+    experiment, but those in ``allowed``."""
+    for name in TERRAIN_ONLY:
+        if name not in allowed and getattr(args, name) is not None:
+            refuse(f"--{name.replace('_', '-')} applies only to `experiment terrain`")
 
 
 def _print_experiment(result: dict, wall_line: str) -> int:
@@ -462,9 +468,7 @@ def cmd_drive_study(args: argparse.Namespace) -> int:
     driving followers (:mod:`swarm.drive_study`)."""
     from swarm.drive_study import DriveStudySpec, quick, run_drive_study
 
-    for name in TERRAIN_ONLY:
-        if name not in ("dem", "leader_start") and getattr(args, name) is not None:
-            refuse(f"--{name.replace('_', '-')} applies only to `experiment terrain`")
+    _refuse_terrain_flags(args, allowed=("dem", "leader_start"))
     spec = DriveStudySpec()
     if args.dem is not None:
         if not args.leader_start or len(args.leader_start) != 1:
