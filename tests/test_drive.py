@@ -13,12 +13,12 @@ from agents.follower import follower_tick
 from agents.policies import make_policy
 from protocol.config import AgentSettings, RunConfig
 from protocol.messages import Control, Move, Snap
+from protocol.record import read_controls, read_ticks
 from swarm.cli import main as swarm_main
 from swarm.local import LocalLink, run_local
 from tests.make_dem_data import HILLS, HILLS_LEADER_START
 from world import geometry, motion
 from world.main import resolve_with_surface
-from world.results import read_controls, read_ticks
 from world.sim import RequestError, WorldSim
 from world.surfaces import make_surface
 

@@ -17,7 +17,7 @@ from pathlib import Path
 from protocol.cli import Refused
 from protocol.config import checked_json, json_checksum
 from protocol.folder import write_atomic
-from world.results import RESULT_FILES, SUMMARY_FILE
+from protocol.record import RESULT_FILES, SUMMARY_FILE
 
 STATE_FILE = "world_state.json"
 SCHEMA = 1

@@ -20,18 +20,24 @@ from protocol.config import RunConfig
 from protocol.distribution import version
 from protocol.folder import AppendFile, write_atomic
 from protocol.limits import MAX_TEXT
-from protocol.record import CONTROL_COLUMNS as CONTROL_COLUMNS
-from protocol.record import CONTROLS_FILE as CONTROLS_FILE
-from protocol.record import OBS_COLUMNS as OBS_COLUMNS
-from protocol.record import OBS_FILE as OBS_FILE
-from protocol.record import RESULT_FILES as RESULT_FILES
-from protocol.record import SUMMARY_FILE as SUMMARY_FILE
-from protocol.record import TICK_COLUMNS as TICK_COLUMNS
-from protocol.record import TICKS_FILE as TICKS_FILE
-from protocol.record import DamagedRecord as DamagedRecord
-from protocol.record import parse_controls, parse_observations, parse_ticks
+from protocol.record import (
+    CONTROL_COLUMNS,
+    CONTROLS_FILE,
+    OBS_COLUMNS,
+    OBS_FILE,
+    SUMMARY_FILE,
+    TICK_COLUMNS,
+    TICKS_FILE,
+    DamagedRecord,
+    parse_controls,
+    parse_observations,
+    parse_ticks,
+)
+
+# Re-exported for the modules that still import them from here (swarm/plots.py, report.py,
+# ros2_export.py, bench/bench_stall.py), as they do DamagedRecord and the file names above
+# (world/service.py, swarm/ros2_export.py): they move to protocol.record, which owns them.
 from protocol.record import read_controls as read_controls
-from protocol.record import read_observations as read_observations
 from protocol.record import read_ticks as read_ticks
 
 RESERVE_FILE = ".summary.reserve"
