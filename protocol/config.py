@@ -31,7 +31,7 @@ from typing import Any
 from protocol.folder import write_atomic
 from protocol.keys import check_run_id
 from protocol.limits import MAX_RUN_ID
-from protocol.ros2 import domain_from_env
+from protocol.ros2 import DOMAIN_RANGE, domain_from_env
 
 CLASSICAL = ("cv", "kalman", "arx", "gp")  # the classical tracking baselines (design §6)
 OWN_MOTION = ("gp-motion", "gp-ratio")  # extrapolations of the follower's own displacement
@@ -222,7 +222,8 @@ class RunConfig:
                                   agents=True)
     ros2: bool = option(False, "the world also publishes the run's ROS 2 topics (design §10)")
     ros_domain: int = option(0, "ROS 2 domain id of those topics (swarm run: ROS_DOMAIN_ID "
-                             "when --ros2 is given without it)", low=0, high=232,
+                             "when --ros2 is given without it)", low=DOMAIN_RANGE[0],
+                             high=DOMAIN_RANGE[1],
                              needs=("ros2", True))
 
     motion: str = option("teleport", "how a follower moves: teleport (relocated by the "

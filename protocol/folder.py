@@ -65,15 +65,14 @@ def _named(exc: OSError, path: str | os.PathLike[str]) -> OSError:
     return OSError(exc.errno, exc.strerror, str(path))
 
 
-def open_dir(path: str | os.PathLike[str], create: bool = True) -> int:
-    """A descriptor of the folder ``path`` (created with its parents if missing and
-    ``create``), refusing a symbolic link as its last component. Close it with ``os.close``."""
+def open_dir(path: str | os.PathLike[str]) -> int:
+    """A descriptor of the folder ``path`` (created with its parents if missing), refusing a
+    symbolic link as its last component. Close it with ``os.close``."""
     path = Path(path)
     try:
         return os.open(path, _DIR_FLAGS)
     except FileNotFoundError:
-        if not create:
-            raise
+        pass
     except OSError as exc:
         raise _named(exc, path) from None
     try:
