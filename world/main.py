@@ -1,5 +1,5 @@
-"""Entry point of the world process:
-``python -m world --config run.toml [--listen EP] [--out DIR]``."""
+"""Entry point of the world process: ``python -m world (--config run.toml | --resume RUN_DIR)
+[--out DIR] [--force] [--listen EP] [--connect EP] [--ros2 [--ros-domain N]]``."""
 from __future__ import annotations
 
 import argparse

@@ -204,10 +204,11 @@ class RunRecorder:
             try:
                 with open(path, "rb") as fh:
                     size = os.fstat(fh.fileno()).st_size
-                    raw = fh.read(keep) if _offset(keep) and keep <= size else b""
+                    fits = _offset(keep) and 0 < keep <= size
+                    raw = fh.read(keep) if fits else b""
             except FileNotFoundError:
-                size, raw = -1, b""
-            if not (_offset(keep) and 0 < keep <= size):
+                size, fits = -1, False
+            if not fits:
                 raise DamagedRecord(f"{path} holds {max(size, 0)} bytes, the checkpoint expects "
                                     f"at least {keep}: the files do not belong together")
             kept[name] = raw
