@@ -6,7 +6,7 @@ from collections.abc import Callable
 
 import zenoh
 
-from agents.link import AgentAbort, RunFinished
+from agents.link import RunFinished
 from protocol.cli import (
     FAILED,
     REFUSED,
@@ -46,7 +46,7 @@ def _run(args: argparse.Namespace, body: Callable[[zenoh.Session, AgentSettings]
         fail(f"no world reachable at {where} within {settings.start_timeout:g} s (is the world "
              f"or the Zenoh router running there?): {describe(exc)}")
     with ends_with(REFUSED, ValueError), \
-            ends_with(FAILED, zenoh.ZError, AgentAbort, RuntimeError, OSError):
+            ends_with(FAILED, zenoh.ZError, RuntimeError, OSError):  # AgentAbort: a RuntimeError
         try:
             with session:
                 body(session, settings)

@@ -35,9 +35,9 @@ if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 
 from protocol.config import load_config  # noqa: E402  (after the path set-up)
+from protocol.record import read_ticks  # noqa: E402
 from swarm.local import run_local  # noqa: E402
 from tests.waiting import children, until  # noqa: E402
-from world.results import read_ticks  # noqa: E402
 
 STAMP = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) ")
 MISSED = "agent 1 missed tick"

@@ -1,5 +1,5 @@
-"""Command-line plumbing every process shares: the ``--log-level`` flag, the results-folder
-check, the one line that describes a failure (never a traceback, never a Rust source path) and
+"""Command-line plumbing every process shares: the ``--log-level`` flag, the one line that
+describes a failure (never a traceback, never a Rust source path) and
 the exit status of every command (design §9: 0 done, 1 failed or incomplete, 2 refused before
 anything ran, 130/143 after Ctrl-C/SIGTERM), given in one place (:func:`run_command`).
 """
@@ -12,7 +12,6 @@ import os
 import re
 import signal
 import sys
-import tempfile
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -21,7 +20,6 @@ from typing import NoReturn
 import zenoh
 
 from protocol.distribution import MissingExtra
-from protocol.limits import MAX_TEXT
 
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 EXPECTED_FAILURES = (ValueError, RuntimeError, OSError, zenoh.ZError)
@@ -89,6 +87,22 @@ class Refused(ValueError):
     folder another run writes into, or a raster larger than the limit."""
 
 
+@contextlib.contextmanager
+def run_failures(out: str | os.PathLike[str]) -> Iterator[None]:
+    """Within the block (a run writing its results into ``out``), end the command as a run
+    ends: :class:`Refused` input is refused (status 2, nothing was written); an ``OSError``
+    is the results disk failing during the run (read-only, full) and any other of
+    ``EXPECTED_FAILURES`` a failed run (both status 1)."""
+    try:
+        yield
+    except Refused as exc:
+        refuse(describe(exc))
+    except OSError as exc:
+        fail(f"cannot write the results in {out}: {describe(exc)}")
+    except EXPECTED_FAILURES as exc:
+        fail(describe(exc))
+
+
 INTERRUPT_GRACE_S = 8.0
 """Seconds a process may spend cleaning up after Ctrl-C or SIGTERM before it exits regardless."""
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -150,6 +164,18 @@ def add_log_level_flag(parser: argparse.ArgumentParser) -> None:
                         metavar="LEVEL", help=f"one of {', '.join(LOG_LEVELS)} (default WARNING)")
 
 
+def default_out(run_id: str) -> Path:
+    """The results folder of run ``run_id`` when a command is given no ``--out``."""
+    return Path("runs") / run_id
+
+
+def add_results_flags(parser: argparse.ArgumentParser) -> None:
+    """``--out`` (default :func:`default_out`) and ``--force`` of a command that runs a run."""
+    parser.add_argument("--out", help=f"results folder (default {default_out('<run_id>')})")
+    parser.add_argument("--force", action="store_true",
+                        help="replace the results already in --out (default: refuse)")
+
+
 def setup_logging(level: str) -> None:
     """Log to stderr at ``level`` (one of ``LOG_LEVELS``)."""
     logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s")
@@ -169,32 +195,6 @@ def describe(exc: BaseException) -> str:
     if isinstance(exc, OSError) and exc.strerror:
         return exc.strerror + (f": {exc.filename}" if exc.filename else "")
     return _one_line(str(exc)) or type(exc).__name__
-
-
-def check_out_dir(path: str | os.PathLike[str], flag: str = "--out") -> Path:
-    """Make sure ``path`` is, or can be created as, a folder this process can write into.
-
-    Raises ValueError (naming ``flag`` and the reason) when ``path`` is a file, cannot be
-    created (e.g. under ``/proc``), is not writable (read-only or full file system), or is too
-    long or unprintable to be announced in the run's ``done`` message.
-    """
-    path = Path(path)
-    text = str(path)
-    if len(text) > MAX_TEXT or not text.isprintable():
-        raise ValueError(f"{flag} must be a printable path of at most {MAX_TEXT} characters")
-    if path.exists() and not path.is_dir():
-        raise ValueError(f"{flag} {path} is a file, not a folder")
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(dir=path, prefix=".write-check.")
-        try:
-            os.write(fd, b"\n")
-        finally:
-            os.close(fd)
-            os.unlink(probe)
-    except OSError as exc:
-        raise ValueError(f"{flag} {path} cannot hold results: {describe(exc)}") from None
-    return path
 
 
 def _one_line(text: str) -> str:

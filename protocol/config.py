@@ -30,6 +30,8 @@ from typing import Any
 
 from protocol.folder import write_atomic
 from protocol.keys import check_run_id
+from protocol.limits import MAX_RUN_ID
+from protocol.ros2 import DOMAIN_RANGE, domain_from_env
 
 CLASSICAL = ("cv", "kalman", "arx", "gp")  # the classical tracking baselines (design §6)
 OWN_MOTION = ("gp-motion", "gp-ratio")  # extrapolations of the follower's own displacement
@@ -83,6 +85,9 @@ class Option:
         The agent processes see it (in :class:`AgentSettings`); else only the world does.
     needs : (str, value), optional
         The option does something only when option ``needs[0]`` has value ``needs[1]``.
+    value_type : type, optional
+        The type of its values where the default's is not it (a default of None, left to
+        the world to resolve; a tuple given as a list in TOML); see :attr:`kind`.
     flag : str or None
         Its flag of ``swarm run`` (default ``--`` and the name with dashes; None for none).
     metavar : str, optional
@@ -107,11 +112,9 @@ class Option:
 
     @property
     def kind(self) -> type:
-        """The option's type: bool, int, float, str, tuple (leader start) or dict; for an
-        option whose default is None (resolved by the world), ``value_type``."""
-        if self.value_type is not None:
-            return self.value_type
-        return tuple if self.name == "leader_start" else type(self.default)
+        """The option's type: bool, int, float, str, tuple or dict; ``value_type`` where it is
+        declared, else the default's type."""
+        return self.value_type or type(self.default)
 
     @property
     def estimators(self) -> tuple[str, ...]:
@@ -140,8 +143,8 @@ class RunConfig:
     Lengths are in the surface's unit (metres on a DEM), times in seconds.
     """
 
-    run_id: str = option("run", "the run's id (1-64 of A-Z a-z 0-9 _ . -): its Zenoh key "
-                         "prefix and results folder",
+    run_id: str = option("run", f"the run's id (1-{MAX_RUN_ID} of A-Z a-z 0-9 _ . -): its "
+                         "Zenoh key prefix and results folder",
                          agents=True, metavar="ID")
     surface: str = option("elliptic", "the hidden surface: a preset (elliptic, hyperbolic, "
                           "wavy, plane, gaussian-hill, ripple, hemisphere), dem:PATH or "
@@ -149,7 +152,7 @@ class RunConfig:
     surface_params: dict[str, float] = option({}, "the surface's parameters (a TOML table)",
                                               flag=None)
     leader_start: tuple[float, float, float, float] | None = option(
-        None, "the leader's start position and velocity",
+        None, "the leader's start position and velocity", value_type=tuple,
         unit="m, m/s", metavar="X,Y,VX,VY")
     followers: int = option(1, "followers in the column", unit="agents", low=1, high=1000,
                             agents=True)
@@ -219,7 +222,8 @@ class RunConfig:
                                   agents=True)
     ros2: bool = option(False, "the world also publishes the run's ROS 2 topics (design §10)")
     ros_domain: int = option(0, "ROS 2 domain id of those topics (swarm run: ROS_DOMAIN_ID "
-                             "when --ros2 is given without it)", low=0, high=232,
+                             "when --ros2 is given without it)", low=DOMAIN_RANGE[0],
+                             high=DOMAIN_RANGE[1],
                              needs=("ros2", True))
 
     motion: str = option("teleport", "how a follower moves: teleport (relocated by the "
@@ -272,7 +276,7 @@ class RunConfig:
                 raise ValueError("surface_params names must be identifiers of at most 32 "
                                  f"characters, got {_show(key)}")
             _check_range(f"surface_params.{key}", value, -MAX_COORDINATE, MAX_COORDINATE)
-        check_effective(self.to_dict(omit_none=False))
+        check_effective({name: getattr(self, name) for name in OPTIONS})
 
     @property
     def side_sign(self) -> int:
@@ -286,15 +290,13 @@ class RunConfig:
             raise ValueError(f"unknown configuration option(s): {sorted(unknown)}")
         return dataclasses.replace(self, **changes)
 
-    def to_dict(self, omit_none: bool = True) -> dict[str, Any]:
-        """Plain dict (TOML-ready: ``leader_start`` a list, None omitted unless not
-        ``omit_none``)."""
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (TOML-ready: ``leader_start`` a list, an option left None omitted)."""
         out = {}
         for name in OPTIONS:
             value = getattr(self, name)
-            if value is None and omit_none:
-                continue
-            out[name] = list(value) if isinstance(value, tuple) else value
+            if value is not None:
+                out[name] = list(value) if isinstance(value, tuple) else value
         return out
 
 
@@ -402,7 +404,9 @@ def flag_of(declared: Option) -> str | None:
 
 
 def allowed(declared: Option) -> str:
-    """The allowed values in words: ``[1, 1000]``, ``(0, 1]``, ``a, b, c``, ``true/false``."""
+    """The allowed values in words: ``[1, 1000]``, ``(0, 1]``, ``a, b, c``, ``true, false``,
+    or ``see meaning`` for an option checked by a rule of its own (the run id, the surface,
+    its parameters, the leader start)."""
     if declared.choices:
         return ", ".join(declared.choices) + (
             ", edmd-<letter>, package.module:Name" if declared.name == "estimator" else "")
@@ -458,14 +462,29 @@ def load_config(path: str | os.PathLike[str]) -> RunConfig:
     A file over ``MAX_CONFIG_BYTES`` or nesting tables/arrays deeper than ``MAX_CONFIG_DEPTH``
     is refused before its values are looked at.
     """
-    path = Path(path)
-    return config_from_file(read_toml(path, "config file"), path)
+    return config_from_file(file_options(path), path)
 
 
-def config_from_file(data: dict[str, Any], path: str | os.PathLike[str]) -> RunConfig:
-    """The run configuration in ``data``, a TOML table read from ``path`` (its ``meta`` table
-    ignored); errors name the file."""
-    data = {k: v for k, v in data.items() if k != "meta"}
+def with_env_domain(options: Mapping[str, Any]) -> dict[str, Any]:
+    """``options`` with ``ros_domain`` from ``ROS_DOMAIN_ID`` (:func:`protocol.ros2.
+    domain_from_env`) when they turn ROS 2 publishing on and leave the domain out: the rule of
+    every command that reads a run's options. The environment is read only then (ValueError if
+    it is bad)."""
+    if options.get("ros2") and "ros_domain" not in options:
+        return {**options, "ros_domain": domain_from_env()}
+    return dict(options)
+
+
+def file_options(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The run options of the TOML file ``path``, read under the input limits
+    (:func:`read_toml`; ValueError naming the file), its ``meta`` table left out."""
+    data = read_toml(Path(path), "config file")
+    return {k: v for k, v in data.items() if k != "meta"}
+
+
+def config_from_file(data: Mapping[str, Any], path: str | os.PathLike[str]) -> RunConfig:
+    """The run configuration in ``data``, the options :func:`file_options` read from ``path``;
+    errors name the file."""
     try:
         return config_from_dict(data)
     except (TypeError, ValueError) as exc:

@@ -2,6 +2,8 @@
 
 Every file a run writes goes through this module:
 
+- :func:`check_out_dir` checks a results folder a command is given (``--out``) before a run
+  starts: not a symbolic link, and writable (a probe file created in it and removed).
 - :func:`open_dir` and :func:`open_file` open a folder or a file without following a symbolic
   link at its last component (``O_NOFOLLOW``), the file relative to its folder's descriptor, so
   a link planted in a results folder (``logs/agent-1.log -> ../../victim``) is refused
@@ -27,7 +29,8 @@ import stat
 import time
 from pathlib import Path
 
-from protocol.cli import Refused
+from protocol.cli import Refused, describe
+from protocol.limits import MAX_TEXT
 
 LOCK_FILE = ".swarm.lock"
 """The lock file in a results folder (kept between runs: deleting it would let two writers
@@ -62,15 +65,14 @@ def _named(exc: OSError, path: str | os.PathLike[str]) -> OSError:
     return OSError(exc.errno, exc.strerror, str(path))
 
 
-def open_dir(path: str | os.PathLike[str], create: bool = True) -> int:
-    """A descriptor of the folder ``path`` (created with its parents if missing and
-    ``create``), refusing a symbolic link as its last component. Close it with ``os.close``."""
+def open_dir(path: str | os.PathLike[str]) -> int:
+    """A descriptor of the folder ``path`` (created with its parents if missing), refusing a
+    symbolic link as its last component. Close it with ``os.close``."""
     path = Path(path)
     try:
         return os.open(path, _DIR_FLAGS)
     except FileNotFoundError:
-        if not create:
-            raise
+        pass
     except OSError as exc:
         raise _named(exc, path) from None
     try:
@@ -78,6 +80,47 @@ def open_dir(path: str | os.PathLike[str], create: bool = True) -> int:
         return os.open(path, _DIR_FLAGS)
     except OSError as exc:
         raise _named(exc, path) from None
+
+
+def check_out_dir(path: str | os.PathLike[str], flag: str = "--out") -> Path:
+    """Make sure ``path`` is, or can be created as, a folder this process can write into.
+
+    The folder is created (with its parents) if missing, then a probe file is created in it,
+    without following a symbolic link, and removed.
+
+    Raises
+    ------
+    FolderRefused
+        ``path`` is a symbolic link (a run writes only inside its folder).
+    ValueError
+        Naming ``flag`` and the reason: ``path`` is a file, cannot be created (e.g. under
+        ``/proc``), is not writable (read-only or full file system), or is too long or
+        unprintable to be announced in the run's ``done`` message.
+    """
+    path = Path(path)
+    text = str(path)
+    if len(text) > MAX_TEXT or not text.isprintable():
+        raise ValueError(f"{flag} must be a printable path of at most {MAX_TEXT} characters")
+    if path.is_symlink():
+        raise FolderRefused(f"{flag} {path} is a symbolic link; give the real folder")
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{flag} {path} is a file, not a folder")
+    try:
+        folder = open_dir(path)
+        try:
+            probe = f".write-check.{secrets.token_hex(4)}"
+            fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW
+                         | os.O_CLOEXEC, 0o600, dir_fd=folder)
+            try:
+                _write_all(fd, b"\n")
+            finally:
+                os.close(fd)
+                os.unlink(probe, dir_fd=folder)
+        finally:
+            os.close(folder)
+    except OSError as exc:
+        raise ValueError(f"{flag} {path} cannot hold results: {describe(exc)}") from None
+    return path
 
 
 def open_file(path: str | os.PathLike[str], flags: int, mode: int = 0o644) -> int:

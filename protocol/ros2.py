@@ -40,7 +40,6 @@ from functools import cache
 from protocol.distribution import needs
 from protocol.xxh3 import xxh3_128_halves
 
-RMW_ZENOH_VERSION = "rmw_zenoh_cpp 0.2.5 (ROS 2 Jazzy)"
 ADMIN_SPACE = "@ros2_lv"
 DOMAIN_RANGE = (0, 232)
 DOMAIN_ENV = "ROS_DOMAIN_ID"
@@ -49,6 +48,7 @@ NAMESPACE = "/"
 ENCLAVE = "/"
 FRAME = "map"
 NODE_KIND, PUBLISHER_KIND = "NN", "MP"
+ENTITY_KINDS = (NODE_KIND, PUBLISHER_KIND, "MS", "SS", "SC")  # ... subscription, service, client
 GID_SIZE = 16
 ATTACHMENT = struct.Struct("<qqB16s")
 _SLASH = "%"
@@ -253,7 +253,7 @@ def parse_token(token: str) -> Entity:
     if len(parts) not in (9, 13) or parts[0] != ADMIN_SPACE or not all(parts):
         raise ValueError(f"not an rmw_zenoh liveliness token: {token!r}")
     kind = parts[5]
-    if (kind == NODE_KIND) != (len(parts) == 9) or kind not in ("NN", "MP", "MS", "SS", "SC"):
+    if (kind == NODE_KIND) != (len(parts) == 9) or kind not in ENTITY_KINDS:
         raise ValueError(f"liveliness token with kind {kind!r} and {len(parts)} parts")
     for i in (1, 3, 4):
         if not parts[i].isdigit():

@@ -1,4 +1,7 @@
-"""The one helper that builds the ``zenoh.Config`` of every process (STYLE: zenoh examples)."""
+"""The Zenoh sessions of every process: their configuration (:func:`zenoh_config`, from the
+command-line flags of :func:`add_connection_flags` through :func:`connection_config`), opening
+one so that Ctrl-C and SIGTERM still act (:func:`open_session`), and the small helpers around
+them (free loopback endpoints, a liveliness check, undeclaring)."""
 from __future__ import annotations
 
 import argparse

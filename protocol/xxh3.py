@@ -6,8 +6,8 @@ This follows the published XXH3 specification (xxHash 0.8), all input lengths: 0
 and called once per ROS 2 entity. ``tests/test_ros2.py`` checks it against the system's
 libxxhash where one is installed.
 
->>> hex(xxh3_128(b""))
-'0x99aa06d3014798d86001c324468d497f'
+>>> [hex(half) for half in xxh3_128_halves(b"")]  # low 64 bits, high 64 bits
+['0x6001c324468d497f', '0x99aa06d3014798d8']
 """
 from __future__ import annotations
 
@@ -186,9 +186,3 @@ def xxh3_128_halves(data: bytes) -> tuple[int, int]:
     if n <= 240:
         return _upto240(data)
     return _long(data)
-
-
-def xxh3_128(data: bytes) -> int:
-    """XXH3-128 of ``data`` as one 128-bit integer (``high64 << 64 | low64``)."""
-    low, high = xxh3_128_halves(data)
-    return (high << 64) | low

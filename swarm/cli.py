@@ -4,21 +4,21 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 from protocol.cli import (
-    EXPECTED_FAILURES,
     FAILED,
     INTERRUPTED,
     REFUSED,
-    Refused,
     add_log_level_flag,
-    check_out_dir,
-    describe,
+    add_results_flags,
+    default_out,
     ends_with,
-    fail,
     refuse,
     run_command,
+    run_failures,
     setup_logging,
 )
 from protocol.config import (
@@ -28,12 +28,12 @@ from protocol.config import (
     applies_to,
     config_from_dict,
     config_from_file,
+    file_options,
     flag_of,
-    read_toml,
+    with_env_domain,
 )
-from protocol.distribution import DISTRIBUTION, require, version
-from protocol.folder import FolderLock
-from protocol.ros2 import domain_from_env
+from protocol.distribution import DISTRIBUTION, version
+from protocol.folder import FolderLock, check_out_dir
 from protocol.session import add_connection_flags, connection_config
 
 
@@ -81,10 +81,11 @@ def add_run_flags(p: argparse.ArgumentParser) -> None:
                    help="TOML file with any of the options; flags override it")
 
 
-def options_from_args(args: argparse.Namespace) -> dict:
-    """The run options the user gave: the ``--config`` file's, then the flags given
-    (ValueError on bad input). A value equal to its default counts as not given."""
-    data = file_options(args)
+def options_from_args(args: argparse.Namespace, file: Mapping[str, Any]) -> dict:
+    """The run options the user gave: ``file``'s (the ``--config`` file's,
+    :func:`config_file`), then the flags given (ValueError on bad input). A value equal to its
+    default counts as not given."""
+    data = dict(file)
     for name in OPTIONS:
         value = getattr(args, name, None)
         if value is not None:
@@ -101,25 +102,21 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
     a new run id unless one is given."""
     from swarm.launch import new_run_id
 
-    data = options_from_args(args)
+    file = config_file(args)
+    data = with_env_domain(options_from_args(args, file))
     data.setdefault("run_id", new_run_id())
-    if data.get("ros2") and "ros_domain" not in data:
-        data["ros_domain"] = domain_from_env()
     try:
         return config_from_dict(data)
     except ValueError:
         if args.config:  # the file alone is at fault: say so, naming it
-            config_from_file(file_options(args), args.config)
+            config_from_file(file, args.config)
         raise
 
 
-def file_options(args: argparse.Namespace) -> dict:
+def config_file(args: argparse.Namespace) -> dict:
     """The options of the ``--config`` file (none without), read under the input limits
     (ValueError naming the file)."""
-    if not args.config:
-        return {}
-    data = read_toml(Path(args.config), "config file")
-    return {k: v for k, v in data.items() if k != "meta"}
+    return file_options(args.config) if args.config else {}
 
 
 def comma_numbers(text: str, count: int) -> tuple[float, ...] | None:
@@ -202,12 +199,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     live = endpoint = None
     with ends_with(REFUSED, ValueError, RuntimeError):
         config = config_from_args(args)
-        from world.surfaces import require_surface_extra
+        from world.main import require_extras
 
-        require_surface_extra(config.surface)  # the extras it needs, before anything runs
-        if config.ros2:
-            require("ros")
-        out = Path(args.out) if args.out else Path("runs") / config.run_id
+        require_extras(config)  # before anything runs
+        out = Path(args.out) if args.out else default_out(config.run_id)
         if args.live:  # its arguments are checked before anything is written
             from protocol.session import free_tcp_endpoint
             from swarm.live.observer import LiveView
@@ -248,15 +243,11 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
     bar = tqdm(total=config.ticks, desc=f"{config.surface} {config.estimator}", unit="tick",
                disable=None)
     try:
-        summary = launch(config, out, in_process=args.in_process, on_tick=lambda j: bar.update(1),
-                         endpoint=endpoint, force=args.force, lock=lock,
-                         before_agents=None if live is None else observe)
-    except Refused as exc:  # e.g. a raster larger than the limit: nothing ran
-        refuse(str(exc))
-    except OSError as exc:  # the results disk failed during the run (read-only, full)
-        fail(f"cannot write the results in {out}: {describe(exc)}")
-    except EXPECTED_FAILURES as exc:
-        fail(describe(exc))
+        with run_failures(out):  # e.g. a raster larger than the limit: refused, nothing ran
+            summary = launch(config, out, in_process=args.in_process,
+                             on_tick=lambda j: bar.update(1), endpoint=endpoint,
+                             force=args.force, lock=lock,
+                             before_agents=None if live is None else observe)
     except KeyboardInterrupt:
         print(f"interrupted: partial result in {out}", file=sys.stderr)
         return INTERRUPTED
@@ -332,9 +323,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         return cmd_terrain(args)
     if args.name == "drive":
         return cmd_drive_study(args)
-    for name in TERRAIN_ONLY:
-        if getattr(args, name) is not None:
-            refuse(f"--{name.replace('_', '-')} applies only to `experiment terrain`")
+    _refuse_terrain_flags(args)
     args.out = args.out or "runs/experiment-paper"
     result = _run_grid(lambda: run_paper_experiment(
         args.out, QUICK if args.quick else FULL, workers=args.workers, scheduler=args.scheduler),
@@ -342,6 +331,14 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     timing = result["timing"]
     return _print_experiment(result, f"wall time {timing['total']:.1f} s (runs "
                                      f"{timing['runs']:.1f} s, figures {timing['figures']:.1f} s)")
+
+
+def _refuse_terrain_flags(args: argparse.Namespace, allowed: tuple[str, ...] = ()) -> None:
+    """Refuse a flag of ``experiment terrain`` (:data:`TERRAIN_ONLY`) given to another
+    experiment, but those in ``allowed``."""
+    for name in TERRAIN_ONLY:
+        if name not in allowed and getattr(args, name) is not None:
+            refuse(f"--{name.replace('_', '-')} applies only to `experiment terrain`")
 
 
 def _print_experiment(result: dict, wall_line: str) -> int:
@@ -407,7 +404,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
         refuse("compare takes --estimators (comma-separated), not --estimator")
     with ends_with(REFUSED, ValueError):
         _check_workers(args.workers)
-        base = options_from_args(args)
+        base = options_from_args(args, config_file(args))
         if args.seeds:
             try:
                 seeds = [int(x) for x in args.seeds.split(",")]
@@ -471,9 +468,7 @@ def cmd_drive_study(args: argparse.Namespace) -> int:
     driving followers (:mod:`swarm.drive_study`)."""
     from swarm.drive_study import DriveStudySpec, quick, run_drive_study
 
-    for name in TERRAIN_ONLY:
-        if name not in ("dem", "leader_start") and getattr(args, name) is not None:
-            refuse(f"--{name.replace('_', '-')} applies only to `experiment terrain`")
+    _refuse_terrain_flags(args, allowed=("dem", "leader_start"))
     spec = DriveStudySpec()
     if args.dem is not None:
         if not args.leader_start or len(args.leader_start) != 1:
@@ -483,10 +478,11 @@ def cmd_drive_study(args: argparse.Namespace) -> int:
                                   dem_start=parse_leader_start(args.leader_start[0]))
     spec = quick(spec) if args.quick else spec
     out = args.out or "runs/experiment-drive"
-    result = _run_grid(lambda: run_drive_study(
-        out, spec, workers=args.workers,
-        on_run=lambda done, total: print(f"\rrun {done}/{total}", end="", file=sys.stderr,
-                                         flush=True)), out)
+    with ends_with(REFUSED, ValueError):  # the options or the DEM
+        result = _run_grid(lambda: run_drive_study(
+            out, spec, workers=args.workers,
+            on_run=lambda done, total: print(f"\rrun {done}/{total}", end="", file=sys.stderr,
+                                             flush=True)), out)
     print(file=sys.stderr)
     return _print_experiment({**result, "figure_problems": {}, "failed": []},
                              f"wall time {result['wall_time']:.1f} s ({result['runs']} runs in "
@@ -580,10 +576,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="agents as separate processes (default)")
     layout.add_argument("--in-process", dest="in_process", action="store_true",
                         help="agents as sessions in this process")
-    run.add_argument("--out", help="results folder (default runs/<run_id>)")
+    add_results_flags(run)
     run.add_argument("--plot", action="store_true", help="draw the run's figures at the end")
-    run.add_argument("--force", action="store_true",
-                     help="replace the results already in --out (default: refuse)")
     run.add_argument("--live", action="store_true",
                      help="serve a live view of the run on localhost (kept up until Ctrl-C)")
     add_live_port(run)

@@ -6,6 +6,7 @@ too. The world runs in the calling process (main thread); agents are either sepa
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -187,8 +188,7 @@ stopped opening at the 351st, whatever the file descriptors in use (``zenoh`` 1.
 class _ThreadAgents:
     """Agents as threads in this process, each with its own Zenoh session."""
 
-    def __init__(self, config: RunConfig, endpoint: str, credentials: RunCredentials) -> None:
-        self.settings = AgentSettings.from_config(config)
+    def __init__(self, endpoint: str, credentials: RunCredentials) -> None:
         self.endpoint = endpoint
         self.credentials = credentials
         self.threads: list[threading.Thread] = []
@@ -263,16 +263,13 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
     """
     out_dir = Path(out_dir)  # run_world resolves the config and writes config.toml first
     endpoint = endpoint or free_tcp_endpoint()
-    if credentials is not None:
+    with contextlib.ExitStack() as scratch:  # a temporary folder is removed at the end
+        if credentials is None:
+            folder = Path(credentials_dir) if credentials_dir is not None else Path(
+                scratch.enter_context(tempfile.TemporaryDirectory(prefix="swarm-credentials-"))
+            ) / "run"
+            credentials = RunCredentials.create(folder, config.followers)
         return _launch(config, out_dir, in_process, on_tick, endpoint, credentials,
-                       before_agents, force, lock)
-    if credentials_dir is not None:
-        return _launch(config, out_dir, in_process, on_tick, endpoint,
-                       RunCredentials.create(Path(credentials_dir), config.followers),
-                       before_agents, force, lock)
-    with tempfile.TemporaryDirectory(prefix="swarm-credentials-") as scratch:
-        return _launch(config, out_dir, in_process, on_tick, endpoint,
-                       RunCredentials.create(Path(scratch) / "run", config.followers),
                        before_agents, force, lock)
 
 
@@ -281,7 +278,7 @@ def _launch(config: RunConfig, out_dir: Path, in_process: bool,
             credentials: RunCredentials,
             before_agents: Callable[[RunCredentials], None] | None = None,
             force: bool = False, lock: FolderLock | None = None) -> dict:
-    agents = (_ThreadAgents(config, endpoint, credentials) if in_process
+    agents = (_ThreadAgents(endpoint, credentials) if in_process
               else _ProcessAgents(config, out_dir, endpoint, credentials))
     log.info("run %s: credentials in %s (observer: %s)", config.run_id, credentials.folder,
              credentials.password_file(OBSERVER))

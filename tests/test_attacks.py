@@ -20,10 +20,10 @@ import zenoh
 from protocol import keys
 from protocol.config import RunConfig, dump_config
 from protocol.messages import Observation, Rod, encode
+from protocol.record import read_observations, read_ticks
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.launch import RunCredentials, agent_commands, launch
 from tests.attacking import run_under_attack, same_results, wait_for_world
-from world.results import read_observations, read_ticks
 
 ROOT = Path(__file__).resolve().parents[1]
 

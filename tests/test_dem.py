@@ -397,7 +397,7 @@ def test_dem_run_over_zenoh_is_identical_in_every_layout(tmp_path, dem_run, dem_
 
 
 def test_dem_run_follows_the_ideal_formation(dem_run, dem_config):
-    from world.results import read_ticks
+    from protocol.record import read_ticks
 
     out, _ = dem_run
     truth = ideal_formation(load_dem(HILLS), HILLS_LEADER_START, 2, SPACING, COMM_PERIOD,

@@ -447,6 +447,26 @@ def test_bad_drive_options_are_refused_in_one_line(tmp_path, capsys, flags, mess
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("name, flags", [("paper", ["--spacing", "5"]),
+                                         ("paper", ["--dem", "x.tif"]),
+                                         ("drive", ["--ticks", "3"])])
+def test_terrain_flags_are_refused_by_the_other_experiments(tmp_path, capsys, name, flags):
+    out = tmp_path / "study"
+    assert swarm_main(["experiment", name, *flags, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"error: {flags[0]} applies only to `experiment terrain`", err
+    assert not out.exists()
+
+
+def test_the_drive_study_refuses_a_missing_dem_in_one_line(tmp_path, capsys):
+    missing = tmp_path / "missing.tif"
+    assert swarm_main(["experiment", "drive", "--dem", str(missing), "--leader-start", "1,1,1,0",
+                       "--out", str(tmp_path / "study")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("error: "), err
+    assert "no such DEM file" in err
+
+
 # --- the study ---------------------------------------------------------------------------------
 
 

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from protocol.config import RunConfig, load_config
+from protocol.record import TICK_COLUMNS, read_ticks
 from protocol.session import free_tcp_endpoint
 from swarm.launch import agent_commands, launch
 from tests.boundaries import check_imports
 from world import ideal_formation
-from world.results import TICK_COLUMNS, read_ticks
 from world.surfaces import make_surface
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -14,11 +14,11 @@ import zenoh
 
 from protocol import keys
 from protocol.config import RunConfig, dump_config
+from protocol.record import read_ticks
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.launch import agent_commands, launch
 from swarm.local import run_local
 from tests.waiting import Procs, children, running, signalled, wait_for
-from world.results import read_ticks
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -31,6 +31,7 @@ from protocol.folder import (
     FolderLock,
     FolderRefused,
     SymlinkRefused,
+    check_out_dir,
     open_file,
     write_atomic,
 )
@@ -407,6 +408,21 @@ def test_a_symlinked_results_folder_is_refused(tmp_path, command):
     assert done.returncode == 2
     assert "is a symbolic link" in _error_line(done.stderr)
     assert list(real.iterdir()) == []
+
+
+def test_the_out_check_refuses_a_symlink_before_writing_through_it(tmp_path):
+    """``--out`` as a link, to a folder or to nothing: refused as a link, and nothing (not even
+    the writability probe) is created at its target."""
+    real = tmp_path / "real"
+    real.mkdir()
+    (tmp_path / "link").symlink_to(real)
+    (tmp_path / "dangling").symlink_to(tmp_path / "missing")
+    for link in (tmp_path / "link", tmp_path / "dangling"):
+        with pytest.raises(FolderRefused, match=f"--out {link} is a symbolic link"):
+            check_out_dir(link)
+    assert list(real.iterdir()) == [] and not (tmp_path / "missing").exists()
+    assert check_out_dir(tmp_path / "new" / "run") == tmp_path / "new" / "run"
+    assert list((tmp_path / "new" / "run").iterdir()) == []  # the probe is gone
 
 
 def test_no_writer_follows_a_symlink(tmp_path):

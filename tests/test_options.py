@@ -275,24 +275,49 @@ def test_run_refuses_to_overwrite_results_without_force(tmp_path, capsys):
     assert (out / "ticks.csv").read_bytes() != before
 
 
+def test_a_folder_holding_results_is_refused_alike_by_world_and_swarm_run(tmp_path, capsys):
+    """A folder with results but no summary (a world killed before writing one) is refused
+    before anything ran, status 2, by ``python -m world`` and ``swarm run`` alike."""
+    from protocol.session import free_tcp_endpoint
+
+    out = tmp_path / "r"
+    out.mkdir()
+    (out / "ticks.csv").write_text("kept\n")
+    dump_config(RunConfig(run_id="again", ticks=6), tmp_path / "c.toml")
+    world = subprocess.run([sys.executable, "-m", "world", "--config", str(tmp_path / "c.toml"),
+                            "--listen", free_tcp_endpoint(), "--out", str(out)],
+                           cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert world.returncode == 2, world.stderr
+    assert world.stderr.count("error:") == 1 and "already holds results" in world.stderr
+    assert main(["run", "--ticks", "6", "--in-process", "--out", str(out)]) == 2
+    assert "already holds results" in one_error_line(capsys)
+    assert (out / "ticks.csv").read_text() == "kept\n"
+
+
 @pytest.mark.parametrize("signum, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
-def test_stopping_an_agent_that_waits_for_its_router_is_prompt_and_quiet(tmp_path, signum,
-                                                                         status):
+@pytest.mark.parametrize("command", [("agents.leader",), ("world", "--out", "run")],
+                         ids=["agent", "world"])
+def test_stopping_a_process_that_waits_for_its_router_is_prompt_and_quiet(tmp_path, signum,
+                                                                          status, command):
     """A session still connecting (no Zenoh router answers) waits inside Zenoh; Ctrl-C or
-    SIGTERM there ends the process at once with its status and no traceback (`watch` and the
-    agents open their session the same way). The endpoint is a plain socket of the test's,
-    so the agent's first connection attempt shows it is inside that wait."""
+    SIGTERM there ends the process at once with its status and no traceback (`watch`, the
+    agents and a world given only ``--connect`` open their session the same way). The
+    endpoint is a plain socket of the test's, so the process's first connection attempt shows
+    it is inside that wait."""
     from tests.waiting import signalled
 
     dump_config(RunConfig(run_id="stop", start_timeout=60.0), tmp_path / "c.toml")
+    module, *extra = command
+    extra = [str(tmp_path / x) if x == "run" else x for x in extra]
     with socket.socket() as fake_router:
         fake_router.bind(("127.0.0.1", 0))
         fake_router.listen()
         fake_router.settimeout(30.0)
         endpoint = f"tcp/127.0.0.1:{fake_router.getsockname()[1]}"
-        proc = subprocess.Popen([sys.executable, "-m", "agents.leader", "--config",
-                                 str(tmp_path / "c.toml"), "--connect", endpoint], cwd=ROOT,
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        proc = subprocess.Popen([sys.executable, "-m", module, "--config",
+                                 str(tmp_path / "c.toml"), "--connect", endpoint, *extra],
+                                cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True)
         try:
             connection, _ = fake_router.accept()
             connection.close()

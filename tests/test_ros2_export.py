@@ -20,10 +20,10 @@ from protocol import ros2
 from protocol.config import RunConfig
 from protocol.distribution import missing_extra_message
 from protocol.folder import LOCK_FILE
+from protocol.record import read_controls, read_ticks
 from swarm.cli import main as swarm_main
 from swarm.launch import launch
 from swarm.ros2_export import export_run
-from world.results import read_controls, read_ticks
 from world.ros2 import stamp_ns, stamp_parts
 from world.surfaces import make_surface
 

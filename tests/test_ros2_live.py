@@ -18,12 +18,11 @@ import zenoh
 
 from protocol import ros2
 from protocol.config import RunConfig
-from protocol.record import CONTROLS_FILE, OBS_FILE, TICKS_FILE
+from protocol.record import CONTROLS_FILE, OBS_FILE, TICKS_FILE, read_controls, read_ticks
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.deploy import OBSERVER
 from swarm.launch import launch
 from swarm.local import run_local
-from world.results import read_controls, read_ticks
 from world.ros2 import stamp_parts
 from world.surfaces import make_surface
 

@@ -20,9 +20,9 @@ from pathlib import Path
 import pytest
 
 from protocol.config import load_config
+from protocol.record import read_ticks
 from swarm.local import run_local
 from tests.waiting import children, wait_for
-from world.results import read_ticks
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = int(os.environ.get("FAULT_SEED", str(int(time.time()) % 100_000)))

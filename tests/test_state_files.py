@@ -16,9 +16,9 @@ from agents.checkpoint import Entry, StateLog, StateLogError, replay, state_path
 from agents.policies import make_policy
 from protocol.config import AgentSettings, RunConfig, dump_config
 from protocol.messages import Sensing
+from protocol.record import RESULT_FILES
 from protocol.session import free_tcp_endpoint
 from world import checkpoint as world_checkpoint
-from world.results import RESULT_FILES
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN, START = "state-run", "0123456789abcdef"

@@ -14,16 +14,18 @@ import json
 import secrets
 from pathlib import Path
 
+from protocol.cli import Refused
 from protocol.config import checked_json, json_checksum
 from protocol.folder import write_atomic
-from world.results import RESULT_FILES, SUMMARY_FILE
+from protocol.record import RESULT_FILES, SUMMARY_FILE
 
 STATE_FILE = "world_state.json"
 SCHEMA = 2  # 2: a driving follower's summed odometry errors are in the sim state
 
 
-class StateError(ValueError):
-    """A checkpoint or results folder the world refuses; the message names the file and why."""
+class StateError(Refused):
+    """A checkpoint or results folder the world refuses before anything ran (exit status 2);
+    the message names the file and why."""
 
 
 class AlreadyComplete(StateError):
@@ -33,7 +35,6 @@ class AlreadyComplete(StateError):
 def new_start() -> str:
     """A fresh start nonce."""
     return secrets.token_hex(8)
-
 
 
 def save(out_dir: Path, *, run_id: str, start: str, sim: dict, offsets: dict[str, int],

@@ -3,7 +3,7 @@
 Loading
 -------
 :func:`read_dem` reads band 1 of any raster GDAL opens through ``rasterio`` — a GeoTIFF or an
-ESRI ASCII grid (``.asc``, with an optional ``.prj`` beside it) — and returns the grid in the
+ESRI ASCII grid (``.asc``, with an optional ``.prj`` beside it) — and returns the grid in
 the design's frame: metres, x east, y north, origin at the centre of the south-west cell, node
 ``(i, j)`` the centre of cell (column i, row j counted from the south).
 

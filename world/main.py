@@ -1,34 +1,32 @@
-"""Entry point of the world process:
-``python -m world --config run.toml [--listen EP] [--out DIR]``."""
+"""Entry point of the world process: ``python -m world (--config run.toml | --resume RUN_DIR)
+[--out DIR] [--force] [--listen EP] [--connect EP] [--ros2 [--ros-domain N]]``."""
 from __future__ import annotations
 
 import argparse
 import contextlib
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any
 
 import zenoh
 
 from protocol.cli import (
     DONE,
-    EXPECTED_FAILURES,
     REFUSED,
-    Refused,
     add_log_level_flag,
-    check_out_dir,
-    describe,
+    add_results_flags,
+    default_out,
     ends_with,
     fail,
-    refuse,
     run_command,
+    run_failures,
     setup_logging,
 )
-from protocol.config import RunConfig, dump_config, load_config, read_toml
+from protocol.config import RunConfig, config_from_file, dump_config, file_options, with_env_domain
 from protocol.distribution import require
-from protocol.folder import FolderLock
-from protocol.ros2 import domain_from_env
-from protocol.session import add_connection_flags, connection_config
+from protocol.folder import FolderLock, check_out_dir
+from protocol.session import add_connection_flags, connection_config, open_session
 from world import checkpoint
 from world.service import WorldService
 from world.sim import default_max_speed, resolve_leader_start
@@ -51,10 +49,6 @@ def resolve_with_surface(config: RunConfig) -> tuple[RunConfig, Surface]:
 def resolve(config: RunConfig) -> RunConfig:
     """The config with the leader start filled in (validates the surface)."""
     return resolve_with_surface(config)[0]
-
-
-def default_out(config: RunConfig) -> Path:
-    return Path("runs") / config.run_id
 
 
 def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
@@ -81,7 +75,7 @@ def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
         if not resume:
             checkpoint.claim(out_dir, force)
             dump_config(config, out_dir / "config.toml")
-        with zenoh.open(conf) as session:
+        with open_session(conf) as session:
             service = WorldService(session, config, surface, out_dir, on_tick=on_tick,
                                    resume=resume)
             try:
@@ -99,12 +93,10 @@ def main(argv: list[str] | None = None) -> int:
     source.add_argument("--config", help="run configuration TOML")
     source.add_argument("--resume", metavar="RUN_DIR",
                         help="continue the run in RUN_DIR from its last complete tick")
-    p.add_argument("--out", help="results folder (default runs/<run_id>)")
+    add_results_flags(p)
     add_connection_flags(p, session_modes=("router", "peer", "client"),
                          default_mode="router, or client with --connect only")
     add_log_level_flag(p)
-    p.add_argument("--force", action="store_true",
-                   help="replace the results already in --out (default: refuse)")
     p.add_argument("--ros2", action="store_true", default=None,
                    help="also publish the run's ROS 2 topics (rmw_zenoh layout; [ros] extra)")
     p.add_argument("--ros-domain", type=int, help="ROS 2 domain id, 0-232 (default: the "
@@ -114,22 +106,34 @@ def main(argv: list[str] | None = None) -> int:
     return run_command(lambda: _serve(args))
 
 
-def ros_options(config: RunConfig, args: argparse.Namespace) -> RunConfig:
-    """``config`` with ``--ros2`` and ``--ros-domain`` applied; a config file that leaves the
-    domain out takes ``ROS_DOMAIN_ID``. Checks that the [ros] extra is there when needed."""
-    path = Path(args.resume) / "config.toml" if args.resume else Path(args.config)
-    changes: dict = {}
-    if args.ros2:
-        changes["ros2"] = True
-    if args.ros_domain is not None:
-        changes["ros_domain"] = args.ros_domain
-    config = config.replace(**changes)  # refuses --ros-domain without --ros2
+def require_extras(config: RunConfig) -> None:
+    """Refuse (:class:`protocol.distribution.MissingExtra`) a run whose surface or ROS 2
+    publishing needs an extra that is not installed, before anything is written."""
     require_surface_extra(config.surface)
     if config.ros2:
-        if args.ros_domain is None and "ros_domain" not in read_toml(path, "config file"):
-            config = config.replace(ros_domain=domain_from_env())
         require("ros")
-    return config
+
+
+def config_path(args: argparse.Namespace) -> Path:
+    """The run configuration the arguments name: ``--config``, or ``--resume``'s
+    ``config.toml``."""
+    return Path(args.resume) / "config.toml" if args.resume else Path(args.config)
+
+
+def ros_options(config: RunConfig, args: argparse.Namespace,
+                file: Mapping[str, Any] | None = None) -> RunConfig:
+    """``config`` with ``--ros2`` and ``--ros-domain`` applied; where neither the flags nor
+    the config file (whose options are ``file``, else read from :func:`config_path`) give the
+    domain, ROS 2 publishing takes ``ROS_DOMAIN_ID`` (:func:`protocol.config.with_env_domain`).
+    ValueError for ``--ros-domain`` without ROS 2 publishing."""
+    flags: dict[str, Any] = {}
+    if args.ros2:
+        flags["ros2"] = True
+    if args.ros_domain is not None:
+        flags["ros_domain"] = args.ros_domain
+    given = with_env_domain({**(file_options(config_path(args)) if file is None else file),
+                             **flags})
+    return config.replace(**{k: given[k] for k in ("ros2", "ros_domain") if k in given})
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -137,26 +141,21 @@ def _serve(args: argparse.Namespace) -> int:
     (the default) it listens on ``DEFAULT_LISTEN`` unless given ``--listen``; given only
     ``--connect`` it joins that router as a client (e.g. docker-compose's zenohd)."""
     with ends_with(REFUSED, ValueError):
-        config = load_config(Path(args.resume) / "config.toml" if args.resume else args.config)
-        config = ros_options(config, args)
+        path = config_path(args)
+        file = file_options(path)
+        config = ros_options(config_from_file(file, path), args, file)
+        require_extras(config)
         client = bool(args.connect) and not args.listen
         conf = connection_config(args, "client" if client else "router",
                                  default_listen=() if client else DEFAULT_LISTEN)
-        out = check_out_dir(args.resume or args.out or default_out(config),
+        out = check_out_dir(args.resume or args.out or default_out(config.run_id),
                             "--resume" if args.resume else "--out")
-    try:
-        summary = run_world(config, conf, out, resume=bool(args.resume), force=args.force)
-    except checkpoint.AlreadyComplete as exc:
-        print(str(exc), file=sys.stderr)
-        return DONE
-    except checkpoint.StateError as exc:  # nothing to resume, or results it must not replace
-        refuse(describe(exc))
-    except Refused as exc:  # a folder in use, a raster too large: nothing was written
-        refuse(str(exc))
-    except OSError as exc:  # the results disk failed during the run (read-only, full)
-        fail(f"cannot write the results in {out}: {describe(exc)}")
-    except EXPECTED_FAILURES as exc:
-        fail(describe(exc))
+    with run_failures(out):  # a folder in use or holding results, nothing to resume: refused
+        try:
+            summary = run_world(config, conf, out, resume=bool(args.resume), force=args.force)
+        except checkpoint.AlreadyComplete as exc:
+            print(str(exc), file=sys.stderr)
+            return DONE
     if not summary["complete"]:
         fail(f"run incomplete: {summary['reason']}")
     return DONE

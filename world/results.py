@@ -20,19 +20,19 @@ from protocol.config import RunConfig
 from protocol.distribution import version
 from protocol.folder import AppendFile, write_atomic
 from protocol.limits import MAX_TEXT
-from protocol.record import CONTROL_COLUMNS as CONTROL_COLUMNS
-from protocol.record import CONTROLS_FILE as CONTROLS_FILE
-from protocol.record import OBS_COLUMNS as OBS_COLUMNS
-from protocol.record import OBS_FILE as OBS_FILE
-from protocol.record import RESULT_FILES as RESULT_FILES
-from protocol.record import SUMMARY_FILE as SUMMARY_FILE
-from protocol.record import TICK_COLUMNS as TICK_COLUMNS
-from protocol.record import TICKS_FILE as TICKS_FILE
-from protocol.record import DamagedRecord as DamagedRecord
-from protocol.record import parse_controls, parse_observations, parse_ticks
-from protocol.record import read_controls as read_controls
-from protocol.record import read_observations as read_observations
-from protocol.record import read_ticks as read_ticks
+from protocol.record import (
+    CONTROL_COLUMNS,
+    CONTROLS_FILE,
+    OBS_COLUMNS,
+    OBS_FILE,
+    SUMMARY_FILE,
+    TICK_COLUMNS,
+    TICKS_FILE,
+    DamagedRecord,
+    parse_controls,
+    parse_observations,
+    parse_ticks,
+)
 
 RESERVE_FILE = ".summary.reserve"
 
@@ -198,10 +198,11 @@ class RunRecorder:
             try:
                 with open(path, "rb") as fh:
                     size = os.fstat(fh.fileno()).st_size
-                    raw = fh.read(keep) if _offset(keep) and keep <= size else b""
+                    fits = _offset(keep) and 0 < keep <= size
+                    raw = fh.read(keep) if fits else b""
             except FileNotFoundError:
-                size, raw = -1, b""
-            if not (_offset(keep) and 0 < keep <= size):
+                size, fits = -1, False
+            if not fits:
                 raise DamagedRecord(f"{path} holds {max(size, 0)} bytes, the checkpoint expects "
                                     f"at least {keep}: the files do not belong together")
             kept[name] = raw

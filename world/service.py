@@ -32,9 +32,10 @@ from protocol.messages import (
     error_payload,
     safe_text,
 )
+from protocol.record import DamagedRecord
 from protocol.session import token_live, undeclare_all
 from world import checkpoint
-from world.results import DamagedRecord, RunRecorder
+from world.results import RunRecorder
 from world.schedule import may_open, predecessor_through
 from world.sim import RequestError, RunEnded, TickMissed, WorldSim
 from world.surfaces import Surface
