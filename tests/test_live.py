@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 import os
 import re
@@ -83,6 +84,16 @@ def _world_map(surface: str = "elliptic", followers: int = 3) -> tuple[dict, Wor
 
 
 # --- payloads ------------------------------------------------------------------------------------
+
+
+def test_a_viewer_closing_the_tab_is_not_a_warning_but_other_bokeh_warnings_are(caplog):
+    import swarm.live.server  # noqa: F401  (installs the filter on Bokeh's websocket log)
+    ws = logging.getLogger("bokeh.server.views.ws")
+    with caplog.at_level(logging.WARNING, logger=ws.name):
+        ws.warning("Failed sending message as connection was closed")
+        ws.warning("Refusing websocket connection from Origin 'http://evil'")
+    assert [r.getMessage() for r in caplog.records] == [
+        "Refusing websocket connection from Origin 'http://evil'"]
 
 
 @pytest.mark.parametrize("surface", ["elliptic", "wavy", "hemisphere"])

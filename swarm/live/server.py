@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import logging
 import threading
 
 from protocol.distribution import needs
@@ -24,6 +25,15 @@ with needs("live"):
     from tornado.ioloop import IOLoop
 
 START_TIMEOUT_S = 15.0
+
+
+def _not_a_closed_tab(record: logging.LogRecord) -> bool:
+    """False for Bokeh's note that a push found the viewer's tab already closed: closing a tab
+    while the page plays is how a viewer leaves, not something for the operator's log."""
+    return "connection was closed" not in record.getMessage()
+
+
+logging.getLogger("bokeh.server.views.ws").addFilter(_not_a_closed_tab)
 
 
 class PageServer:
