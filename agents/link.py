@@ -11,7 +11,9 @@ the session reconnects by itself once the process runs again, and the world may 
 rolled this agent's tick back. The link sees it as the world's liveliness token going and
 coming back: every wait and query then raises :class:`Rejoin`, and the agent joins again
 (``JoinRequest``) from where the world has it. The world counts as gone only if its token is
-not back within :data:`WORLD_RETURN_S` and a fresh liveliness query does not find it either.
+not back within the run's ``start_timeout`` (the time an agent waits for its world at start)
+and a fresh liveliness query does not find it either: a paused world, or one started again with
+``--resume``, finds its agents still there.
 """
 from __future__ import annotations
 
@@ -53,9 +55,9 @@ QUERY_TIMEOUT_S = 10.0  # the least time an agent waits for the world's reply to
 WAIT_RETRY_S = 0.002  # pause before asking again after a ``wait`` refusal
 MAX_HELD = 256  # most predecessor ticks held until the world announces them
 WORLD_RETURN_S = 3.0
-"""How long an agent whose session to the world was cut waits for the world's token to come
-back (a reconnection takes milliseconds) before it asks once more and, if no world answers,
-concludes that the world process has gone."""
+"""The least time an agent whose session to the world was cut waits for the world's token to
+come back before it asks once more and, if no world answers, concludes that the world process
+has gone (an agent of a run waits its ``start_timeout``, :meth:`AgentLink.for_agent`)."""
 
 
 class AgentAbort(RuntimeError):
@@ -104,13 +106,15 @@ class AgentLink:
         the run's timing."""
         return cls(session, settings.run_id, agent_id, agent_id - 1 if agent_id else None,
                    query_timeout=max(settings.agent_timeout, QUERY_TIMEOUT_S),
-                   lockstep=settings.mode == "lockstep", end_timeout=settings.step_timeout)
+                   lockstep=settings.mode == "lockstep", end_timeout=settings.step_timeout,
+                   world_return=max(settings.start_timeout, WORLD_RETURN_S))
 
     def __init__(self, session: zenoh.Session, run_id: str, agent_id: int, follow: int | None,
                  query_timeout: float, lockstep: bool = True,
-                 end_timeout: float | None = None) -> None:
+                 end_timeout: float | None = None, world_return: float = WORLD_RETURN_S) -> None:
         self.session, self.run_id, self.agent_id = session, run_id, agent_id
         self.query_timeout, self.lockstep = query_timeout, lockstep
+        self.world_return = world_return  # how long a vanished world's token is waited for
         # how long to wait for world/done once the world said the run ends before this tick
         # (it still completes the ticks before it with the other agents)
         self.end_timeout = query_timeout if end_timeout is None else end_timeout
@@ -245,7 +249,7 @@ class AgentLink:
         is back, or AgentAbort if no world is found (RunFinished if the run ended meanwhile)."""
         with self._cond:
             back = self._cond.wait_for(lambda: self._world_alive or self._done is not None,
-                                       WORLD_RETURN_S)
+                                       self.world_return)
             self._raise_if_finished()
         if not back and not token_live(self.session, keys.alive(self.run_id, "world"),
                                        timeout=1.0):
@@ -354,7 +358,11 @@ class AgentLink:
                 continue
             break
         with self._cond:
-            self._world_tick = max(self._world_tick, joined.world)
+            # The world that answered may be one started again with --resume, behind what the
+            # earlier one announced: those later ticks no longer stand. (A stalled world never
+            # goes back, so after a stall nothing changes here.)
+            self._world_tick = joined.world
+            self._latest = min(self._latest, joined.world + (self.follow is not None))
         if joined.ready and not joined.settled:
             self.advance(joined.until)
         return joined

@@ -217,7 +217,9 @@ class RunConfig:
                                needs=("mode", "realtime"))
     agent_timeout: float = option(10.0, "how long an agent may take to settle", unit="s",
                                   low=0.0, high=MAX_TIMEOUT, low_open=True, agents=True)
-    start_timeout: float = option(30.0, "how long the world waits for every agent to start",
+    start_timeout: float = option(30.0, "how long the world waits for every agent to start, and an "
+                                  "agent for its world (at start, and after it vanished: a "
+                                  "paused or restarted world)",
                                   unit="s", low=0.0, high=MAX_TIMEOUT, low_open=True,
                                   agents=True)
     ros2: bool = option(False, "the world also publishes the run's ROS 2 topics (design §10)")

@@ -90,11 +90,13 @@ def test_second_process_with_a_live_id_refuses(tmp_path, procs):
 @pytest.mark.slow  # fast tier: test_link.py (an agent whose world vanishes) and test_integrity.py
 # (a resume after the world was killed gives the numbers of an undisturbed run)
 def test_agents_exit_when_the_world_vanishes_and_resume_continues(tmp_path, procs):
-    """World SIGKILLed once 10 ticks are done: agents exit with a clear error and keep their state;
-    ``--resume`` plus restarted agents finish the run with exactly the numbers of an
-    uninterrupted one (tests/test_recovery.py draws the moments at random)."""
+    """World SIGKILLed once 10 ticks are done and not back within the agents' start timeout:
+    agents exit with a clear error and keep their state; ``--resume`` plus restarted agents
+    finish the run with exactly the numbers of an uninterrupted one (tests/test_recovery.py
+    draws the moments at random, and restarts the world while its agents still wait)."""
     # long enough that the world cannot finish between the poll and the kill (a loaded machine)
-    cfg = RunConfig(run_id="resume", surface="wavy", followers=2, ticks=300, agent_timeout=10.0)
+    cfg = RunConfig(run_id="resume", surface="wavy", followers=2, ticks=300, agent_timeout=10.0,
+                    start_timeout=5.0)
     reference = tmp_path / "ref"  # in memory: every layout gives the same numbers
     run_local(cfg, reference)
     out, endpoint = tmp_path / "run", free_tcp_endpoint()

@@ -9,8 +9,8 @@ outside only (signals); nothing in the production code knows about this test.
 
 Documented restarts: a killed agent is started again with the same command (its state dir is
 the default one beside the config); a killed world is started again with
-``python -m world --resume RUN_DIR`` and, since agents exit when the world vanishes, every agent
-is started again too.
+``python -m world --resume RUN_DIR``, and the agents, which wait up to their ``start_timeout``
+for a vanished world, rejoin it by themselves (an agent that had exited is started again).
 """
 from __future__ import annotations
 
@@ -192,13 +192,14 @@ def _kill_and_compare(tmp_path: Path, n: int, config: RunConfig, kind: str,
             if kind == "world":
                 if not run.kill(run.world):
                     break
-                run.wait_agents_exit()  # they see the world vanish and exit
                 if _complete(out) and not (out / "world_state.json").exists():
                     finished = True  # killed after it completed and cleaned up
+                    run.wait_agents_exit()
                     break
-                run.start_world(resume=True)
-                for k in range(3):
-                    run.start_agent(k)
+                run.start_world(resume=True)  # the waiting agents rejoin it
+                for k, proc in enumerate(run.agents):
+                    if proc.poll() is not None:  # ended meanwhile: started again
+                        run.start_agent(k)
             else:
                 if not run.kill(run.agents[agent]):
                     break

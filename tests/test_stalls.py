@@ -1,7 +1,8 @@
 """A stall is not a death (design §4): a follower paused with SIGSTOP for longer than Zenoh's
 lease, then continued, joins again and the run goes on: in lockstep with the numbers of an
-undisturbed run, in realtime without its successor missing a tick because of it. A follower
-killed in realtime is recorded and the run goes on.
+undisturbed run, in realtime without its successor missing a tick because of it. A paused world
+(the router too) is waited for by its agents, which join it again, with the same numbers. A
+follower killed in realtime is recorded and the run goes on.
 
 The pause's moment and length are drawn from a printed seed (``FAULT_SEED=...`` replays them).
 Faults come from outside (signals); every process is ended by its own handle.
@@ -37,7 +38,11 @@ def _ticks_done(out: Path) -> int:
         return 0
 
 
-def _follower_pid(swarm: subprocess.Popen, agent: int) -> int:
+def _pid(swarm: subprocess.Popen, agent: int | None) -> int:
+    """The process of follower ``agent`` under ``swarm run``, or of its world (None: the
+    ``swarm run`` process itself, which also runs the embedded router)."""
+    if agent is None:
+        return swarm.pid
     for pid in children(swarm.pid):
         try:
             args = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
@@ -77,11 +82,11 @@ def runs():
         run.close()
 
 
-def _pause(run: SwarmRun, agent: int, after: int, seconds: float) -> None:
-    """SIGSTOP follower ``agent`` once the run has recorded ``after`` ticks, SIGCONT it
-    ``seconds`` later."""
+def _pause(run: SwarmRun, agent: int | None, after: int, seconds: float) -> None:
+    """SIGSTOP follower ``agent`` (the world: None) once the run has recorded ``after`` ticks,
+    SIGCONT it ``seconds`` later."""
     wait_for(lambda: _ticks_done(run.out) >= after, 120, f"tick {after}")
-    pid = _follower_pid(run.proc, agent)
+    pid = _pid(run.proc, agent)
     os.kill(pid, signal.SIGSTOP)
     try:
         time.sleep(seconds)
@@ -89,10 +94,10 @@ def _pause(run: SwarmRun, agent: int, after: int, seconds: float) -> None:
         os.kill(pid, signal.SIGCONT)
 
 
-def _draw(kind: str) -> tuple[int, float]:
+def _draw(kind: str, who: str = "follower 1") -> tuple[int, float]:
     rng = random.Random(f"{SEED}-{kind}")
     after, seconds = rng.randrange(5, 40), rng.uniform(LEASE_S + 2.0, LEASE_S + 8.0)
-    print(f"FAULT_SEED={SEED}: follower 1 paused after tick {after} for {seconds:.1f} s")
+    print(f"FAULT_SEED={SEED}: {who} paused after tick {after} for {seconds:.1f} s")
     return after, seconds
 
 
@@ -105,6 +110,25 @@ def test_a_paused_follower_rejoins_and_lockstep_numbers_do_not_change(tmp_path, 
     code, err = run.finish(timeout=600)
     assert code == 0, err
     assert REJOINED in (run.out / "logs" / "agent-1.log").read_text()  # the stall cut it
+    reference = tmp_path / "reference"
+    run_local(load_config(run.out / "config.toml"), reference)
+    for name in ("ticks.csv", "observations.csv"):
+        assert (run.out / name).read_bytes() == (reference / name).read_bytes(), name
+
+
+@pytest.mark.slow
+def test_a_paused_world_is_waited_for_and_lockstep_numbers_do_not_change(tmp_path, runs):
+    """The world (the run's router too) paused beyond the lease: every agent's session is cut,
+    the agents wait for the world (their start timeout) instead of concluding it died, and join
+    it again once it runs."""
+    after, seconds = _draw("world", "the world")
+    run = runs(tmp_path / "run", "--ticks", "2000", "--agent-timeout", "40",
+               "--noise-range", "0.01", "--seed", "7")
+    _pause(run, None, after, seconds)
+    code, err = run.finish(timeout=600)
+    assert code == 0, err
+    for agent in (0, 1, 2):
+        assert REJOINED in (run.out / "logs" / f"agent-{agent}.log").read_text(), agent
     reference = tmp_path / "reference"
     run_local(load_config(run.out / "config.toml"), reference)
     for name in ("ticks.csv", "observations.csv"):
@@ -138,7 +162,7 @@ def test_a_killed_follower_is_recorded_and_a_realtime_run_goes_on(tmp_path, runs
     print(f"FAULT_SEED={SEED}: follower 1 killed after tick {kill_after}")
     run = runs(tmp_path / "run", "--mode", "realtime", "--time-scale", "0.2", "--ticks", "60")
     wait_for(lambda: _ticks_done(run.out) >= kill_after, 120, f"tick {kill_after}")
-    os.kill(_follower_pid(run.proc, 1), signal.SIGKILL)
+    os.kill(_pid(run.proc, 1), signal.SIGKILL)
     code, err = run.finish(timeout=300)
     assert code == 0, err
     assert "agent 1 exited with status -9" in err and "the run goes on without it" in err
