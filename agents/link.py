@@ -121,6 +121,7 @@ class AgentLink:
         self._cond = threading.Condition()
         self._latest = -1  # newest tick announced by whatever this agent waits for
         self._world_tick = -1  # newest tick the world announced
+        self._heard = -1  # newest tick the world announced since this agent last asked to join
         self._held: set[int] = set()  # predecessor ticks held until the world announces them
         self._done: Done | None = None
         self._world_alive = False
@@ -175,6 +176,7 @@ class AgentLink:
             return
         with self._cond:
             self._world_tick = max(self._world_tick, msg.tick)
+            self._heard = max(self._heard, msg.tick)
             due = {t for t in self._held if t <= self._world_tick + 1}
             self._held -= due
             held = max(due, default=-1)
@@ -344,6 +346,7 @@ class AgentLink:
         while True:
             with self._cond:
                 self._joined_at = self._cuts
+                before, self._heard = self._world_tick, -1
                 while not self._world_alive:
                     self._raise_if_finished()
                     left = deadline - time.monotonic()
@@ -358,11 +361,14 @@ class AgentLink:
                 continue
             break
         with self._cond:
-            # The world that answered may be one started again with --resume, behind what the
-            # earlier one announced: those later ticks no longer stand. (A stalled world never
-            # goes back, so after a stall nothing changes here.)
-            self._world_tick = joined.world
-            self._latest = min(self._latest, joined.world + (self.follow is not None))
+            if joined.world < before:
+                # a world started again with --resume, behind what the earlier one announced
+                # (a stalled world never goes back): those later ticks no longer stand, only
+                # what this world announced since it was asked
+                self._world_tick = max(joined.world, self._heard)
+                self._latest = min(self._latest, self._world_tick + (self.follow is not None))
+            else:
+                self._world_tick = max(self._world_tick, joined.world)
         if joined.ready and not joined.settled:
             self.advance(joined.until)
         return joined

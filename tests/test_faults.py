@@ -96,7 +96,7 @@ def test_agents_exit_when_the_world_vanishes_and_resume_continues(tmp_path, proc
     draws the moments at random, and restarts the world while its agents still wait)."""
     # long enough that the world cannot finish between the poll and the kill (a loaded machine)
     cfg = RunConfig(run_id="resume", surface="wavy", followers=2, ticks=300, agent_timeout=10.0,
-                    start_timeout=5.0)
+                    start_timeout=10.0)
     reference = tmp_path / "ref"  # in memory: every layout gives the same numbers
     run_local(cfg, reference)
     out, endpoint = tmp_path / "run", free_tcp_endpoint()
