@@ -192,6 +192,7 @@ class _ThreadAgents:
         self.endpoint = endpoint
         self.credentials = credentials
         self.threads: list[threading.Thread] = []
+        self.sessions: dict[int, zenoh.Session] = {}
 
     def start(self, service: WorldService) -> None:
         # what the world resolved (e.g. a drive run's default top speed), as the processes
@@ -216,6 +217,7 @@ class _ThreadAgents:
                                          password=self.credentials.passwords[user],
                                          connect_timeout=self.settings.start_timeout / 2)
                             ) as session:
+                self.sessions[k] = session
                 body(session)
         except RunFinished:
             return
@@ -228,9 +230,18 @@ class _ThreadAgents:
                              if self.settings.followers + 1 > SESSIONS_PER_PROCESS else ""))
 
     def stop(self, timeout: float = 10.0) -> None:
+        """Wait up to ``timeout`` s for the agents to end; close the session of any still
+        running (it is waiting in a Zenoh call), which ends it. No agent thread outlives this:
+        one still in Zenoh's native code when the interpreter exits would abort the process
+        as it tries to take the GIL back."""
         deadline = time.monotonic() + timeout
         for thread in self.threads:
             thread.join(max(0.1, deadline - time.monotonic()))
+        for k, thread in enumerate(self.threads):
+            if thread.is_alive() and k in self.sessions:
+                with contextlib.suppress(zenoh.ZError):
+                    self.sessions[k].close()
+                thread.join(5.0)
 
 
 def new_run_id() -> str:

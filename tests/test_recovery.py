@@ -223,4 +223,6 @@ def _kill_and_compare(tmp_path: Path, n: int, config: RunConfig, kind: str,
     expected = json.loads((reference / "summary.json").read_text())
     assert summary["complete"] and summary["followers"] == expected["followers"]
     assert not (out / "world_state.json").exists()
-    assert not list((folder / "state").glob("agent-*.state")), "state kept after completion"
+    # an agent killed after the run ended never learnt that it completed: its state stays
+    kept = {int(p.stem.split("-")[1]) for p in (folder / "state").glob("agent-*.state")}
+    assert kept <= gone_after_end, f"state kept after completion: agents {sorted(kept)}"
