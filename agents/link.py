@@ -124,6 +124,7 @@ class AgentLink:
         self._heard = -1  # newest tick the world announced since this agent last asked to join
         self._held: set[int] = set()  # predecessor ticks held until the world announces them
         self._done: Done | None = None
+        self._closed = False  # this agent's session (its world subscriber) has gone
         self._world_alive = False
         self._world_seen = False
         self._cuts = 0  # how often the world's token went away since it was first seen
@@ -140,8 +141,11 @@ class AgentLink:
             # a leader that missed its tick counts as settled where it stands
             self._declared.append(session.declare_subscriber(keys.missed(run_id), self._on_missed))
         self._declared.append(session.declare_subscriber(keys.done(run_id), self._on_done))
+        # its drop callback runs when the subscriber goes, with the session closed from
+        # outside too (a launcher ending in-process agents): no wait then outlasts the session
         self._declared.append(session.liveliness().declare_subscriber(
-            keys.alive(run_id, "world"), self._on_world_liveliness, history=True))
+            keys.alive(run_id, "world"),
+            zenoh.handlers.Callback(self._on_world_liveliness, self._on_closed), history=True))
         self._sense_key = keys.sense(run_id, agent_id)
         self._act_key = keys.act(run_id, agent_id)
         # BLOCK: a rod or observation is never dropped when a link is congested (a peer may
@@ -234,13 +238,21 @@ class AgentLink:
             self._world_seen = self._world_seen or self._world_alive
             self._cond.notify_all()
 
+    def _on_closed(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
     # --- waits (the helpers below are called holding ``_cond``) --------------------------------
 
     def _raise_if_finished(self) -> None:
-        """Raise RunFinished once ``world/done`` has arrived."""
+        """Raise RunFinished once ``world/done`` has arrived, AgentAbort once this agent's
+        session is closed."""
         if self._done is not None:
             raise RunFinished(f"run finished: results in {self._done.results}",
                               complete=self._done.complete)
+        if self._closed:
+            raise AgentAbort(f"agent {self.agent_id}: its session was closed")
 
     def _cut(self) -> bool:
         """(Lock held.) Whether the session to the world was cut since this agent joined."""
@@ -250,8 +262,9 @@ class AgentLink:
         """(Lock not held.) The session was cut: raise :class:`Rejoin` once the world's token
         is back, or AgentAbort if no world is found (RunFinished if the run ended meanwhile)."""
         with self._cond:
-            back = self._cond.wait_for(lambda: self._world_alive or self._done is not None,
-                                       self.world_return)
+            back = self._cond.wait_for(
+                lambda: self._world_alive or self._done is not None or self._closed,
+                self.world_return)
             self._raise_if_finished()
         if not back and not token_live(self.session, keys.alive(self.run_id, "world"),
                                        timeout=1.0):
@@ -330,7 +343,7 @@ class AgentLink:
         """The world said the run ends before this agent's tick (``why``): wait for
         ``world/done`` (raised as RunFinished) while the world completes the earlier ticks."""
         with self._cond:
-            self._cond.wait_for(lambda: self._done is not None or self._cut(),
+            self._cond.wait_for(lambda: self._done is not None or self._cut() or self._closed,
                                 timeout=self.end_timeout)
             self._raise_if_finished()
             cut = self._cut()

@@ -231,9 +231,9 @@ class _ThreadAgents:
 
     def stop(self, timeout: float = 10.0) -> None:
         """Wait up to ``timeout`` s for the agents to end; close the session of any still
-        running (it is waiting in a Zenoh call), which ends it. No agent thread outlives this:
-        one still in Zenoh's native code when the interpreter exits would abort the process
-        as it tries to take the GIL back."""
+        running, which ends it (its link stops waiting). No agent thread outlives this: one
+        still in Zenoh's native code when the interpreter exits would abort the process as it
+        tries to take the GIL back."""
         deadline = time.monotonic() + timeout
         for thread in self.threads:
             thread.join(max(0.1, deadline - time.monotonic()))
@@ -306,5 +306,6 @@ def _launch(config: RunConfig, out_dir: Path, in_process: bool,
     except BaseException:  # Ctrl-C or a failure: end every agent now
         agents.stop(timeout=1.0)
         raise
-    agents.stop()
+    # a run that ended incomplete has no world left for its agents to wait for
+    agents.stop(timeout=10.0 if summary["complete"] else 1.0)
     return summary
