@@ -224,8 +224,8 @@ def _agents(config: RunConfig, endpoint: str) -> list[threading.Thread]:
 
 @pytest.mark.parametrize("code", [errno.ENOSPC, pytest.param(errno.EROFS, marks=pytest.mark.slow)])
 def test_world_reports_a_failing_results_disk(tmp_path, monkeypatch, capsys, code):
-    # the agents wait for a vanished world up to their start timeout before they give up
-    config = RunConfig(run_id="disk", ticks=8, start_timeout=4.0)
+    # the agents wait for a vanished world up to their start timeout (10 s) before they give up
+    config = RunConfig(run_id="disk", ticks=8, start_timeout=10.0)
     path = tmp_path / "run.toml"
     dump_config(config, path)
     _failing_writes(monkeypatch, code, after=3)
