@@ -176,10 +176,31 @@ def test_store_status_and_a_vanished_world():
     store.world_gone()
     assert (store.snapshot().status, store.snapshot().reason) == (
         INCOMPLETE, "the world process disappeared")
+    store.world_seen()  # back before any tick (paused, or resumed): the run goes on
+    assert (store.snapshot().status, store.snapshot().reason) == (STARTING, "")
     store = RunStore()
     store.finish(True)
     store.world_gone()  # the world leaves after world/done: still complete
     assert store.snapshot().status == COMPLETE
+    store = RunStore()
+    store.finish(False, "agent 1 did not settle")
+    store.world_seen()  # a run that ended stays ended
+    assert (store.snapshot().status, store.snapshot().reason) == (
+        INCOMPLETE, "agent 1 did not settle")
+
+
+def test_a_world_back_after_vanishing_is_running_again():
+    store = RunStore()
+    store.world_seen()
+    rows = [{"tick": 3, "t": 3.84, "agent": k, "pos_x": float(k), "pos_y": 0.0}
+            for k in range(2)]
+    for chunk in tick_payloads(rows, n_agents=len(rows)):
+        store.add_tick(chunk)
+    assert store.snapshot().status == RUNNING
+    store.world_gone()  # paused beyond the lease, or killed
+    assert store.snapshot().status == INCOMPLETE
+    store.world_seen()  # it runs again
+    assert (store.snapshot().status, store.snapshot().reason) == (RUNNING, "")
 
 
 # --- drawing data --------------------------------------------------------------------------------

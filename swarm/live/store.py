@@ -16,6 +16,7 @@ from protocol.record import OBS_FILE, SUMMARY_FILE, TICKS_FILE, read_observation
 from protocol.view import MAP_FILE, TICK_COLUMNS, check_map, tick_payloads
 
 WAITING, RUNNING = "waiting for the world", "running"
+WORLD_GONE = "the world process disappeared"
 STARTING = "world alive, waiting for its first tick"
 REPLAY_HINT = "python -m swarm replay RUN_DIR shows a finished run"
 """What to do when no run is there to watch (it may be over)."""
@@ -106,17 +107,23 @@ class RunStore:
             self._version += 1
 
     def world_seen(self) -> None:
-        """The world's liveliness token is there (it is, or was when the observer joined)."""
+        """The world's liveliness token is there (it is, or was when the observer joined), or
+        is back after it vanished: a paused world, or one started again with ``--resume``, goes
+        on with the run (its agents wait for it too)."""
         with self._lock:
             if self._status == WAITING:
                 self._status = STARTING
                 self._version += 1
+            elif self._status == INCOMPLETE and self._reason == WORLD_GONE:
+                self._status, self._reason = (RUNNING if self._frames else STARTING), ""
+                self._version += 1
 
     def world_gone(self) -> None:
-        """The world's liveliness token vanished: an end without ``world/done`` is a failure."""
+        """The world's liveliness token vanished: an end without ``world/done`` is a failure
+        (until the world is back)."""
         with self._lock:
             if self._status in (WAITING, STARTING, RUNNING):
-                self._status, self._reason = INCOMPLETE, "the world process disappeared"
+                self._status, self._reason = INCOMPLETE, WORLD_GONE
                 self._version += 1
 
     @property
