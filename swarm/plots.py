@@ -237,10 +237,6 @@ def _run_record(run_dir: Path) -> tuple[list[dict], RunConfig]:
     return read_ticks(run_dir / TICKS_FILE), load_config(run_dir / "config.toml")
 
 
-def _run_summary(run_dir: Path) -> dict:
-    return json.loads((run_dir / SUMMARY_FILE).read_text())
-
-
 def _run_surface(config: RunConfig) -> Surface:
     """The run's surface (built once per :func:`plot_run`: a DEM's means a spline fit)."""
     return make_surface(config.surface, config.surface_params)
@@ -308,18 +304,11 @@ def _draw_effectiveness(rows: list[dict], config: RunConfig, surface: Surface, p
     return _save(fig, path)
 
 
-def plot_required_range(run_dir: str | Path, path: str | Path) -> Path:
-    """Required sensing range of one run: per-follower means against the two baselines
-    (bars, from ``summary.json``) and per tick (lines, from ``ticks.csv``)."""
-    run_dir = Path(run_dir)
-    rows, config = _run_record(run_dir)
-    return _draw_required_range(rows, config, _run_summary(run_dir), path)
-
-
 @_styled
 def _draw_required_range(rows: list[dict], config: RunConfig, summary: dict,
                          path: str | Path) -> Path:
-    """:func:`plot_required_range`'s figure, from the run's record already read."""
+    """Required sensing range of one run: per-follower means against the two baselines
+    (bars, from ``summary.json``) and per tick (lines, from ``ticks.csv``)."""
     fig = _figure(12.0, 4.6)
     bars, lines = fig.subplots(1, 2, width_ratios=(1, 1.4))
     followers = sorted(summary["followers"], key=int)
@@ -405,22 +394,12 @@ def driven_paths(config: RunConfig, surface: Surface, rows: list[dict],
     return paths
 
 
-def plot_driven_paths(run_dir: str | Path, path: str | Path) -> Path:
-    """A drive run's paths: every follower's path control step by control step (blue,
-    :func:`driven_paths`) from where it started, over the terrain, against its ideal
-    positions (red), with the leader (black)."""
-    run_dir = Path(run_dir)
-    rows, config = _run_record(run_dir)
-    if config.motion != "drive":
-        raise ValueError(f"run_dir {run_dir} is not a drive run (motion {config.motion!r})")
-    return _draw_driven_paths(rows, config, _run_surface(config),
-                              read_controls(run_dir / CONTROLS_FILE), path)
-
-
 @_styled
 def _draw_driven_paths(rows: list[dict], config: RunConfig, surface: Surface,
                        controls: list[dict], path: str | Path) -> Path:
-    """:func:`plot_driven_paths`'s figure, from the run's record already read."""
+    """A drive run's paths: every follower's path control step by control step (blue,
+    :func:`driven_paths`) from where it started, over the terrain, against its ideal
+    positions (red), with the leader (black)."""
     fig = _figure(13.0, 6.5)
     ax = fig.add_subplot()
     length, _ = _terrain_map(fig, ax, rows, config, surface, aspect=2.0)
@@ -436,9 +415,9 @@ def _draw_driven_paths(rows: list[dict], config: RunConfig, surface: Surface,
                 color=ESTIMATE_COLOR, ms=4, mew=1, label="settled" if k == 1 else None)
     ax.set(xlabel=f"x {length}", ylabel=f"y {length}")
     ax.legend(loc="best", framealpha=0.9)
-    fig.suptitle(f"{config.surface}: driving followers ({config.control_steps} control + "
-                 f"{config.snap_steps} correction steps per T_c = {config.comm_period:g}, top "
-                 f"speed {config.max_speed:.3g}, estimator {_estimator_label(config)})")
+    _suptitle(fig, f"{config.surface}: driving followers ({config.control_steps} control + "
+                   f"{config.snap_steps} correction steps per T_c = {config.comm_period:g}, "
+                   f"top speed {config.max_speed:.3g}, estimator {_estimator_label(config)})")
     return _save(fig, path)
 
 
@@ -462,7 +441,8 @@ def plot_run(run_dir: str | Path, force: bool = False) -> list[Path]:
     rows, config = _run_record(run_dir)
     surface = _run_surface(config)
     figures = [_draw_effectiveness(rows, config, surface, effectiveness),
-               _draw_required_range(rows, config, _run_summary(run_dir), required)]
+               _draw_required_range(rows, config,
+                                    json.loads((run_dir / SUMMARY_FILE).read_text()), required)]
     if config.motion == "drive":
         figures.append(_draw_driven_paths(rows, config, surface,
                                           read_controls(run_dir / CONTROLS_FILE),
