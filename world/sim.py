@@ -270,7 +270,9 @@ class WorldSim:
         state.settled[tick] = state.pos.copy()
         state.headings[tick] = state.heading.copy()
         drive = None
-        if self.config.motion == "drive" and agent > 0:
+        if self.config.motion == "drive" and agent > 0 and state.drive.step:
+            # a tick missed before its first control step drove nothing: its interval's
+            # reading is then a teleport follower's (:meth:`_odometry`), never the exact truth
             state.odometry_errors[tick] = state.drive.odometry_error.copy()
         if self.config.motion == "drive" and agent > 0 and not state.missed:
             d = state.drive
@@ -664,9 +666,11 @@ class WorldSim:
         ``noise_velocity · √(δ T_c)`` per coordinate (δ the step's duration): a random walk
         whose spread over the move phase (one comm interval of driving) is that of the odometry
         of design §5 over one interval (``noise_velocity · T_c``); the tick's velocity reading
-        is these readings summed (:meth:`_odometry`). The first step carries the move phase's
-        goal, which the world records as the estimate (from tick ``init_ticks`` on); after the
-        move phase's last step the world notes how far the follower is from that goal
+        is these readings summed (:meth:`_odometry`), the correction steps' too, so its
+        variance is ``(control_steps + snap_steps) / control_steps`` times that. The first
+        step carries the move phase's goal, which the world records as the estimate (from tick
+        ``init_ticks`` on); after the move phase's last step the world notes how far the
+        follower is from that goal
         (``reach_error``) and whether the rod end is in range (else the correction window is
         skipped: a lost tick).
         """
@@ -711,15 +715,15 @@ class WorldSim:
                             or abs(request.turn) >= cfg.max_turn)
         drive.controls.append(ControlStep(step, float(request.speed), float(request.turn),
                                           float(v), float(omega)))
+        readings = self._readings(agent, tick, "moved", step)
         if drive.step == cfg.control_steps:
             if tick >= cfg.init_ticks:
                 drive.reach_error = _dist(pos, drive.goal)
-            drive.sees_rod = self._sees_rod(tick, _dist(self._leader_rod(agent, tick)[0], pos))
+            drive.sees_rod = readings["rod"] is not None
         sigma = cfg.noise_velocity * math.sqrt(duration * cfg.comm_period)
         error = gaussian(cfg.seed, agent, tick, "odometry", "moved", sigma, 2, step=step)
         drive.odometry_error = drive.odometry_error + error
-        return Sensing(**self._readings(agent, tick, "moved", step),
-                       odometry=_tup(pos - start + error))
+        return Sensing(**readings, odometry=_tup(pos - start + error))
 
     def _settle_driven(self, agent: int, tick: int) -> bool:
         """A driving follower ends its tick where its control steps took it, keeping its own
@@ -820,20 +824,20 @@ class WorldSim:
 
         A teleport follower's is one draw per interval, σ ``noise_velocity`` per coordinate.
         A driving follower has one odometer: its reading is the sum of the step readings it got
-        in the interval's tick (:meth:`control`) over ``T_c``, the true displacement plus their
-        summed errors."""
+        in the interval's tick (:meth:`control`: its control and correction steps) over
+        ``T_c``, the true displacement plus their summed errors; an interval in which it drove
+        no step (missed at once) gets a teleport follower's draw."""
         cfg, state = self.config, self.agents[agent]
         settled = state.settled
         last = tick if tick in settled else tick - 1
         if last not in settled or last - 1 not in settled:
             return None
         v = (settled[last] - settled[last - 1]) / cfg.comm_period
-        if cfg.noise_velocity != 0:
-            if cfg.motion == "drive":
-                v = v + state.odometry_errors[last] / cfg.comm_period
-            else:
-                v = v + gaussian(cfg.seed, agent, last, "velocity", "settled",
-                                 cfg.noise_velocity, 2)
+        if last in state.odometry_errors:  # driven (noise-free: exact zeros)
+            v = v + state.odometry_errors[last] / cfg.comm_period
+        elif cfg.noise_velocity != 0:
+            v = v + gaussian(cfg.seed, agent, last, "velocity", "settled",
+                             cfg.noise_velocity, 2)
         return _tup(v)
 
     def _gps(self, agent: int, tick: int, phase: str, channel: str,

@@ -56,7 +56,8 @@ def reading_variance(settings: AgentSettings) -> float:
 def move_variance(settings: AgentSettings) -> float:
     """The declared variance per xy coordinate of where a move took the follower, as far as
     it can tell: a teleport move's actuation noise; a driving follower's odometry error summed
-    over a comm interval, ``(noise_velocity · T_c)²`` (see ``world.sim.WorldSim.control``)."""
+    over its move phase, ``(noise_velocity · T_c)²`` (see ``world.sim.WorldSim.control``; the
+    tick's correction steps add ``snap_steps / control_steps`` of that, not declared here)."""
     if settings.motion == "drive":
         return (settings.noise_velocity * settings.comm_period) ** 2
     return settings.noise_move**2
