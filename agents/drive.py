@@ -63,8 +63,8 @@ class Limits:
     (m) below which a point-turn manoeuvre is not worth it (the declared spread of a
     range/bearing reading at the rod's length ``d``, both coordinates together: a smaller
     offset may be noise; a rod-end reading, taken closer, spreads less). With them, the
-    declared variance of a tick's chord (both coordinates together: two range/bearing readings
-    and two moves), below which a chord cannot be told from standing still
+    declared variance of a tick's chord (one range/bearing reading and one move's odometry,
+    both coordinates together), below which a chord cannot be told from standing still
     (:func:`goal_heading`)."""
 
     max_speed: float

@@ -55,7 +55,6 @@ from swarm.report import (
     FIGURE_COLUMNS,
     SETTINGS,
     effectiveness_numbers,
-    effectiveness_run,
     write_report,
 )
 
@@ -193,12 +192,13 @@ def draw_figures(out_dir: Path, tables: dict[str, list[dict]]
 
     folder = out_dir / "figures"
     surfaces = list(dict.fromkeys(r["surface"] for r in tables["sensing_range"]))
+    runs = {r["surface"]: out_dir / "runs" / r["run"] for r in tables["effectiveness"]}
     jobs: dict[str, Callable[[], Path]] = {}
     for surface in surfaces:
         title = (f"{plots.SURFACE_TITLES.get(surface, surface)}: follower trajectory estimation "
                  "by data-streaming EDMD (dictionary b)")
         jobs[f"effectiveness_{surface}"] = lambda s=surface, t=title: plots.plot_effectiveness(
-            effectiveness_run(out_dir, s), folder / f"effectiveness_{s}.png", title=t)
+            runs[s], folder / f"effectiveness_{s}.png", title=t)
     jobs["sensing_range"] = lambda: plots.plot_sensing_range(
         tables["sensing_range"], folder / "sensing_range.png")
     for surface in surfaces:

@@ -231,11 +231,6 @@ def _comm_period_text(rows: list[dict], paper_period: float) -> str:
             f"frequent. auto is lowest in {auto_best} of {len(cells)} (surface, T_c) cells.")
 
 
-def effectiveness_run(out_dir: Path, surface: str) -> Path:
-    """The sensing-range run whose trajectories the effectiveness figure of ``surface`` shows."""
-    return out_dir / "runs" / "sensing_range" / f"{surface}-edmd-b"
-
-
 def read_report_tables(tables_dir: str | Path) -> dict[str, list[dict]]:
     """The rows of every table the report cites (:data:`REPORT_TABLES`), by name."""
     tables_dir = Path(tables_dir)
