@@ -174,6 +174,33 @@ def test_the_readings_of_one_interval_are_one_odometry_reading():
         assert reading != readings[j + 1, "settled"]
 
 
+def test_a_drive_tick_missed_before_any_step_still_reads_a_noisy_velocity():
+    """A driving follower marked missed before its first control step drove nothing: its
+    odometry has no step to sum, and the interval's reading is a noisy draw, not the exact
+    (zero) displacement."""
+    from agents.drive import Limits
+
+    noise = {k: v for k, v in EVERY_SIGMA.items() if k != "noise_move"}  # teleport only
+    config, surface = resolve_with_surface(RunConfig(surface="wavy", ticks=6, seed=5,
+                                                     motion="drive", **noise))
+    sim, settings = WorldSim(config, surface), AgentSettings.from_config(config)
+    link, policy, limits = LocalLink(sim, 1), make_policy(settings), Limits.from_settings(settings)
+    for tick in range(4):
+        sim.start_tick(tick)
+        sim.drive(0, tick, sim.time_of(tick))
+        if tick == 3:  # too late: missed before any step
+            sim.sense(1, tick, "pre")
+            sim.mark_missed(1)
+        else:
+            follower_tick(link, policy, settings, tick, limits=limits)
+        sim.finish_tick(tick)
+    sim.start_tick(4)
+    sim.drive(0, 4, sim.time_of(4))
+    settled = sim.agents[1].settled
+    exact = (settled[3] - settled[2]) / config.comm_period
+    assert np.all(np.asarray(sim.sense(1, 4, "pre").velocity) != exact)
+
+
 def test_every_sigma_zero_gives_the_noise_free_numbers_bit_for_bit():
     """The numbers of the noise-free runs recorded before sensing became honest (digests of
     every row's positions, estimates and ranges): the σ = 0 model is the old one exactly."""
