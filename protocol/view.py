@@ -27,6 +27,8 @@ import math
 import struct
 from typing import Any
 
+import numpy as np
+
 from protocol.limits import (  # the view's bounds; importers may take them from here too
     MAP_CELLS,
     MAX_VIEW_BYTES,
@@ -187,3 +189,22 @@ def encode_tick(body: dict, *, check: bool = True) -> bytes:
 
 def decode_tick(data: bytes) -> dict:
     return check_tick(_unpack(data))
+
+
+def widen_to_aspect(low: np.ndarray, high: np.ndarray, aspect: float, *,
+                    at_most: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Corners (2,), (2,) of the box ``low``..``high`` widened in x or y about its centre to
+    the width/height ratio ``aspect`` (never narrowed: a page shows it whole at true aspect).
+    The world's map box, the figures' maps and the live page's view (which may not import
+    ``world``) all use it.
+
+    With ``at_most``, only as far as brings its longer side down to at most ``aspect`` times
+    its shorter (a box of any ratio between ``1 / aspect`` and ``aspect`` is kept).
+    """
+    if not aspect > 0:
+        raise ValueError(f"aspect must be > 0, got {aspect!r}")
+    low, high = np.asarray(low, dtype=float), np.asarray(high, dtype=float)
+    centre, (width, height) = (low + high) / 2, high - low
+    size = np.maximum([width, height],
+                      [height / aspect if at_most else height * aspect, width / aspect])
+    return centre - size / 2, centre + size / 2

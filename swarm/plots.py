@@ -28,10 +28,11 @@ from matplotlib.ticker import NullLocator
 from protocol.config import RunConfig, load_config
 from protocol.folder import write_atomic
 from protocol.record import CONTROLS_FILE, SUMMARY_FILE, TICKS_FILE, read_controls, read_ticks
+from protocol.view import widen_to_aspect
 from world import geometry, motion
 from world.dem import DemSurface
 from world.surfaces import Surface, make_surface
-from world.view import height_grid, widen_to_aspect
+from world.view import height_grid
 
 DPI = 110
 STYLE = {"font.size": 12, "axes.titlesize": 13, "axes.labelsize": 12, "legend.fontsize": 11,

@@ -301,7 +301,7 @@ def test_log_axis_span_from_the_series():
 
 
 def test_a_box_is_widened_about_its_centre_to_the_aspect():
-    from world.view import widen_to_aspect
+    from protocol.view import widen_to_aspect
 
     low, high = np.array([0.0, 0.0]), np.array([10.0, 2.0])
     for aspect in (0.5, 2.0, 5.0, 8.0):

@@ -28,6 +28,7 @@ from protocol.view import (
     encode_map,
     encode_tick,
     tick_payloads,
+    widen_to_aspect,
 )
 from world.surfaces import DEM_PREFIX, Surface
 
@@ -47,23 +48,6 @@ def map_box(ideal: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
     low, high = points.min(axis=0), points.max(axis=0)
     margin = 0.5 * spacing + 0.05 * float(np.max(high - low))
     return widen_to_aspect(low - margin, high + margin, MAX_MAP_ASPECT, at_most=True)
-
-
-def widen_to_aspect(low: np.ndarray, high: np.ndarray, aspect: float, *,
-                    at_most: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Corners (2,), (2,) of the box ``low``..``high`` widened in x or y about its centre to
-    the width/height ratio ``aspect`` (never narrowed: a page shows it whole at true aspect).
-
-    With ``at_most``, only as far as brings its longer side down to at most ``aspect`` times
-    its shorter (a box of any ratio between ``1 / aspect`` and ``aspect`` is kept).
-    """
-    if not aspect > 0:
-        raise ValueError(f"aspect must be > 0, got {aspect!r}")
-    low, high = np.asarray(low, dtype=float), np.asarray(high, dtype=float)
-    centre, (width, height) = (low + high) / 2, high - low
-    size = np.maximum([width, height],
-                      [height / aspect if at_most else height * aspect, width / aspect])
-    return centre - size / 2, centre + size / 2
 
 
 def grid_shape(low: np.ndarray, high: np.ndarray, cells: int = MAP_CELLS) -> tuple[int, int]:

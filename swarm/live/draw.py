@@ -10,6 +10,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from protocol.view import widen_to_aspect
 from swarm.live.store import Frame
 
 AGENT_COLORS = ("#222222", "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b",
@@ -82,19 +83,14 @@ def fit_view(box: Sequence[float], points: np.ndarray, margin: float,
     ``box`` ``[x0, x1, y0, y1]`` and every point of ``points`` (n, 2) grown by ``margin``,
     about the centre of what it holds (one length unit the same on both axes of a frame of
     that ratio)."""
-    if not aspect > 0:
-        raise ValueError(f"aspect must be > 0, got {aspect!r}")
     points = np.asarray(points, dtype=float).reshape(-1, 2)
     low = np.array([box[0], box[2]], dtype=float)
     high = np.array([box[1], box[3]], dtype=float)
     if points.size:
         low = np.minimum(low, points.min(axis=0) - margin)
         high = np.maximum(high, points.max(axis=0) + margin)
-    # world.view.widen_to_aspect's formula: the observer never imports world
-    width, height = high - low
-    width, height = max(width, height * aspect), max(height, width / aspect)
-    (cx, cy) = (low + high) / 2
-    return cx - width / 2, cx + width / 2, cy - height / 2, cy + height / 2
+    low, high = widen_to_aspect(low, high, aspect)
+    return low[0], high[0], low[1], high[1]
 
 
 def sparse_labels(xs: Sequence[float], ys: Sequence[float], labels: Sequence[str],
