@@ -19,7 +19,7 @@ Tables (key columns first, then the metrics, then the run folders behind each ro
   velocity with a fixed actuation noise, mean RMSE over the seeds;
 - ``comm_period``: surface, T_c, estimator;
 - ``effectiveness``: surface, and what the report cites from its edmd-b run's ticks
-  (:func:`swarm.report.effectiveness_numbers`).
+  (:func:`effectiveness_numbers`).
 
 With ``runs.csv``, ``figures.csv`` and ``experiment.csv`` (:mod:`swarm.report`) the tables are
 all the report reads.
@@ -33,7 +33,10 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from protocol.config import GPS_DICTIONARIES, RunConfig
+from protocol.record import TICKS_FILE, read_ticks
 from swarm.grid import (
     RUN_ATTEMPTS,
     Axis,
@@ -51,10 +54,8 @@ from swarm.grid import (
     write_tables,
 )
 from swarm.report import (
-    EFFECTIVENESS_NUMBERS,
     FIGURE_COLUMNS,
     SETTINGS,
-    effectiveness_numbers,
     write_report,
 )
 
@@ -78,6 +79,11 @@ PRACTICAL_VARIANTS = {
     "c-estimated": {"estimator": "edmd", "dictionary": "c", "velocity": "estimated"},
     **BASELINES,
 }
+
+EFFECTIVENESS_NUMBERS = ("r_error", "r_follower", "theta_error", "theta_follower",
+                         "theta_tick", "turn", "turn_tick")
+"""What :func:`effectiveness_numbers` returns, the columns of ``effectiveness.csv``."""
+
 TABLE_COLUMNS = {
     "sensing_range": ("surface", "follower", "estimator", "mean_required_range", "rmse", "run"),
     "dictionaries": ("surface", "dictionary", "rmse", "mean_required_range", "run"),
@@ -144,6 +150,32 @@ def practical_rows(outcomes: Iterable[RunOutcome]) -> list[dict]:
                       ("surface", "variant", "noise_velocity", "noise_move"),
                       columns=("rmse",), spread=("rmse",))
     return [{**row, "seeds": row["n"], "runs": row["run"]} for row in means]
+
+
+def effectiveness_numbers(run_dir: Path, followers: Iterable[int]) -> dict[str, float]:
+    """What the effectiveness paragraph cites from one run's ``ticks.csv``
+    (:data:`EFFECTIVENESS_NUMBERS`): the largest error of the predicted distance to the leader
+    (``r_error``, of follower ``r_follower``) and of the predicted bearing (``theta_error`` in
+    degrees, follower ``theta_follower`` at ``theta_tick``) over ``followers``, and the fastest
+    change of a measured bearing (``turn`` degrees per tick, at ``turn_tick``)."""
+    from swarm.plots import leader_relative
+
+    ticks = read_ticks(run_dir / TICKS_FILE)
+    worst = {"r": (0.0, 0, 0), "theta": (0.0, 0, 0)}  # error, follower, tick
+    turn = (0.0, 0)  # fastest bearing change per tick, at which tick
+    for k in followers:
+        rel = leader_relative(ticks, k)
+        seen = ~np.isnan(rel["r_est"])
+        for key, scale in (("r", 1.0), ("theta", 180 / math.pi)):
+            err = np.abs(rel[f"{key}_est"] - rel[f"{key}_ideal"])[seen] * scale
+            i = int(np.argmax(err))
+            if err[i] > worst[key][0]:
+                worst[key] = (float(err[i]), k, int(rel["tick"][seen][i]))
+        steps = np.degrees(np.abs(np.diff(rel["theta_ideal"])))
+        if steps.max() > turn[0]:
+            turn = (float(steps.max()), int(rel["tick"][int(np.argmax(steps)) + 1]))
+    (err_r, k_r, _), (err_t, k_t, tick_t) = worst["r"], worst["theta"]
+    return dict(zip(EFFECTIVENESS_NUMBERS, (err_r, k_r, err_t, k_t, tick_t, *turn), strict=True))
 
 
 def effectiveness_rows(outcomes: Iterable[RunOutcome], runs_dir: Path) -> list[dict]:

@@ -5,26 +5,21 @@ The report is a function of ``D/tables`` alone (:func:`paper_report`): every num
 is read back from a table, never typed in and never read from the runs, so the committed
 report can be regenerated from the committed tables (a test does, byte for byte). Besides the
 result tables that means ``runs.csv`` (every run's status), ``effectiveness.csv`` (what the
-effectiveness paragraphs cite from the runs' ticks, :func:`effectiveness_numbers`),
+effectiveness paragraphs cite from the runs' ticks,
+:func:`swarm.experiment.effectiveness_numbers`),
 ``figures.csv`` (each figure's file, or why it was not drawn) and ``experiment.csv`` (the
 grid's settings, the parallelism and the wall times).
 """
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from protocol.folder import write_atomic
-from protocol.record import TICKS_FILE, read_ticks
 from swarm.grid import is_nan, read_table
 
-EFFECTIVENESS_NUMBERS = ("r_error", "r_follower", "theta_error", "theta_follower",
-                         "theta_tick", "turn", "turn_tick")
-"""What :func:`effectiveness_numbers` returns, the columns of ``effectiveness.csv``."""
 SETTINGS = ("ticks", "init_ticks", "spacing", "comm_period", "workers", "cpus", "run_time",
             "figure_time")
 """The columns of ``experiment.csv`` (one row): the grid's base settings, then how it ran."""
@@ -60,32 +55,6 @@ def _pick(rows: list[dict], metric: str, **keys: Any) -> float:
 
 def _ratio(a: float, b: float) -> float:
     return a / b if b and not (is_nan(a) or is_nan(b)) else math.nan
-
-
-def effectiveness_numbers(run_dir: Path, followers: Iterable[int]) -> dict[str, float]:
-    """What the effectiveness paragraph cites from one run's ``ticks.csv``
-    (:data:`EFFECTIVENESS_NUMBERS`): the largest error of the predicted distance to the leader
-    (``r_error``, of follower ``r_follower``) and of the predicted bearing (``theta_error`` in
-    degrees, follower ``theta_follower`` at ``theta_tick``) over ``followers``, and the fastest
-    change of a measured bearing (``turn`` degrees per tick, at ``turn_tick``)."""
-    from swarm.plots import leader_relative
-
-    ticks = read_ticks(run_dir / TICKS_FILE)
-    worst = {"r": (0.0, 0, 0), "theta": (0.0, 0, 0)}  # error, follower, tick
-    turn = (0.0, 0)  # fastest bearing change per tick, at which tick
-    for k in followers:
-        rel = leader_relative(ticks, k)
-        seen = ~np.isnan(rel["r_est"])
-        for key, scale in (("r", 1.0), ("theta", 180 / math.pi)):
-            err = np.abs(rel[f"{key}_est"] - rel[f"{key}_ideal"])[seen] * scale
-            i = int(np.argmax(err))
-            if err[i] > worst[key][0]:
-                worst[key] = (float(err[i]), k, int(rel["tick"][seen][i]))
-        steps = np.degrees(np.abs(np.diff(rel["theta_ideal"])))
-        if steps.max() > turn[0]:
-            turn = (float(steps.max()), int(rel["tick"][int(np.argmax(steps)) + 1]))
-    (err_r, k_r, _), (err_t, k_t, tick_t) = worst["r"], worst["theta"]
-    return dict(zip(EFFECTIVENESS_NUMBERS, (err_r, k_r, err_t, k_t, tick_t, *turn), strict=True))
 
 
 def _effectiveness_text(rows: list[dict], numbers: dict) -> str:
