@@ -201,30 +201,51 @@ def _failing_writes(monkeypatch, code: int, after: int) -> None:
     monkeypatch.setattr(world.results, "write_atomic", write_atomic)
 
 
-def _agents(config: RunConfig, endpoint: str) -> list[threading.Thread]:
-    """The leader and followers as threads with their own sessions (they end with the world)."""
-    from protocol.config import AgentSettings
+class _Agents:
+    """The leader and followers as threads with their own sessions. Once the world has gone,
+    :meth:`stop` closes their sessions, as ``swarm run`` does, instead of letting them wait
+    out their start timeout for it to come back."""
 
-    settings = AgentSettings.from_config(config)
-    bodies = [lambda s: run_leader(s, settings)]
-    bodies += [lambda s, k=k: run_follower(s, settings, k) for k in range(1, config.followers + 1)]
+    def __init__(self, config: RunConfig, endpoint: str):
+        from protocol.config import AgentSettings
 
-    def agent(body):
+        settings = AgentSettings.from_config(config)
+        bodies = [lambda s: run_leader(s, settings)]
+        bodies += [lambda s, k=k: run_follower(s, settings, k)
+                   for k in range(1, config.followers + 1)]
+        self._lock = threading.Lock()
+        self._sessions: list[zenoh.Session] = []
+        self._stopped = False
+        self.threads = [threading.Thread(target=self._agent, args=(b, endpoint), daemon=True)
+                        for b in bodies]
+        for t in self.threads:
+            t.start()
+
+    def _agent(self, body, endpoint: str) -> None:
         try:
             with zenoh.open(zenoh_config("peer", connect=[endpoint])) as session:
+                with self._lock:
+                    self._sessions.append(session)
+                    if self._stopped:
+                        return
                 body(session)
-        except AgentAbort:  # the world went away: expected here
+        except AgentAbort:  # the world went away, or stop() closed the session
             return
+        except (zenoh.ZError, RuntimeError):  # closing a session stop() closed already
+            if not self._stopped:
+                raise
 
-    threads = [threading.Thread(target=agent, args=(b,), daemon=True) for b in bodies]
-    for t in threads:
-        t.start()
-    return threads
+    def stop(self, timeout: float) -> None:
+        with self._lock:
+            self._stopped = True
+            for session in self._sessions:
+                session.close()
+        for t in self.threads:
+            t.join(timeout=timeout)
 
 
 @pytest.mark.parametrize("code", [errno.ENOSPC, pytest.param(errno.EROFS, marks=pytest.mark.slow)])
 def test_world_reports_a_failing_results_disk(tmp_path, monkeypatch, capsys, code):
-    # the agents wait for a vanished world up to their start timeout (10 s) before they give up
     config = RunConfig(run_id="disk", ticks=8, start_timeout=10.0)
     path = tmp_path / "run.toml"
     dump_config(config, path)
@@ -234,11 +255,10 @@ def test_world_reports_a_failing_results_disk(tmp_path, monkeypatch, capsys, cod
     world_thread = threading.Thread(target=lambda: result.append(world.main.main(
         ["--config", str(path), "--listen", endpoint, "--out", str(tmp_path / "out")])))
     world_thread.start()
-    agents = _agents(config, endpoint)
+    agents = _Agents(config, endpoint)
     world_thread.join(timeout=60)
-    for t in agents:
-        t.join(timeout=30)
-    assert not world_thread.is_alive() and not any(t.is_alive() for t in agents)
+    agents.stop(timeout=30)
+    assert not world_thread.is_alive() and not any(t.is_alive() for t in agents.threads)
     assert result == [1]
     line = one_error_line(capsys)
     assert line.startswith(f"error: cannot write the results in {tmp_path / 'out'}: "
