@@ -10,9 +10,6 @@ import pytest
 from swarm.cli import main
 from swarm.grid import read_table
 
-distributed = pytest.importorskip("distributed")
-dask = pytest.importorskip("dask")
-
 GRID = """
 name = "tiny"
 [base]
@@ -33,6 +30,7 @@ def _run_files(out) -> dict[str, bytes]:
 
 @pytest.fixture(scope="module")
 def cluster():
+    distributed = pytest.importorskip("distributed")  # here, not at import: only these tests
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   dashboard_address=None,
                                   env={"PYTHONPATH": os.environ.get("PYTHONPATH", "")}) as c:
@@ -48,6 +46,8 @@ def local_sweep(tmp_path_factory):
     return folder / "out"
 
 
+@pytest.mark.slow  # a dask cluster; fast tier: the local pool's sweeps (test_sweep.py) and the
+# unreachable scheduler below
 def test_sweep_on_a_dask_cluster_matches_the_local_pool(tmp_path, cluster, local_sweep):
     grid = tmp_path / "tiny.toml"
     grid.write_text(GRID)
@@ -61,6 +61,7 @@ def test_sweep_on_a_dask_cluster_matches_the_local_pool(tmp_path, cluster, local
     assert len(index) == 4 and {r["status"] for r in index} == {"ok"}
 
 
+@pytest.mark.slow  # a dask cluster, as above
 def test_an_interrupted_sweep_resumes_without_redoing_finished_runs(tmp_path, cluster,
                                                                     local_sweep):
     grid = tmp_path / "tiny.toml"
@@ -90,6 +91,7 @@ def test_an_unreachable_scheduler_is_one_line(tmp_path, capsys):
     grid.write_text(GRID)
     address = "tcp://" + free_tcp_endpoint().split("/", 1)[1]
     # dask's own connect timeout (30 s by default), shortened: nothing listens there
+    dask = pytest.importorskip("dask")
     with dask.config.set({"distributed.comm.timeouts.connect": "2s"}):
         assert main(["sweep", str(grid), "--out", str(tmp_path / "out"), "--scheduler",
                      address]) == 2

@@ -24,7 +24,6 @@ from protocol.messages import Control, Move, Snap
 from protocol.record import read_controls, read_ticks
 from swarm.cli import main as swarm_main
 from swarm.local import LocalLink, run_local
-from swarm.plots import driven_paths
 from tests.make_dem_data import HILLS, HILLS_LEADER_START
 from world import geometry, motion
 from world.main import resolve_with_surface
@@ -361,6 +360,8 @@ def test_the_driven_paths_are_rebuilt_from_the_record(tmp_path):
     """``swarm plot``'s driven paths come from ``controls.csv`` and ``ticks.csv`` alone: each
     follower starts where the world put it, and every tick's rebuilt path ends exactly where
     ``ticks.csv`` says the follower settled, in a noisy run that loses ticks too."""
+    from swarm.plots import driven_paths  # matplotlib: here, not in every pytest worker
+
     config = RunConfig(motion="drive", surface="wavy", followers=2, ticks=10, seed=4,
                        sensing_range=0.3, control_steps=5, snap_steps=3, **NOISE)
     run_local(config, tmp_path)

@@ -135,6 +135,9 @@ def quick_experiment(tmp_path_factory):
     return out, code
 
 
+@pytest.mark.slow  # the paper's quick grid, 31 runs; fast tier: every run failed still gives
+# tables and report (the paper's grid), a failed run does not lose the others, and the terrain
+# and drive experiments (test_dem.py, test_drive.py) run quick grids to their reports
 def test_quick_experiment_tables(quick_experiment):
     out, code = quick_experiment
     assert code == 1  # the broken run is reported through the exit status ...
@@ -167,6 +170,7 @@ def test_quick_experiment_tables(quick_experiment):
     assert [r["run"] for r in index if r["status"] != "ok"] == [BROKEN]
 
 
+@pytest.mark.slow  # the quick grid, as above
 def test_quick_experiment_figures_and_report(quick_experiment):
     out, _ = quick_experiment
     figures = sorted((out / "figures").glob("*.png"))
@@ -201,6 +205,7 @@ def test_committed_report_is_what_the_committed_tables_give(tmp_path):
         paper_report(tmp_path / "tables")
 
 
+@pytest.mark.slow  # the quick grid, as above; fast tier: test_options.py plots a run
 def test_plot_command_on_a_run(quick_experiment, capsys):
     out, _ = quick_experiment
     run_dir = out / "runs" / "sensing_range" / "elliptic-auto"

@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from numpy.typing import ArrayLike
-from scipy.integrate import solve_ivp
 
 from world.geometry import (
     SurfaceDomainError,
@@ -59,6 +58,8 @@ def g_inner(surface: object, p: ArrayLike, a: ArrayLike, b: ArrayLike) -> float:
 def reference_geodesic(surface: object, p: ArrayLike, v: ArrayLike,
                        t: float) -> tuple[np.ndarray, np.ndarray]:
     """The geodesic ODE written out independently, solved by scipy DOP853 at 1e-13."""
+    from scipy.integrate import solve_ivp  # here: every pytest worker imports this module
+
     def field(_: float, state: np.ndarray) -> np.ndarray:
         gradient, hessian = surface.gradient(state[:2]), surface.hessian(state[:2])
         velocity = state[2:]

@@ -201,6 +201,7 @@ def loopback(deployment, tmp_path_factory) -> Path:
     return _loopback_run(deployment, tmp_path_factory.mktemp("loopback"))
 
 
+@pytest.mark.slow  # network namespaces; fast tier: the same deployment on loopback (test_deploy)
 @pytest.mark.parametrize("links", ["veth", "veth+netem"])
 def test_a_run_across_namespaces_matches_loopback(deployment, loopback, tmp_path, links):
     hosts = Hosts(SERVICES)

@@ -86,6 +86,7 @@ def test_the_paper_case_runs_on_the_core_in_both_layouts(core_runs):
     assert not (procs / "state").exists()
 
 
+@pytest.mark.slow  # fast tier: the paper case on the core; `swarm plot` in the full install
 def test_plot_runs_on_the_core(core_env, core_runs, tmp_path):
     proc = _run(core_env, "-m", "swarm", "plot", str(core_runs["--in-process"]), cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr

@@ -654,7 +654,7 @@ def _external(requests: list[str], port: int) -> list[str]:
     return [u for u in requests if not u.startswith(local) and not u.startswith("data:")]
 
 
-@pytest.mark.slow  # a paced run in the browser; fast tier: the watch page follows a run
+@pytest.mark.slow  # a paced run in the browser; fast tier: the page's document and the store
 @pytest.mark.timeout(240)
 def test_live_page_follows_a_run_and_replay_reaches_the_last_tick(browser, tmp_path):
     """A realtime 3-follower run over Zenoh with ``--live``: the page's tick advances, it draws
@@ -868,6 +868,7 @@ def test_watch_refuses_incomplete_tls_flags(capsys, tmp_path):
                                        "given together\n")
 
 
+@pytest.mark.slow  # a browser; fast tier: the page's document, the store, the observer's rights
 def test_watch_page_of_a_run_assembled_elsewhere(browser, tmp_path):
     """``swarm watch`` started before the world (its router) exists: it keeps trying to
     connect, announces its page once connected, and the page follows the run (world and
