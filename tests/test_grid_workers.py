@@ -92,7 +92,9 @@ def test_a_worker_killed_mid_run_costs_nothing(tmp_path, scratch):
 def test_a_run_that_kills_its_worker_is_reported_and_the_others_finish(tmp_path, scratch):
     base = {"ticks": 8}
     runs = expand("dies", base, [estimator_axis(["persist", KILLS, "kalman"])])
-    outcomes = run_grid(runs, tmp_path, workers=2, progress=False)
+    # one worker: each pool the grid starts costs a process start (a pool of two with a
+    # worker killed from outside: the slow test above)
+    outcomes = run_grid(runs, tmp_path, workers=1, progress=False)
     assert [o.run for o in outcomes] == runs
     persist, kills, kalman = outcomes
     assert persist.ok and kalman.ok
