@@ -263,7 +263,9 @@ def test_the_delay_relay_delays_each_direction_and_keeps_order():
         relay_main(["--listen", "127.0.0.1:0", "--to", "127.0.0.1:1", "--delay-ms", "-1"])
 
 
-HOP_MS = 10.0  # one-way delay injected on each process's link to the router, milliseconds
+HOP_MS = 20.0  # one-way delay injected on each process's link to the router, milliseconds
+# (20 ms: the margin a period leaves for computing is then 180 ms at least, which a loaded
+# 2-core machine once exceeded at 10 ms, missing a tick the delay did not predict)
 RT_TICKS, RT_INIT_TICKS = 6, 2
 REALTIME = ("\nmode = \"realtime\"\nsurface = \"wavy\"\nseed = 3\nticks = {ticks}\n"
             "init_ticks = {init}\ntime_scale = {scale!r}\n")
@@ -342,7 +344,7 @@ def test_realtime_misses_match_the_injected_delay(realtime_deployment, tmp_path,
     so it runs everywhere; netem, the real thing, runs where the kernel has ``sch_netem`` and
     namespaces are allowed, and is skipped otherwise. Neither case adds loss: over TCP a lost
     segment waits for a retransmission timeout (200 ms or more), which no period derived from
-    a 10 ms delay can absorb, and the relay cannot lose bytes at all (loss is covered in
+    a HOP_MS delay can absorb, and the relay cannot lose bytes at all (loss is covered in
     lockstep by ``test_a_run_across_namespaces_matches_loopback``).
 
     The prediction is a lower bound (computing time only adds to it), so a cell whose
