@@ -152,6 +152,23 @@ def test_a_follower_ahead_of_its_predecessor_is_told_to_wait(world):
     assert service.rejected == before
 
 
+def test_a_follower_a_tick_ahead_of_the_world_is_told_to_wait(world):
+    """A predecessor's rod of a tick this world has not begun (a world resumed from its
+    checkpoint redoes a tick the world before it had begun) makes its follower ask for it: told
+    to wait, not refused, so the follower does the tick once this world begins it. Two ticks
+    ahead is still refused."""
+    service, client = world
+    before = service.rejected
+    replies = list(client.get(keys.sense("bad", 1), payload=_raw(**{**GOOD_SENSE, "tick": 1}),
+                              timeout=5.0))
+    assert len(replies) == 1 and replies[0].ok is None
+    error = decode(replies[0].err.payload.to_bytes(), ErrorReply)
+    assert error.code == "wait" and "the world has not begun tick 1 yet" in error.error
+    assert service.rejected == before
+    assert "request for tick 2, but the world is at tick 0" in _ask(
+        client, keys.sense("bad", 1), _raw(**{**GOOD_SENSE, "tick": 2}))
+
+
 @pytest.mark.parametrize("key_agent, body, fragment", [
     (1, {**GOOD_MOVE, "offset": [math.nan, 0.0]}, "'offset[0]' must be finite"),
     (1, {**GOOD_MOVE, "offset": [1e9, 0.0]}, "move offset must be two finite numbers of size"),
