@@ -78,7 +78,7 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
         followed, fallback = proposal.followed, proposal.fallback
     except NotReady:
         offset, prediction, followed, fallback = np.zeros(2), None, "", False
-    if settings.motion == "drive":  # control steps to the estimate, then onto the rod end
+    if settings.drives:  # control steps to the estimate, then onto the rod end
         if limits is None:
             raise ValueError("a driving follower's limits must be given")
         goal = np.asarray(pre.rod) if tick < settings.init_ticks else offset
@@ -165,7 +165,7 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
         while True:
             state, policy, last, tick, settings = _join(link, settings, agent_id, policy, last,
                                                         state_dir, again)
-            limits = Limits.from_settings(settings) if settings.motion == "drive" else None
+            limits = Limits.from_settings(settings) if settings.drives else None
             timeout = settings.start_timeout
             try:
                 while True:

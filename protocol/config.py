@@ -285,6 +285,11 @@ class RunConfig:
         """+1 for a rod on the left of the heading, -1 on the right."""
         return SIDES[self.side]
 
+    @property
+    def drives(self) -> bool:
+        """Whether the followers drive (``motion = "drive"``) instead of being relocated."""
+        return self.motion == "drive"
+
     def replace(self, **changes: Any) -> RunConfig:
         """A copy with ``changes`` applied (unknown names raise ValueError)."""
         unknown = set(changes) - set(OPTIONS)
@@ -371,6 +376,7 @@ def _agent_settings() -> type:
         "__doc__": "What an agent process is told: the agent-visible options of "
                    ":class:`RunConfig` (timing, rods, its estimator; never the surface).",
         "side_sign": RunConfig.side_sign,
+        "drives": RunConfig.drives,
         "step_timeout": property(step_timeout),
         "from_config": classmethod(from_config),
     })

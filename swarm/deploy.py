@@ -399,7 +399,7 @@ def generated_files(config: RunConfig, build: str | None = None) -> dict[str, st
     router = router_config(
         config.run_id, config.followers, listen=[f"tls/[::]:{ROUTER_PORT}"],
         dictionary_file=f"{secrets_dir}/credentials.txt", ros_domain=config.ros_domain,
-        drive=config.motion == "drive",
+        drive=config.drives,
         tls=TlsFiles(f"{secrets_dir}/ca.pem", f"{secrets_dir}/cert.pem",
                      f"{secrets_dir}/key.pem"))
     header = (f"zenohd configuration of run {config.run_id!r} with {config.followers} followers,\n"

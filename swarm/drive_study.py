@@ -146,8 +146,8 @@ def _execute(run: StudyRun) -> dict:
     return {
         "surface": run.surface, "estimator": run.estimator, "block": run.block,
         "motion": cfg.motion, "comm_period": cfg.comm_period,
-        "control_steps": cfg.control_steps if cfg.motion == "drive" else math.nan,
-        "snap_steps": cfg.snap_steps if cfg.motion == "drive" else math.nan,
+        "control_steps": cfg.control_steps if cfg.drives else math.nan,
+        "snap_steps": cfg.snap_steps if cfg.drives else math.nan,
         "speed_factor": run.speed_factor,
         "max_speed": cfg.max_speed if cfg.max_speed is not None else math.nan,
         "ticks": summary["ticks_completed"],

@@ -101,7 +101,7 @@ def embedded_router_config(config: RunConfig, endpoint: str,
     return zenoh.Config.from_json5(json.dumps(router_config(
         config.run_id, config.followers, listen=[endpoint],
         dictionary_file=str(credentials.dictionary), ros_domain=config.ros_domain,
-        drive=config.motion == "drive")))
+        drive=config.drives)))
 
 
 def last_error_line(log: Path, limit: int = 240) -> str | None:

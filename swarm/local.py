@@ -87,7 +87,7 @@ def _simulate(config: RunConfig, out_dir: str | Path | None,
     config, surface = resolve_with_surface(config)
     sim = WorldSim(config, surface)
     settings = AgentSettings.from_config(config)
-    limits = Limits.from_settings(settings) if settings.motion == "drive" else None
+    limits = Limits.from_settings(settings) if settings.drives else None
     policies = [policy_factory(estimator_settings(settings)) for _ in range(config.followers)]
     links = [LocalLink(sim, 0)] + [link_factory(sim, k)
                                    for k in range(1, config.followers + 1)]

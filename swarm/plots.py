@@ -444,7 +444,7 @@ def plot_run(run_dir: str | Path, force: bool = False) -> list[Path]:
     figures = [_draw_effectiveness(rows, config, surface, effectiveness),
                _draw_required_range(rows, config,
                                     json.loads((run_dir / SUMMARY_FILE).read_text()), required)]
-    if config.motion == "drive":
+    if config.drives:
         figures.append(_draw_driven_paths(rows, config, surface,
                                           read_controls(run_dir / CONTROLS_FILE),
                                           out / "driven_paths.png"))

@@ -116,7 +116,7 @@ def export_run(run_dir: str | Path, out: str | Path | None = None, *,
     ticks = _tick_rows(read_ticks(run_dir / TICKS_FILE), config.followers + 1)
     if not ticks:
         raise ValueError(f"{run_dir / TICKS_FILE} holds no tick")
-    drive = config.motion == "drive"
+    drive = config.drives
     controls = _tick_controls(run_dir, len(ticks)) if drive else [[] for _ in ticks]
     scene = RosScene(config, surface)
     points = np.array([[r[a], r[b]] for tick in ticks for r in tick

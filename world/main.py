@@ -41,7 +41,7 @@ def resolve_with_surface(config: RunConfig) -> tuple[RunConfig, Surface]:
     and with ``motion = "drive"`` the default top speed)."""
     surface = make_surface(config.surface, config.surface_params)
     config = config.replace(leader_start=resolve_leader_start(config, surface))
-    if config.motion == "drive" and config.max_speed is None:
+    if config.drives and config.max_speed is None:
         config = config.replace(max_speed=default_max_speed(config, surface))
     return config, surface
 

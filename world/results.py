@@ -155,7 +155,7 @@ class RunRecorder:
         self._metrics = {k: _FollowerMetrics() for k in range(1, config.followers + 1)}
         self._files: dict[str, AppendFile] = {}
         self._tables = {TICKS_FILE: TICK_COLUMNS, OBS_FILE: OBS_COLUMNS}
-        if config.motion == "drive":
+        if config.drives:
             self._tables[CONTROLS_FILE] = CONTROL_COLUMNS
 
     def open(self, resume_offsets: dict[str, int] | None = None,
@@ -273,7 +273,7 @@ class RunRecorder:
     def summary(self, *, complete: bool, reason: str = "", wall_time: float = 0.0) -> dict:
         """The ``summary.json`` content (design §7)."""
         cfg = self.config
-        drive = cfg.motion == "drive"
+        drive = cfg.drives
         return {
             "followers": {str(k): {**m.summary(), **(m.drive_summary() if drive else {})}
                           for k, m in self._metrics.items()},

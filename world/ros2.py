@@ -337,7 +337,7 @@ class Ros2Publisher:
         self.scene = RosScene(config, surface, path_window=LIVE_PATH_POSES,
                               rod_pieces=LIVE_ROD_PIECES)
         domain, followers = config.ros_domain, config.followers
-        drive = config.motion == "drive"
+        drive = config.drives
         node, *tokens = ros2.world_tokens(domain, followers, str(session.zid()), drive=drive)
         self._publishers: dict[str, tuple] = {}
         self._declared: list = [session.liveliness().declare_token(node)]

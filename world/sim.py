@@ -181,7 +181,7 @@ class WorldSim:
     def __init__(self, config: RunConfig, surface: Surface) -> None:
         if config.leader_start is None:
             raise ValueError("config.leader_start must be resolved before building the world")
-        if config.motion == "drive" and config.max_speed is None:
+        if config.drives and config.max_speed is None:
             raise ValueError("config.max_speed must be resolved before building a drive world")
         self.config = config
         self.surface = surface
@@ -270,11 +270,11 @@ class WorldSim:
         state.settled[tick] = state.pos.copy()
         state.headings[tick] = state.heading.copy()
         drive = None
-        if self.config.motion == "drive" and agent > 0 and state.drive.step:
+        if self.config.drives and agent > 0 and state.drive.step:
             # a tick missed before its first control step drove nothing: its interval's
             # reading is then a teleport follower's (:meth:`_odometry`), never the exact truth
             state.odometry_errors[tick] = state.drive.odometry_error.copy()
-        if self.config.motion == "drive" and agent > 0 and not state.missed:
+        if self.config.drives and agent > 0 and not state.missed:
             d = state.drive
             snap_error = None if state.lost else _dist(state.pos, self._leader_rod(agent, tick)[0])
             drive = DriveRecord(d.reach_error, snap_error, d.path_length, d.saturated)
@@ -553,7 +553,7 @@ class WorldSim:
         if self._sees_rod(tick, _norm(offset)):
             rod = _tup(offset + self._rod_error(agent, tick, phase, offset, step))
         compass = slope = None
-        if self.config.motion == "drive":
+        if self.config.drives:
             compass, slope = self._attitude(agent, tick, phase, step)
         return {"tick": tick, "r": r, "theta": theta, "rod": rod, "compass": compass,
                 "slope": slope}
@@ -608,7 +608,7 @@ class WorldSim:
         step = np.asarray(offset, dtype=float)
         if step.shape != (2,) or not np.all(np.isfinite(step)) or _norm(step) > MAX_OFFSET:
             raise RequestError(f"move offset must be two finite numbers of size <= {MAX_OFFSET:g}")
-        if cfg.motion == "drive":
+        if cfg.drives:
             raise RequestError("this run's motion is 'drive': send Control steps, not a move")
         if tick < cfg.init_ticks:
             raise RequestError(f"tick {tick} is an initial tick: followers only snap")
@@ -629,7 +629,7 @@ class WorldSim:
         self._check_request(agent, tick)
         self._check_follower_turn(agent, tick)
         state, cfg = self.agents[agent], self.config
-        if cfg.motion == "drive":
+        if cfg.drives:
             return self._settle_driven(agent, tick)
         if tick >= cfg.init_ticks and state.acted != "move":
             raise RequestError(f"agent {agent} must move to its estimate before snapping")
@@ -678,7 +678,7 @@ class WorldSim:
         self._check_request(agent, tick)
         self._check_follower_turn(agent, tick)
         state, cfg = self.agents[agent], self.config
-        if cfg.motion != "drive":
+        if not cfg.drives:
             raise RequestError("this run's motion is 'teleport': Control steps need motion "
                                "'drive'")
         drive = state.drive

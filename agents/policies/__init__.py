@@ -58,7 +58,7 @@ def move_variance(settings: AgentSettings) -> float:
     it can tell: a teleport move's actuation noise; a driving follower's odometry error summed
     over its move phase, ``(noise_velocity · T_c)²`` (see ``world.sim.WorldSim.control``; the
     tick's correction steps add ``snap_steps / control_steps`` of that, not declared here)."""
-    if settings.motion == "drive":
+    if settings.drives:
         return (settings.noise_velocity * settings.comm_period) ** 2
     return settings.noise_move**2
 
