@@ -73,9 +73,9 @@ def agent_ranges(agents, limit: int = 12) -> str:
 
 
 class NotYet(RequestError):
-    """A follower's request before the world has its predecessor through the tick, or before
-    it has begun the tick (the rod reached the follower first): answered with code ``wait``,
-    the follower asks again."""
+    """A follower's request before the world has its predecessor through the tick (the rod
+    reached the follower first; the world may not even have begun the tick): answered with
+    code ``wait``, the follower asks again."""
 
 
 class WorldService:
@@ -212,14 +212,13 @@ class WorldService:
         if not 0 <= agent < self.sim.n_agents:
             return  # the simulation names the problem
         self.sim.check_not_ended(tick)
-        if agent > 0 and tick == self.sim.tick + 1:
-            # a rod of tick t reached the follower before it reached this world: a world
-            # started again with --resume redoes t (the rod came from the world before it)
-            raise NotYet(f"the world has not begun tick {tick} yet")
         if tick == self._through[agent] + 2 and self.sim.is_settled(agent, tick - 1):
             raise NotYet(f"agent {agent}'s report of tick {tick - 1} has not reached the world yet")
-        if tick <= self.sim.tick and not predecessor_through(self._through, agent, tick):
-            raise NotYet(f"agent {agent - 1} is not through tick {tick} yet")
+        # up to the tick after the world's newest: a predecessor's rod of it may reach the
+        # follower first, even from a killed world whose tick this resumed one has not begun
+        if tick <= self.sim.tick + 1 and not predecessor_through(self._through, agent, tick):
+            raise NotYet(f"the world has not begun tick {tick} yet" if tick > self.sim.tick
+                         else f"agent {agent - 1} is not through tick {tick} yet")
 
     def _on_sense(self, query: zenoh.Query) -> None:
         def handle(agent: int, payload: bytes) -> bytes:
