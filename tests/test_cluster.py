@@ -90,8 +90,8 @@ def test_an_unreachable_scheduler_is_one_line(tmp_path, capsys):
     grid = tmp_path / "tiny.toml"
     grid.write_text(GRID)
     address = "tcp://" + free_tcp_endpoint().split("/", 1)[1]
-    # dask's own connect timeout (30 s by default), shortened: nothing listens there
     dask = pytest.importorskip("dask")
+    # dask's own connect timeout (30 s by default), shortened: nothing listens there
     with dask.config.set({"distributed.comm.timeouts.connect": "2s"}):
         assert main(["sweep", str(grid), "--out", str(tmp_path / "out"), "--scheduler",
                      address]) == 2
