@@ -2,8 +2,8 @@
 
 Figures use matplotlib's object API on an Agg canvas: no pyplot, no display, no global
 backend switch. Every PNG is written atomically (temporary file, then rename), like the rest
-of a results folder. Lengths are in the surface's length units, times in its time units
-(the leader's speed is about one length unit per time unit).
+of a results folder. Lengths are in metres and times in seconds, on every surface
+(:data:`protocol.config.LENGTH`, :data:`protocol.config.TIME`).
 
 Table figures take the rows of a table as read back by :func:`swarm.grid.read_table`
 (dicts; missing numbers are NaN), so they draw exactly what the tables hold.
@@ -25,6 +25,9 @@ from matplotlib.colors import LightSource
 from matplotlib.figure import Figure
 from matplotlib.ticker import NullLocator
 
+from protocol.config import LENGTH as LENGTH_UNIT
+from protocol.config import SPEED as SPEED_UNIT
+from protocol.config import TIME as TIME_UNIT
 from protocol.config import RunConfig, load_config
 from protocol.folder import write_atomic
 from protocol.record import CONTROLS_FILE, SUMMARY_FILE, TICKS_FILE, read_controls, read_ticks
@@ -67,9 +70,7 @@ VARIANT_STYLE = {"b": ("tab:blue", ""), "c-lagged": ("tab:blue", "//"),
                  "stay": ("tab:red", "")}
 PAPER_COMM_PERIOD = RunConfig().comm_period  # the paper's T_c, the run default
 RANGE_LABEL = "mean required sensing range"
-UNITS = ("length units", "time units")  # an analytic surface's
-DEM_UNITS = ("m", "s")  # a DEM's: metres, and seconds of driving
-LENGTH = f"({UNITS[0]})"
+LENGTH = f"({LENGTH_UNIT})"  # an axis label's unit
 
 
 def _styled(func: Callable) -> Callable:
@@ -223,7 +224,7 @@ def _terrain_map(fig, ax, rows: list[dict], config: RunConfig, surface: Surface,
                           if r.get(f"{c}_x") is not None])
     low, high = widen_to_aspect(np.nanmin(positions, axis=0) - config.spacing,
                                 np.nanmax(positions, axis=0) + config.spacing, aspect)
-    length = f"({DEM_UNITS[0]})" if isinstance(surface, DemSurface) else LENGTH
+    length = LENGTH
     contours = _surface_contours(ax, surface, low, high)
     fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {length}")
     lead = sorted((r for r in rows if r["agent"] == 0), key=lambda r: r["tick"])
@@ -301,7 +302,7 @@ def _draw_effectiveness(rows: list[dict], config: RunConfig, surface: Surface, p
             if row == 1 and col == 0:
                 sub.legend(loc="best", framealpha=0.9, fontsize=9)
     _suptitle(fig, title or f"{config.surface}: trajectory estimation, T_c = "
-                            f"{config.comm_period:g}")
+                            f"{config.comm_period:g} {TIME_UNIT}")
     return _save(fig, path)
 
 
@@ -336,7 +337,7 @@ def _draw_required_range(rows: list[dict], config: RunConfig, summary: dict,
     lines.set(xlabel="tick j", ylabel=f"required sensing range {LENGTH}",
               title="per tick (dotted: persist counterfactual)")
     lines.legend(loc="best", ncol=2, fontsize=8.5, framealpha=0.9)
-    _suptitle(fig, f"{config.surface}, T_c = {config.comm_period:g}: "
+    _suptitle(fig, f"{config.surface}, T_c = {config.comm_period:g} {TIME_UNIT}: "
                    "distance from the estimate to the ideal position")
     return _save(fig, path)
 
@@ -417,8 +418,9 @@ def _draw_driven_paths(rows: list[dict], config: RunConfig, surface: Surface,
     ax.set(xlabel=f"x {length}", ylabel=f"y {length}")
     ax.legend(loc="best", framealpha=0.9)
     _suptitle(fig, f"{config.surface}: driving followers ({config.control_steps} control + "
-                   f"{config.snap_steps} correction steps per T_c = {config.comm_period:g}, "
-                   f"top speed {config.max_speed:.3g}, estimator {_estimator_label(config)})")
+                   f"{config.snap_steps} correction steps per T_c = {config.comm_period:g} "
+                   f"{TIME_UNIT}, top speed {config.max_speed:.3g} {SPEED_UNIT}, "
+                   f"estimator {_estimator_label(config)})")
     return _save(fig, path)
 
 
@@ -572,19 +574,18 @@ def plot_practical(rows: list[dict], path: str | Path) -> Path:
         title = SURFACE_TITLES.get(surface, surface)
         ax.set_xticks(np.arange(len(noises)), [f"{nv:g}" for nv in noises])
         ax.set(title=title + (f"\n(stay, not drawn: {np.mean(stay):.2g})" if stay else ""),
-               xlabel="velocity noise σ_v (length/time)")
+               xlabel=f"velocity noise σ_v ({SPEED_UNIT})")
         ax.set_ylim(bottom=0)
     fig.axes[0].set_ylabel(f"RMSE of the estimate {LENGTH}")
     seeds = max((r["seeds"] for r in rows), default=0)
-    _suptitle(fig, f"Practical case: actuation noise σ_move = {move:g} per move; "
+    _suptitle(fig, f"Practical case: actuation noise σ_move = {move:g} {LENGTH_UNIT} per move; "
                    f"mean ± s.d. over {seeds} seed(s)")
     _figure_legend(fig)
     return _save(fig, path)
 
 
 @_styled
-def plot_comm_period(rows: list[dict], path: str | Path,
-                     units: tuple[str, str] = UNITS) -> Path:
+def plot_comm_period(rows: list[dict], path: str | Path) -> Path:
     """Mean required sensing range against the comm period T_c (log–log), one panel per
     surface, one curve per estimator."""
     surfaces = _surfaces(rows)
@@ -606,15 +607,14 @@ def plot_comm_period(rows: list[dict], path: str | Path,
         ax.set_xticks(periods, [f"{p:g}" for p in periods], rotation=45)
         ax.xaxis.set_minor_locator(NullLocator())
         ax.set(title=SURFACE_TITLES.get(surface, surface),
-               xlabel=f"comm period T_c ({units[1]})")
-    fig.axes[0].set_ylabel(f"{RANGE_LABEL} ({units[0]})")
+               xlabel=f"comm period T_c ({TIME_UNIT})")
+    fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
     _figure_legend(fig)
     return _save(fig, path)
 
 
 @_styled
-def plot_position(rows: list[dict], path: str | Path,
-                  units: tuple[str, str] = UNITS) -> Path:
+def plot_position(rows: list[dict], path: str | Path) -> Path:
     """Mean required sensing range against the position in the column (follower 1 … N), one
     panel per comm period, one curve per estimator (log y)."""
     periods = sorted({r["comm_period"] for r in rows})
@@ -631,7 +631,7 @@ def plot_position(rows: list[dict], path: str | Path,
         _log_y(ax)
         followers = sorted({r["follower"] for r in rows})
         ax.set_xticks(followers, [str(k) for k in followers])
-        ax.set(title=f"T_c = {period:g}", xlabel="position in the column (follower k)")
-    fig.axes[0].set_ylabel(f"{RANGE_LABEL} ({units[0]})")
+        ax.set(title=f"T_c = {period:g} {TIME_UNIT}", xlabel="position in the column (follower k)")
+    fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
     _figure_legend(fig)
     return _save(fig, path)
