@@ -99,14 +99,23 @@ MAX_LEGEND_COLUMNS = 6
 
 def _figure_legend(fig: Figure) -> None:
     """Every panel's labelled artists in one legend below the panels ("outside lower
-    center": the constrained layout reserves its height), in as many columns (at most
-    :data:`MAX_LEGEND_COLUMNS`) as fit in the figure's width."""
+    center": the constrained layout reserves its height, and the legend covers no data), in
+    as many columns (at most :data:`MAX_LEGEND_COLUMNS`) as fit in the figure's width; none
+    if nothing is labelled."""
+    if not any(ax.get_legend_handles_labels()[0] for ax in fig.axes):
+        return
     renderer = fig.canvas.get_renderer()
     for ncol in range(MAX_LEGEND_COLUMNS, 0, -1):
         legend = fig.legend(loc="outside lower center", ncol=ncol)
         if ncol == 1 or legend.get_window_extent(renderer).width <= fig.bbox.width:
             return
         legend.remove()
+
+
+def _legend_below(ax, **kwargs) -> None:
+    """``ax``'s legend under its x axis (the constrained layout makes room for it), where it
+    covers no data."""
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), **kwargs)
 
 
 def _suptitle(fig: Figure, text: str) -> None:
@@ -310,33 +319,36 @@ def _draw_effectiveness(rows: list[dict], config: RunConfig, surface: Surface, p
 def _draw_required_range(rows: list[dict], config: RunConfig, summary: dict,
                          path: str | Path) -> Path:
     """Required sensing range of one run: per-follower means against the two baselines
-    (bars, from ``summary.json``) and per tick (lines, from ``ticks.csv``)."""
-    fig = _figure(12.0, 4.6)
-    bars, lines = fig.subplots(1, 2, width_ratios=(1, 1.4))
+    (markers, from ``summary.json``) and per tick (lines, from ``ticks.csv``); each panel's
+    legend below it, off the data."""
+    fig = _figure(12.0, 5.6)
+    means, lines = fig.subplots(1, 2, width_ratios=(1, 1.4))
     followers = sorted(summary["followers"], key=int)
     x = np.arange(len(followers))
-    series = ((f"{_estimator_label(config)} (this run)", "mean_required_range", ESTIMATE_COLOR),
-              ("stay (counterfactual)", "mean_stay_range", ESTIMATOR_STYLE["stay"][0]),
-              ("persist (counterfactual)", "mean_persist_range", ESTIMATOR_STYLE["persist"][0]))
-    for i, (label, key, color) in enumerate(series):
+    series = ((f"{_estimator_label(config)} (this run)", "mean_required_range", ESTIMATE_COLOR,
+               ESTIMATOR_STYLE["edmd-b"][1]),
+              ("stay (counterfactual)", "mean_stay_range", *ESTIMATOR_STYLE["stay"]),
+              ("persist (counterfactual)", "mean_persist_range", *ESTIMATOR_STYLE["persist"]))
+    for i, (label, key, color, marker) in enumerate(series):
         values = [_nan(summary["followers"][k][key]) for k in followers]
-        bars.bar(x + (i - 1) * 0.27, values, 0.27, color=color, label=label)
-    bars.set_xticks(x, [f"follower {k}" for k in followers])
-    if _log_y(bars):
-        bars.set_ylim(top=bars.get_ylim()[1] * 30)  # room for the legend above the bars
-    bars.set(ylabel=f"{RANGE_LABEL} {LENGTH}", title="mean over estimated ticks")
-    bars.legend(loc="upper center", ncol=1, framealpha=0.9)
+        _dots(means, x + (i - 1) * 0.15, values, color, marker, label=label)
+    means.set_xticks(x, [f"F{k}" for k in followers])
+    means.set_xlim(-0.5, len(followers) - 0.5)
+    _log_y(means)
+    means.set(xlabel="follower", ylabel=f"{RANGE_LABEL} {LENGTH}",
+              title="mean over estimated ticks")
+    _legend_below(means, ncol=1, fontsize=9.5)
     for k in followers:
         mine = sorted((r for r in rows if r["agent"] == int(k) and r["required_range"] is not None),
                       key=lambda r: r["tick"])
         line, = lines.plot([r["tick"] for r in mine], [r["required_range"] for r in mine], ".-",
                            label=f"follower {k}")
         lines.plot([r["tick"] for r in mine], [r["persist_range"] for r in mine], ":",
-                   color=line.get_color(), label=f"follower {k}, persist")
+                   color=line.get_color())
     _log_y(lines)
     lines.set(xlabel="tick j", ylabel=f"required sensing range {LENGTH}",
               title="per tick (dotted: persist counterfactual)")
-    lines.legend(loc="best", ncol=2, fontsize=8.5, framealpha=0.9)
+    _legend_below(lines, ncol=min(len(followers), 5), fontsize=9.5)
     _suptitle(fig, f"{config.surface}, T_c = {config.comm_period:g} {TIME_UNIT}: "
                    "distance from the estimate to the ideal position")
     return _save(fig, path)
@@ -475,32 +487,44 @@ def _panels(fig: Figure, n: int, **kwargs) -> list:
     return list(axes)
 
 
-def _label_bars(ax, bars, values: Sequence[float]) -> None:
-    ax.bar_label(bars, labels=["" if math.isnan(v) else f"{v:.2g}" for v in values],
-                 fontsize=10, padding=1)
+def _dots(ax, x: Sequence[float], values: Sequence[float], color: str, marker: str,
+          label: str | None = None, joined: bool = False, values_shown: bool = False) -> None:
+    """``values`` at ``x`` as markers (on a log axis a bar has no honest base: its length
+    would be the axis floor's choice), ``joined`` by a thin line, each ``values_shown`` to
+    two digits beside it."""
+    ax.plot(x, values, marker=marker, color=color, ms=8, ls="-" if joined else "none", lw=0.8,
+            label=label)
+    if values_shown:
+        for xi, v in zip(x, values):
+            if not math.isnan(v):
+                ax.annotate(f"{v:.2g}", (xi, v), xytext=(7, 0), textcoords="offset points",
+                            va="center", fontsize=10,
+                            bbox={"fc": "white", "ec": "none", "alpha": 0.75, "pad": 0.5})
 
 
 @_styled
 def plot_sensing_range(rows: list[dict], path: str | Path) -> Path:
-    """Bars of the mean required sensing range per follower and estimator, one panel per
-    surface (the paper's Fig. "averaged follower required sensing range"), log scale."""
+    """The mean required sensing range per follower and estimator as markers (one line per
+    estimator down the column), one panel per surface (the paper's Fig. "averaged follower
+    required sensing range", drawn there as bars), log scale."""
     surfaces = _surfaces(rows)
     fig = _figure(PANEL_WIDTH * len(surfaces) + 0.6, 4.8)
     estimators = list(dict.fromkeys(r["estimator"] for r in rows))
     for ax, surface in zip(_panels(fig, len(surfaces), sharey=True), surfaces):
         mine = [r for r in rows if r["surface"] == surface]
         followers = sorted({r["follower"] for r in mine})
-        width = 0.8 / len(estimators)
+        width = 0.5 / len(estimators)  # markers side by side, so that equal values both show
         styles = estimator_styles(estimators)
         for i, est in enumerate(estimators):
             values = [next((r["mean_required_range"] for r in mine
                             if r["follower"] == k and r["estimator"] == est), math.nan)
                       for k in followers]
             x = np.arange(len(followers)) + (i - (len(estimators) - 1) / 2) * width
-            ax.bar(x, values, width, color=styles[est][0],
-                   label=est if surface == surfaces[0] else None)
+            _dots(ax, x, values, *styles[est], label=est if surface == surfaces[0] else None,
+                  joined=True)
         ax.set_xticks(np.arange(len(followers)), [f"F{k}" for k in followers])
         ax.set_xlabel("follower")
+        ax.set_xlim(-0.5, len(followers) - 0.5)
         _log_y(ax)
         ax.set_title(SURFACE_TITLES.get(surface, surface))
     fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
@@ -510,8 +534,9 @@ def plot_sensing_range(rows: list[dict], path: str | Path) -> Path:
 
 @_styled
 def plot_dictionaries(rows: list[dict], surface: str, path: str | Path) -> Path:
-    """RMSE per dictionary on one surface: (a) local measurements a–c, (b) absolute positions
-    d–g (the paper's two panels), with the ``stay`` and ``persist`` baselines as lines."""
+    """RMSE per dictionary on one surface, markers on a log scale: (a) local measurements a–c,
+    (b) absolute positions d–g (the paper's two panels, bars there), with the ``stay`` and
+    ``persist`` baselines as lines."""
     mine = {r["dictionary"]: r for r in rows if r["surface"] == surface}
     fig = _figure(11.0, 4.8)
     panels = _panels(fig, 2, sharey=True, width_ratios=(3, 4))
@@ -519,20 +544,18 @@ def plot_dictionaries(rows: list[dict], surface: str, path: str | Path) -> Path:
             ("(a) local measurements", "abc", "tab:blue"),
             ("(b) absolute position (GPS)", "defg", "tab:orange"))):
         names = [n for n in names if n in mine]
-        values = [mine[n]["rmse"] for n in names]
-        drawn = ax.bar(range(len(names)), values, 0.6, color=color)
-        _label_bars(ax, drawn, values)
+        _dots(ax, range(len(names)), [mine[n]["rmse"] for n in names], color, "o",
+              values_shown=True)
         ax.set_xticks(range(len(names)), [DICTIONARY_LABELS[n] for n in names])
         for base, style in (("persist", "--"), ("stay", ":")):
             if base in mine and not math.isnan(mine[base]["rmse"]):
                 ax.axhline(mine[base]["rmse"], color=ESTIMATOR_STYLE[base][0], ls=style, lw=1.5,
-                           label=f"{base}: {mine[base]['rmse']:.2g}")
+                           label=f"{base}: {mine[base]['rmse']:.2g}" if ax is panels[0] else None)
         ax.set(title=title, xlabel="dictionary (lifted measurements)")
         _log_y(ax)
-        ax.margins(x=0.08)
+        ax.set_xlim(-0.5, len(names) - 0.5)
     panels[0].set_ylabel(f"RMSE of the estimate {LENGTH}")
-    if panels[0].get_legend_handles_labels()[0]:
-        panels[0].legend(loc="best", framealpha=0.9)
+    _figure_legend(fig)
     _suptitle(fig, f"{SURFACE_TITLES.get(surface, surface)}: dictionaries for data-streaming "
                    "EDMD (idealised: oracle velocity for c)")
     return _save(fig, path)
