@@ -127,8 +127,10 @@ def _suptitle(fig: Figure, text: str) -> None:
                                                        / width))))
 
 
-def _figure(width: float, height: float) -> Figure:
-    fig = Figure(figsize=(width, height), dpi=DPI, layout="constrained")
+def _figure(width: float, height: float, layout: str = "constrained") -> Figure:
+    """A figure on an Agg canvas; ``layout="compressed"`` for one whose panels have a fixed
+    aspect (equal axes), which the constrained layout places with labels cut off."""
+    fig = Figure(figsize=(width, height), dpi=DPI, layout=layout)
     FigureCanvasAgg(fig)
     return fig
 
@@ -289,27 +291,26 @@ def _draw_effectiveness(rows: list[dict], config: RunConfig, surface: Surface, p
            title=f"leader and {config.followers} follower(s) over the "
                  f"{'hillshaded relief' if isinstance(surface, DemSurface) else 'contour lines'}, "
                  f"estimator {_estimator_label(config)}")
-    ax.legend(loc="best", framealpha=0.9)
     for col, k in enumerate(followers):
         rel = leader_relative(rows, k)
         for row, (ideal, est, label, scale) in enumerate((
                 ("r_ideal", "r_est", f"distance {length}", 1.0),
                 ("theta_ideal", "theta_est", "bearing (deg)", 180 / math.pi)), start=1):
             sub = fig.add_subplot(grid[row, col])
+            first = row == 1 and col == 0  # labels its curves, once, for the figure's legend
             sub.plot(rel["tick"], rel[ideal] * scale, "o-", color=IDEAL_COLOR, ms=3, lw=1,
-                     label="ideal (measured)")
+                     label="leader seen from the ideal position (measured)" if first else None)
             sub.plot(rel["tick"], rel[est] * scale, "x--", color=ESTIMATE_COLOR, ms=4, lw=1,
-                     label="estimated (predicted)")
+                     label="from the estimate (predicted)" if first else None)
             sub.axvline(config.init_ticks - 0.5, color="0.5", ls=":", lw=1,
-                        label="estimation starts")
+                        label="estimation starts" if first else None)
             sub.ticklabel_format(axis="y", useOffset=False)
             sub.set(title=f"follower {k}: leader's {label.split()[0]}")
             if col == 0:
                 sub.set_ylabel(label)
             if row == 2:
                 sub.set_xlabel("tick j (t = j·T_c)")
-            if row == 1 and col == 0:
-                sub.legend(loc="best", framealpha=0.9, fontsize=9)
+    _figure_legend(fig)
     _suptitle(fig, title or f"{config.surface}: trajectory estimation, T_c = "
                             f"{config.comm_period:g} {TIME_UNIT}")
     return _save(fig, path)
@@ -414,7 +415,7 @@ def _draw_driven_paths(rows: list[dict], config: RunConfig, surface: Surface,
     """A drive run's paths: every follower's path control step by control step (blue,
     :func:`driven_paths`) from where it started, over the terrain, against its ideal
     positions (red), with the leader (black)."""
-    fig = _figure(13.0, 6.5)
+    fig = _figure(13.0, 6.5, layout="compressed")
     ax = fig.add_subplot()
     length, _ = _terrain_map(fig, ax, rows, config, surface, aspect=2.0)
     paths = driven_paths(config, surface, rows, controls)
@@ -428,7 +429,7 @@ def _draw_driven_paths(rows: list[dict], config: RunConfig, surface: Surface,
         ax.plot([r["pos_x"] for r in mine], [r["pos_y"] for r in mine], "x",
                 color=ESTIMATE_COLOR, ms=4, mew=1, label="settled" if k == 1 else None)
     ax.set(xlabel=f"x {length}", ylabel=f"y {length}")
-    ax.legend(loc="best", framealpha=0.9)
+    _figure_legend(fig)
     _suptitle(fig, f"{config.surface}: driving followers ({config.control_steps} control + "
                    f"{config.snap_steps} correction steps per T_c = {config.comm_period:g} "
                    f"{TIME_UNIT}, top speed {config.max_speed:.3g} {SPEED_UNIT}, "

@@ -123,3 +123,18 @@ def test_every_table_figure_reads_at_a_glance(drawn, tmp_path):
     plots.plot_position(position, tmp_path / "pos.png")
     assert len(drawn) == 7
     assert {p for fig in drawn for p in problems(fig)} == set()
+
+
+@pytest.mark.timeout(120)
+def test_a_drive_runs_figures_read_at_a_glance(drawn, tmp_path):
+    """``swarm plot``'s figures of the driving run of docs/drive.md: effectiveness, required
+    range and the driven paths (whose x label the figure once cut off)."""
+    from swarm.cli import main
+    from swarm.plots import plot_run
+
+    assert main(["run", "--surface", "wavy", "--followers", "3", "--estimator", "auto",
+                 "--motion", "drive", "--max-speed", "1.3", "--in-process",
+                 "--out", str(tmp_path / "run")]) == 0
+    plot_run(tmp_path / "run")
+    assert len(drawn) == 3
+    assert {p for fig in drawn for p in problems(fig)} == set()
