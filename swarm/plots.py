@@ -659,3 +659,92 @@ def plot_position(rows: list[dict], path: str | Path) -> Path:
     fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
     _figure_legend(fig)
     return _save(fig, path)
+
+
+SURFACE_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:brown", "tab:purple", "tab:olive")
+"""A surface's colour in a figure of several surfaces, in the order they come."""
+
+
+def _plain_ticks(ax, values: Sequence[float], labels: Sequence[str] | None = None) -> None:
+    """Ticks at ``values`` labelled as plain numbers (``0.64``, not ``2^-0.64``) or
+    ``labels``, no others."""
+    ax.set_xticks(list(values), labels or [f"{v:g}" for v in values])
+    ax.xaxis.set_minor_locator(NullLocator())
+
+
+@_styled
+def plot_drive_study(rows: list[dict], spec, path: str | Path) -> Path:
+    """The drive study's figure: mean formation error (top) and mean required sensing range
+    (bottom) against the control steps, the top speed (at the base comm period) and the comm
+    period (at the base top speed); colour the surface, marker the estimator.
+
+    The top speed is drawn as its margin over the leader's speed (``speed_factor − 1``, +2 %
+    … +200 %) on a log axis, where the factors 1.02, 1.05 and 1.1 stay apart. The unbounded
+    robot (``speed_factor`` inf) has no place on a numeric axis: it is drawn in a narrow
+    panel of its own beside it, sharing its y axis.
+
+    Parameters
+    ----------
+    rows : list of dict
+        ``tables/drive.csv``'s rows (:func:`swarm.grid.read_table`).
+    spec : swarm.drive_study.DriveStudySpec
+        The study's grid: its surfaces, estimators, base steps, factor and period, followers.
+    path : str or Path
+        The PNG to write.
+    """
+    fig = _figure(15.0, 9.0)
+    grid = fig.add_gridspec(2, 4, width_ratios=(1, 0.82, 0.1, 1))
+    colours = dict(zip(spec.surfaces, SURFACE_COLORS, strict=False))
+    markers = {label: ESTIMATOR_STYLE.get(label, OTHER_STYLES[0])[1]
+               for label in spec.estimators}
+    base = f"{spec.base_factor:g}× the leader's"
+    panels = (("steps", "control_steps", "control steps per comm interval", None,
+               f"T_c = {spec.base_period:g} {TIME_UNIT}, top speed {base}"),
+              ("speed", "speed_factor", "top speed above the leader's", spec.base_period,
+               f"T_c = {spec.base_period:g} {TIME_UNIT}, {spec.base_steps} control steps"),
+              ("speed", "comm_period", f"comm period T_c ({TIME_UNIT})", spec.base_factor,
+               f"top speed {base}, {spec.base_steps} control steps"))
+    for row, (y_key, y_label) in enumerate((("mean_formation_error", "formation error"),
+                                            ("mean_required_range", "required sensing range"))):
+        unbounded = fig.add_subplot(grid[row, 2])
+        for (block, x_key, x_label, fixed, title), col in zip(panels, (0, 1, 3)):
+            ax = fig.add_subplot(grid[row, col], sharey=unbounded if col == 1 else None)
+            xs_seen: set[float] = set()
+            for surface in spec.surfaces:
+                for label in spec.estimators:
+                    mine = [r for r in rows if r["block"] == block
+                            and r["surface"] == surface and r["estimator"] == label]
+                    if x_key == "speed_factor":
+                        mine = [r for r in mine if r["comm_period"] == fixed]
+                    if x_key == "comm_period":
+                        mine = [r for r in mine if r["speed_factor"] == fixed]
+                    mine.sort(key=lambda r: r[x_key])
+                    finite = [r for r in mine if math.isfinite(r[x_key])]
+                    xs = [r[x_key] - (x_key == "speed_factor") for r in finite]
+                    style = {"marker": markers[label], "color": colours[surface], "ms": 5}
+                    ax.plot(xs, [r[y_key] for r in finite], lw=1, **style)
+                    xs_seen.update(xs)
+                    if x_key == "speed_factor":
+                        unbounded.plot([0.0] * (len(mine) - len(finite)),
+                                       [r[y_key] for r in mine if not math.isfinite(r[x_key])],
+                                       ls="none", **style)
+            ax.set_xscale("log", base=2)
+            _log_y(ax)
+            _plain_ticks(ax, sorted(xs_seen), [f"+{100 * x:.0f}%" for x in sorted(xs_seen)]
+                         if x_key == "speed_factor" else None)
+            if x_key == "speed_factor":
+                ax.tick_params(axis="x", labelrotation=40)
+            ax.set(xlabel=x_label, ylabel=f"mean {y_label} {LENGTH}", title=title)
+            if col == 1:
+                ax.set_ylabel("")
+        unbounded.set_xticks([0.0], ["un-\nbounded"])
+        unbounded.set_xlim(-1, 1)
+        unbounded.tick_params(axis="y", labelleft=False)
+        unbounded.grid(axis="x", visible=False)
+    proxies = [matplotlib.lines.Line2D([], [], color=c, lw=2, label=s) for s, c in colours.items()]
+    proxies += [matplotlib.lines.Line2D([], [], color="k", marker=m, ls="none", label=e)
+                for e, m in markers.items()]
+    fig.legend(handles=proxies, loc="outside lower center", ncol=len(proxies))
+    _suptitle(fig, "driving followers (--motion drive), noise-free: mean over the column's "
+                   f"{spec.followers} followers (colour: surface; marker: estimator)")
+    return _save(fig, path)

@@ -82,6 +82,9 @@ def problems(fig) -> list[str]:
             out.append(f"bars on the log axis of panel {name}")
         if outside(ax.get_tightbbox(renderer)):  # its labels, tick labels, title, legend
             out.append(f"panel {name} (labels and title) leaves the figure")
+        powers = [t.get_text() for t in ax.get_xticklabels() if "^" in t.get_text()]
+        if powers:  # 2^0, 2^1 for a comm period of 1 and 2 s
+            out.append(f"x ticks {powers} of panel {name} are powers, not plain numbers")
     if fig._suptitle is not None and outside(fig._suptitle):
         out.append(f"title {fig.get_suptitle()!r} leaves the figure")
     return out
@@ -99,11 +102,14 @@ def test_the_check_sees_a_bar_on_a_log_axis_a_covered_curve_and_a_cut_label():
     ax.plot([0, 1], [0.5, 0.5], transform=ax.transAxes, label="a curve under its legend")
     ax.legend(loc="center")
     ax.set_xlabel("a label below the figure's edge", labelpad=200)
+    ax.set_xscale("log", base=2)
+    ax.set_xlim(1, 4)
     fig.canvas.draw()
     found = "\n".join(problems(fig))
     assert "bars on the log axis" in found
     assert "covers data" in found
     assert "leaves the figure" in found
+    assert "are powers, not plain numbers" in found
 
 
 def test_every_table_figure_reads_at_a_glance(drawn, tmp_path):
@@ -138,3 +144,27 @@ def test_a_drive_runs_figures_read_at_a_glance(drawn, tmp_path):
     plot_run(tmp_path / "run")
     assert len(drawn) == 3
     assert {p for fig in drawn for p in problems(fig)} == set()
+
+
+def test_the_drive_studys_figure_reads_at_a_glance(drawn, tmp_path):
+    """From the committed ``docs/drive/tables/drive.csv``: no legend over the curves, plain
+    tick labels, and the unbounded robot in a panel of its own, not at a made-up top speed
+    on the numeric axis (it was drawn at 8×)."""
+    from swarm.drive_study import DriveStudySpec, draw_study
+
+    rows = read_table(ROOT / "docs" / "drive" / "tables" / "drive.csv")
+    draw_study(rows, DriveStudySpec(), tmp_path / "drive.png")
+    [fig] = drawn
+    assert problems(fig) == []
+    finite = max(r["speed_factor"] for r in rows if np.isfinite(r["speed_factor"]))
+    speed = [ax for ax in fig.axes if ax.get_xlabel().startswith("top speed")]
+    unbounded = [ax for ax in fig.axes if "bounded" in " ".join(
+        t.get_text() for t in ax.get_xticklabels())]
+    assert len(speed) == len(unbounded) == 2
+    for ax in speed:
+        xs = np.concatenate([line.get_xdata() for line in ax.get_lines()])
+        assert np.isfinite(xs).all() and xs.max() <= finite - 1 + 1e-12  # the margin over 1
+    for ax in unbounded:  # one point per surface and estimator at the base comm period
+        points = sum(len(line.get_xdata()) for line in ax.get_lines())
+        assert points == sum(1 for r in rows if r["block"] == "speed"
+                             and np.isinf(r["speed_factor"]) and r["comm_period"] == 1.28)
