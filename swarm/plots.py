@@ -748,3 +748,57 @@ def plot_drive_study(rows: list[dict], spec, path: str | Path) -> Path:
     _suptitle(fig, "driving followers (--motion drive), noise-free: mean over the column's "
                    f"{spec.followers} followers (colour: surface; marker: estimator)")
     return _save(fig, path)
+
+
+@_styled
+def plot_column_noise(rows: list[dict], path: str | Path) -> Path:
+    """Errors travelling down a noisy column (``bench/bench_column_noise.py``): mean formation
+    error (top) and mean required sensing range (bottom) per follower, one panel per surface;
+    colour the noise level, line and marker the estimator (log y).
+
+    Parameters
+    ----------
+    rows : list of dict
+        ``tables/column_noise.csv``'s rows: ``surface``, ``noise_range``, ``noise_bearing``,
+        ``estimator``, ``follower``, ``mean_formation_error``, ``mean_required_range``.
+    path : str or Path
+        The PNG to write.
+    """
+    surfaces = _surfaces(rows)
+    levels = list(dict.fromkeys((r["noise_range"], r["noise_bearing"]) for r in rows))
+    estimators = list(dict.fromkeys(r["estimator"] for r in rows))
+    colours = dict(zip(levels, ("tab:green", "tab:blue", "tab:red", *SURFACE_COLORS),
+                       strict=False))
+    lines = dict(zip(estimators, ("--", "-", ":", "-."), strict=False))
+    markers = {e: estimator_styles(estimators)[e][1] for e in estimators}
+    fig = _figure(PANEL_WIDTH * len(surfaces) + 0.6, 7.6)
+    axes = fig.subplots(2, len(surfaces), sharex=True, squeeze=False)
+    for col, surface in enumerate(surfaces):
+        for row, (key, label) in enumerate((("mean_formation_error", "formation error"),
+                                            ("mean_required_range", "required sensing range"))):
+            ax = axes[row][col]
+            for level in levels:
+                for est in estimators:
+                    mine = sorted((r["follower"], r[key]) for r in rows
+                                  if r["surface"] == surface and r["estimator"] == est
+                                  and (r["noise_range"], r["noise_bearing"]) == level)
+                    ax.plot(*zip(*mine), lines[est], marker=markers[est], ms=4, lw=1.2,
+                            color=colours[level], mfc="white" if lines[est] != "-" else None)
+            _log_y(ax)
+            if col == 0:
+                ax.set_ylabel(f"mean {label} {LENGTH}")
+            if row == 1:
+                ax.set_xlabel("follower k (position in the column)")
+        axes[0][col].set_title(SURFACE_TITLES.get(surface, surface))
+    followers = sorted({r["follower"] for r in rows})
+    axes[1][0].set_xticks(followers, [str(k) for k in followers])
+    proxies = [matplotlib.lines.Line2D([], [], color=c, lw=2,
+                                       label=f"σ_range {nr:g} {LENGTH_UNIT}, σ_bearing {nb:g} rad")
+               for (nr, nb), c in colours.items()]
+    proxies += [matplotlib.lines.Line2D([], [], color="k", ls=lines[e], marker=markers[e],
+                                        mfc="white" if lines[e] != "-" else None, label=e)
+                for e in estimators]
+    fig.legend(handles=proxies, loc="outside lower center", ncol=len(proxies))
+    _suptitle(fig, "Errors down a noisy column: mean over seeds per follower (colour: noise "
+                   "on range and bearing; line and marker: estimator)")
+    return _save(fig, path)

@@ -114,7 +114,7 @@ def test_the_check_sees_a_bar_on_a_log_axis_a_covered_curve_and_a_cut_label():
 
 def test_every_table_figure_reads_at_a_glance(drawn, tmp_path):
     """The paper experiment's figures from the committed tables (and the terrain study's
-    position figure from the same numbers)."""
+    position figure from the same numbers), and bench_column_noise's."""
     from swarm import plots
 
     tables = {name: read_table(TABLES / f"{name}.csv")
@@ -127,7 +127,8 @@ def test_every_table_figure_reads_at_a_glance(drawn, tmp_path):
     position = [{**r, "comm_period": 1.28} for r in tables["sensing_range"]
                 if r["surface"] == "elliptic"]
     plots.plot_position(position, tmp_path / "pos.png")
-    assert len(drawn) == 7
+    plots.plot_column_noise(read_table(TABLES / "column_noise.csv"), tmp_path / "n.png")
+    assert len(drawn) == 8
     assert {p for fig in drawn for p in problems(fig)} == set()
 
 
@@ -168,3 +169,17 @@ def test_the_drive_studys_figure_reads_at_a_glance(drawn, tmp_path):
         points = sum(len(line.get_xdata()) for line in ax.get_lines())
         assert points == sum(1 for r in rows if r["block"] == "speed"
                              and np.isinf(r["speed_factor"]) and r["comm_period"] == 1.28)
+
+
+def test_the_column_noise_figure_tells_its_estimators_apart_without_its_legend(drawn, tmp_path):
+    """Its persist and auto curves once differed only in the legend: every curve's look
+    (line style and marker) names its estimator, and the figure has a title."""
+    from swarm.plots import plot_column_noise
+
+    rows = read_table(TABLES / "column_noise.csv")
+    plot_column_noise(rows, tmp_path / "n.png")
+    [fig] = drawn
+    looks = {(line.get_linestyle(), line.get_marker()) for ax in fig.axes
+             for line in ax.get_lines()}
+    assert len(looks) == len({r["estimator"] for r in rows})
+    assert fig.get_suptitle()
