@@ -230,6 +230,17 @@ def _positive(value: float | None) -> float:
     return value if value is not None and value > 0 else math.nan
 
 
+def estimated_choices(choices: Mapping[tuple[int, int], str],
+                      frames: Sequence[Frame]) -> dict[tuple[int, int], str]:
+    """The (tick, follower) choices of ``choices`` at the follower's estimated ticks only:
+    those whose row in ``frames`` holds a required range (the world measures it from the first
+    estimated tick, ``init_ticks``, on). What a follower followed before is never used, and
+    the page's range plots start there too."""
+    estimated = {(frame.tick, k) for frame in frames for k, row in frame.rows.items()
+                 if row.get("required_range") is not None}
+    return {key: label for key, label in choices.items() if key in estimated}
+
+
 def choice_points(choices: Mapping[tuple[int, int], str], followers: int) -> dict[str, list]:
     """Every (tick, follower) estimator choice as scatter columns, sorted by tick; ``y`` is
     the label with a small offset per follower (``[label, offset]``, a Bokeh categorical
