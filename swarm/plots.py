@@ -230,7 +230,7 @@ def _terrain_map(fig, ax, rows: list[dict], config: RunConfig, surface: Surface,
                  aspect: float) -> tuple[str, list]:
     """Draw a run's terrain under ``ax`` (contour lines or a DEM's relief, with its colour
     bar), fitted to every settled and ideal position at ``aspect`` and equal axes, and the
-    leader's path; return the length unit's label and the leader's rows."""
+    leader's path; return the axis label's length unit and the leader's rows."""
     positions = np.array([(r[f"{c}_x"], r[f"{c}_y"]) for r in rows for c in ("pos", "ideal")
                           if r.get(f"{c}_x") is not None])
     low, high = widen_to_aspect(np.nanmin(positions, axis=0) - config.spacing,

@@ -81,7 +81,7 @@ def fit_view(box: Sequence[float], points: np.ndarray, margin: float,
              aspect: float) -> tuple[float, float, float, float]:
     """The view ``(x0, x1, y0, y1)`` at width/height ratio ``aspect`` that holds the map's
     ``box`` ``[x0, x1, y0, y1]`` and every point of ``points`` (n, 2) grown by ``margin``,
-    about the centre of what it holds (one length unit the same on both axes of a frame of
+    about the centre of what it holds (one metre the same on both axes of a frame of
     that ratio)."""
     points = np.asarray(points, dtype=float).reshape(-1, 2)
     low = np.array([box[0], box[2]], dtype=float)

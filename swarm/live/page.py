@@ -4,7 +4,7 @@ Live, the map follows the newest complete tick; in a replay a slider (and play/p
 tick. A periodic callback (every :data:`REFRESH_MS`) compares the store's version with the
 one drawn and refreshes the sources when it changed.
 
-The map is drawn at true aspect (one length unit the same number of pixels both ways): its
+The map is drawn at true aspect (one metre the same number of pixels both ways): its
 frame takes the shape of the world's map box, whose contour lines (and relief, on a DEM)
 therefore fill the view; the view grows only to hold an agent that leaves the box. Labels
 closer than :data:`LABEL_GAP` pixels to another are left out. Every range is set here, never
