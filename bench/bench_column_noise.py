@@ -4,7 +4,8 @@
 three surfaces at three range/bearing noise levels, with ``persist`` and ``auto`` (mean over
 seeds 0-2, in-memory layout), prints per follower the mean formation error (distance from
 where it settled to its place in the ideal formation) and the mean required sensing range, and
-writes ``OUT/tables/column_noise.csv`` and ``OUT/figures/column_noise.png``.
+writes ``OUT/tables/column_noise.csv`` and ``OUT/figures/column_noise.png``
+(:func:`swarm.plots.plot_column_noise`, which redraws it from the table alone).
 
 Under honest sensing a snapped follower stands near, not on, its rod end, and its own rod
 starts where it really stands, so each follower inherits its predecessors' placement errors:
@@ -23,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from protocol.config import RunConfig  # noqa: E402
 from swarm.local import run_local  # noqa: E402
+from swarm.plots import plot_column_noise  # noqa: E402
 
 SURFACES = ("elliptic", "hyperbolic", "wavy")
 LEVELS = ((0.005, 0.002), (0.02, 0.01), (0.05, 0.03))
@@ -75,45 +77,15 @@ def main() -> None:
             print("  formation error, follower 10 / follower 1: "
                   + ", ".join(f"{e} {g:.2f}" for e, g in growth.items()))
     out = Path(args.out)
-    (out / "tables").mkdir(parents=True, exist_ok=True)
+    for sub in ("tables", "figures"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
     with open(out / "tables" / "column_noise.csv", "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    draw(results, out / "figures" / "column_noise.png")
+    plot_column_noise(rows, out / "figures" / "column_noise.png")
     print(f"\ntable: {out / 'tables' / 'column_noise.csv'}\nfigure: "
           f"{out / 'figures' / 'column_noise.png'}\nwall time {time.monotonic() - started:.0f} s")
-
-
-def draw(results: dict, path: Path) -> None:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(12, 6.5), layout="constrained")
-    FigureCanvasAgg(fig)
-    axes = fig.subplots(2, len(SURFACES), sharex=True)
-    followers = list(range(1, FOLLOWERS + 1))
-    styles = {"persist": "--", "auto": "-"}
-    colours = ("tab:green", "tab:blue", "tab:red")
-    for col, s in enumerate(SURFACES):
-        for lv, colour in zip(LEVELS, colours):
-            for e in ESTIMATORS:
-                m = results[(s, lv, e)]
-                label = f"{e}, σr {lv[0]}, σθ {lv[1]}"
-                axes[0, col].plot(followers, [m[k]["formation"] for k in followers],
-                                  styles[e], color=colour, marker="o", ms=3, label=label)
-                axes[1, col].plot(followers, [m[k]["required"] for k in followers],
-                                  styles[e], color=colour, marker="o", ms=3, label=label)
-        axes[0, col].set_title(s)
-        axes[1, col].set_xlabel("follower")
-        for row in axes[:, col]:
-            row.set_yscale("log")
-            row.grid(True, alpha=0.3)
-    axes[0, 0].set_ylabel("mean formation error")
-    axes[1, 0].set_ylabel("mean required range")
-    axes[0, -1].legend(fontsize=7, loc="lower right")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
 
 
 if __name__ == "__main__":

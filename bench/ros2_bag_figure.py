@@ -24,6 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from protocol import ros2  # noqa: E402
+from protocol.config import LENGTH  # noqa: E402
 
 ROD_EVERY = 8
 
@@ -81,12 +82,12 @@ def draw(bag: Path, out: Path) -> Path:
             top.plot(strip[:, 0], strip[:, 1], color="crimson", lw=1.6)
     lo, hi = vertices.reshape(-1, 3).min(axis=0), vertices.reshape(-1, 3).max(axis=0)
     ax3.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), zlim=(lo[2], hi[2] + 0.5),
-            xlabel="x (map)", ylabel="y (map)", zlabel="z = F(x, y)")
+            xlabel=f"x ({LENGTH})", ylabel=f"y ({LENGTH})", zlabel=f"z = F(x, y) ({LENGTH})")
     ax3.view_init(elev=38, azim=-120)
     ax3.set_title("terrain mesh, poses and rods (every 8th tick), 3-D")
-    top.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), aspect="equal", xlabel="x (map)",
-            ylabel="y (map)", title="from above; rods in red")
-    top.legend(loc="upper left", fontsize=8)
+    top.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), aspect="equal", xlabel=f"x ({LENGTH})",
+            ylabel=f"y ({LENGTH})", title="from above; rods in red")
+    top.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=len(poses), fontsize=9)
     fig.suptitle(f"Read back from the exported bag alone: {bag.name} ({len(poses) - 1} "
                  f"followers, {len(rods)} ticks)")
     fig.tight_layout()

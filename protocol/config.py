@@ -57,6 +57,16 @@ ESTIMATOR_OPTIONS: dict[str, tuple[str, ...]] = {
 """The options only some estimators use, by estimator (the others use none of them). Your own
 estimator (``package.module:Name``) may read any of them from its settings."""
 
+LENGTH, TIME = "m", "s"
+"""The units of every length and time, in options, tables, figures and output. Lengths are
+metres: a DEM's coordinates and heights are metres, and the paper's analytic surfaces
+(dimensionless, "3.57 units" in the paper) are read as metres. Times are seconds of the
+simulation's clock: ``T_c = 1.28 s`` is simulated time, which realtime mode paces by the
+wall clock (``time_scale`` wall-clock seconds per simulated second) and lockstep mode runs
+as fast as it can; timeouts are wall-clock seconds."""
+SPEED, TURN = f"{LENGTH}/{TIME}", f"rad/{TIME}"
+"""A speed (along the surface) and a turn rate (in its metric)."""
+
 MAX_COORDINATE = 1e9  # bound on a leader start component and on a surface parameter
 MAX_SURFACE_PARAMS = 32
 MAX_SURFACE_NAME = 4096  # room for a 'dem:PATH' with a long path (Linux PATH_MAX)
@@ -75,8 +85,8 @@ class Option:
     meaning : str
         One line for ``--help`` and the options table.
     unit : str
-        ``"m"``, ``"s"``, ``"rad"``, ``"ticks"``...; ``"1"`` for a dimensionless number,
-        ``""`` for a name or a choice.
+        :data:`LENGTH`, :data:`TIME`, :data:`SPEED`, ``"rad"``, ``"ticks"``...; ``"1"`` for a
+        dimensionless number, ``""`` for a name or a choice.
     low, high : float, optional
         Allowed range of a number, inclusive (``low`` exclusive with ``low_open``).
     choices : tuple of str
@@ -140,7 +150,7 @@ def option(default: Any, meaning: str, **declaration: Any) -> Any:
 class RunConfig:
     """Every option of a run; defaults are the paper's type I case (design §4, §9).
 
-    Lengths are in the surface's unit (metres on a DEM), times in seconds.
+    Lengths in metres, times in seconds (:data:`LENGTH`, :data:`TIME`).
     """
 
     run_id: str = option("run", f"the run's id (1-{MAX_RUN_ID} of A-Z a-z 0-9 _ . -): its "
@@ -153,12 +163,12 @@ class RunConfig:
                                               flag=None)
     leader_start: tuple[float, float, float, float] | None = option(
         None, "the leader's start position and velocity", value_type=tuple,
-        unit="m, m/s", metavar="X,Y,VX,VY")
+        unit=f"{LENGTH}, {SPEED}", metavar="X,Y,VX,VY")
     followers: int = option(1, "followers in the column", unit="agents", low=1, high=1000,
                             agents=True)
-    comm_period: float = option(1.28, "T_c, time between messages", unit="s", low=0.0,
+    comm_period: float = option(1.28, "T_c, simulated time between messages", unit=TIME, low=0.0,
                                 high=1e4, low_open=True, agents=True)
-    spacing: float = option(3.57, "rod length d (Riemannian)", unit="m", low=0.0, high=1e4,
+    spacing: float = option(3.57, "rod length d (Riemannian)", unit=LENGTH, low=0.0, high=1e4,
                             low_open=True, agents=True)
     ticks: int = option(40, "ticks of the run", unit="ticks", low=2, high=1_000_000,
                         agents=True)
@@ -190,22 +200,22 @@ class RunConfig:
                              high=1_000_000, agents=True)
     gp_samples: int = option(8, "gp: samples fitted", unit="samples", low=3, high=1000,
                              agents=True)
-    kalman_accel: float = option(1e-3, "kalman: process noise", unit="m²/tick⁴", low=0.0,
-                                 high=1e6, low_open=True, agents=True)
+    kalman_accel: float = option(1e-3, "kalman: process noise", unit=f"{LENGTH}²/tick⁴",
+                                 low=0.0, high=1e6, low_open=True, agents=True)
     gps: bool = option(False, "agents read their absolute position (GPS)", agents=True)
-    noise_range: float = option(0.0, "σ of a range reading", unit="m", low=0.0, high=1e3,
+    noise_range: float = option(0.0, "σ of a range reading", unit=LENGTH, low=0.0, high=1e3,
                                 agents=True)
     noise_bearing: float = option(0.0, "σ of a bearing reading", unit="rad", low=0.0,
                                   high=10.0, agents=True)
-    noise_velocity: float = option(0.0, "σ of a velocity (odometry) reading", unit="m/s",
+    noise_velocity: float = option(0.0, "σ of a velocity (odometry) reading", unit=SPEED,
                                    low=0.0, high=1e3, agents=True)
-    noise_move: float = option(0.0, "σ of a move's actuation, per coordinate", unit="m",
+    noise_move: float = option(0.0, "σ of a move's actuation, per coordinate", unit=LENGTH,
                                low=0.0, high=1e3, agents=True, needs=("motion", "teleport"))
-    noise_gps: float = option(0.0, "σ of a GPS reading, per coordinate", unit="m", low=0.0,
+    noise_gps: float = option(0.0, "σ of a GPS reading, per coordinate", unit=LENGTH, low=0.0,
                               high=1e6, needs=("gps", True))
     seed: int = option(0, "seed of every noise stream", low=0, high=2**63 - 1)
     sensing_range: float = option(math.inf, "R_s: how far a follower sees its leader's rod "
-                                  "end (inf = unlimited)", unit="m", low=0.0, high=math.inf,
+                                  "end (inf = unlimited)", unit=LENGTH, low=0.0, high=math.inf,
                                   low_open=True)
     mode: str = option("lockstep", "lockstep, or realtime (paced by the wall clock)",
                        choices=MODES, agents=True)
@@ -215,12 +225,12 @@ class RunConfig:
     time_scale: float = option(1.0, "realtime: wall-clock seconds per simulated second",
                                unit="1", low=0.0, high=1e3, low_open=True, agents=True,
                                needs=("mode", "realtime"))
-    agent_timeout: float = option(10.0, "how long an agent may take to settle", unit="s",
-                                  low=0.0, high=MAX_TIMEOUT, low_open=True, agents=True)
-    start_timeout: float = option(30.0, "how long the world waits for every agent to start, and an "
-                                  "agent for its world (at start, and after it vanished: a "
-                                  "paused or restarted world)",
-                                  unit="s", low=0.0, high=MAX_TIMEOUT, low_open=True,
+    agent_timeout: float = option(10.0, "how long (wall clock) an agent may take to settle",
+                                  unit=TIME, low=0.0, high=MAX_TIMEOUT, low_open=True, agents=True)
+    start_timeout: float = option(30.0, "how long (wall clock) the world waits for every agent "
+                                  "to start, and an agent for its world (at start, and after "
+                                  "it vanished: a paused or restarted world)",
+                                  unit=TIME, low=0.0, high=MAX_TIMEOUT, low_open=True,
                                   agents=True)
     ros2: bool = option(False, "the world also publishes the run's ROS 2 topics (design §10)")
     ros_domain: int = option(0, "ROS 2 domain id of those topics (swarm run: ROS_DOMAIN_ID "
@@ -232,9 +242,9 @@ class RunConfig:
                          "commanded offset) or drive (a unicycle robot on the surface, design §4)",
                          choices=MOTIONS, agents=True)
     max_speed: float | None = option(None, "drive: top forward speed along the surface",
-                                     value_type=float, unit="m/s", low=0.0, high=math.inf,
+                                     value_type=float, unit=SPEED, low=0.0, high=math.inf,
                                      low_open=True, agents=True, needs=("motion", "drive"))
-    max_turn: float = option(2.0, "drive: top turn rate, in the surface's metric", unit="rad/s",
+    max_turn: float = option(2.0, "drive: top turn rate, in the surface's metric", unit=TURN,
                              low=0.0, high=math.inf, low_open=True, agents=True,
                              needs=("motion", "drive"))
     control_steps: int = option(8, "drive: control steps per comm interval (to the estimate)",
@@ -244,9 +254,9 @@ class RunConfig:
                              "end", unit="steps", low=0, high=10_000, agents=True,
                              needs=("motion", "drive"))
     noise_speed: float = option(0.0, "drive: σ of the forward speed's actuation per control "
-                                "step", unit="m/s", low=0.0, high=1e3, needs=("motion", "drive"))
+                                "step", unit=SPEED, low=0.0, high=1e3, needs=("motion", "drive"))
     noise_turn: float = option(0.0, "drive: σ of the turn rate's actuation per control step",
-                               unit="rad/s", low=0.0, high=1e3, needs=("motion", "drive"))
+                               unit=TURN, low=0.0, high=1e3, needs=("motion", "drive"))
     def __post_init__(self) -> None:
         check_run_id(self.run_id)
         if (not isinstance(self.surface, str) or not 0 < len(self.surface) <= MAX_SURFACE_NAME

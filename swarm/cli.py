@@ -171,7 +171,7 @@ def format_summary(summary: dict) -> str:
                   "at a limit" for k, s in summary["followers"].items()]
     lines += shares
     state = "complete" if summary["complete"] else f"INCOMPLETE: {summary['reason']}"
-    lines.append(f"surface {summary['surface']}, comm period {summary['comm_period']}, "
+    lines.append(f"surface {summary['surface']}, comm period {summary['comm_period']} s, "
                  f"{summary['ticks_completed']} ticks, {summary['wall_time']:.1f} s wall, {state}")
     return "\n".join(lines)
 

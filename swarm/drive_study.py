@@ -205,64 +205,10 @@ def minimum_speeds(rows: list[dict], spec: DriveStudySpec) -> list[dict]:
 
 
 def draw_study(rows: list[dict], spec: DriveStudySpec, path: Path) -> Path:
-    """The study's figure: formation error (top) and required range (bottom) against the
-    control steps, the top speed (at the base comm period) and the comm period (at the base
-    top speed); colour the surface, marker the estimator."""
-    from swarm.plots import ESTIMATOR_STYLE, _figure, _log_y, _save, _styled
+    """The study's figure (:func:`swarm.plots.plot_drive_study`)."""
+    from swarm.plots import plot_drive_study
 
-    @_styled
-    def draw() -> Path:
-        fig = _figure(15.0, 8.5)
-        axes = fig.subplots(2, 3, squeeze=False)
-        colours = dict(zip(spec.surfaces, ("tab:blue", "tab:orange", "tab:green", "tab:brown"),
-                           strict=False))
-        panels = (("steps", "control_steps", "control steps per comm interval", None),
-                  ("speed", "speed_factor", "top speed / leader's speed", spec.base_period),
-                  ("speed", "comm_period", "comm period T_c", spec.base_factor))
-        for col, (block, x_key, x_label, fixed) in enumerate(panels):
-            for row, (y_key, y_label) in enumerate((("mean_formation_error", "formation error"),
-                                                    ("mean_required_range",
-                                                     "required sensing range"))):
-                ax = axes[row][col]
-                for surface in spec.surfaces:
-                    for label in spec.estimators:
-                        mine = [r for r in rows if r["block"] == block
-                                and r["surface"] == surface and r["estimator"] == label]
-                        if x_key == "speed_factor":
-                            mine = [r for r in mine if r["comm_period"] == fixed]
-                        if x_key == "comm_period":
-                            mine = [r for r in mine if r["speed_factor"] == fixed]
-                        mine.sort(key=lambda r: r[x_key])
-                        xs = [_plotted(r[x_key]) for r in mine]
-                        marker = ESTIMATOR_STYLE.get(label, ("k", "o"))[1]
-                        ax.plot(xs, [r[y_key] for r in mine], marker=marker, ms=5, lw=1,
-                                color=colours[surface],
-                                label=f"{surface}, {label}" if col == 0 else None)
-                if ax.dataLim.intervalx[0] > 0:
-                    ax.set_xscale("log", base=2)
-                _log_y(ax)
-                ax.set(xlabel=x_label, ylabel=f"mean {y_label} (length units)")
-                if x_key == "speed_factor":
-                    ax.set_title(f"T_c = {fixed:g}, {spec.base_steps} control steps "
-                                 "(rightmost: unbounded)")
-                elif x_key == "comm_period":
-                    ax.set_title(f"top speed {fixed:g}× the leader's, {spec.base_steps} steps")
-                else:
-                    ax.set_title(f"T_c = {spec.base_period:g}, top speed "
-                                 f"{spec.base_factor:g}× the leader's")
-        axes[0][0].legend(fontsize=7, ncol=2, loc="best")
-        fig.suptitle("driving followers (--motion drive), noise-free: mean over the column's "
-                     f"{spec.followers} followers")
-        return _save(fig, path)
-
-    return draw()
-
-
-UNBOUNDED_PLOT = 8.0  # where "unbounded" is drawn on the top-speed axis
-
-
-def _plotted(x: float) -> float:
-    return UNBOUNDED_PLOT if math.isinf(x) else x
+    return plot_drive_study(rows, spec, path)
 
 
 def write_report(out_dir: Path, rows: list[dict], minimum: list[dict], spec: DriveStudySpec,

@@ -2,8 +2,8 @@
 
 Figures use matplotlib's object API on an Agg canvas: no pyplot, no display, no global
 backend switch. Every PNG is written atomically (temporary file, then rename), like the rest
-of a results folder. Lengths are in the surface's length units, times in its time units
-(the leader's speed is about one length unit per time unit).
+of a results folder. Lengths are in metres and times in seconds, on every surface
+(:data:`protocol.config.LENGTH`, :data:`protocol.config.TIME`).
 
 Table figures take the rows of a table as read back by :func:`swarm.grid.read_table`
 (dicts; missing numbers are NaN), so they draw exactly what the tables hold.
@@ -25,6 +25,9 @@ from matplotlib.colors import LightSource
 from matplotlib.figure import Figure
 from matplotlib.ticker import NullLocator
 
+from protocol.config import LENGTH as LENGTH_UNIT
+from protocol.config import SPEED as SPEED_UNIT
+from protocol.config import TIME as TIME_UNIT
 from protocol.config import RunConfig, load_config
 from protocol.folder import write_atomic
 from protocol.record import CONTROLS_FILE, SUMMARY_FILE, TICKS_FILE, read_controls, read_ticks
@@ -67,9 +70,7 @@ VARIANT_STYLE = {"b": ("tab:blue", ""), "c-lagged": ("tab:blue", "//"),
                  "stay": ("tab:red", "")}
 PAPER_COMM_PERIOD = RunConfig().comm_period  # the paper's T_c, the run default
 RANGE_LABEL = "mean required sensing range"
-UNITS = ("length units", "time units")  # an analytic surface's
-DEM_UNITS = ("m", "s")  # a DEM's: metres, and seconds of driving
-LENGTH = f"({UNITS[0]})"
+LENGTH = f"({LENGTH_UNIT})"  # an axis label's unit
 
 
 def _styled(func: Callable) -> Callable:
@@ -98,14 +99,23 @@ MAX_LEGEND_COLUMNS = 6
 
 def _figure_legend(fig: Figure) -> None:
     """Every panel's labelled artists in one legend below the panels ("outside lower
-    center": the constrained layout reserves its height), in as many columns (at most
-    :data:`MAX_LEGEND_COLUMNS`) as fit in the figure's width."""
+    center": the constrained layout reserves its height, and the legend covers no data), in
+    as many columns (at most :data:`MAX_LEGEND_COLUMNS`) as fit in the figure's width; none
+    if nothing is labelled."""
+    if not any(ax.get_legend_handles_labels()[0] for ax in fig.axes):
+        return
     renderer = fig.canvas.get_renderer()
     for ncol in range(MAX_LEGEND_COLUMNS, 0, -1):
         legend = fig.legend(loc="outside lower center", ncol=ncol)
         if ncol == 1 or legend.get_window_extent(renderer).width <= fig.bbox.width:
             return
         legend.remove()
+
+
+def _legend_below(ax, **kwargs) -> None:
+    """``ax``'s legend under its x axis (the constrained layout makes room for it), where it
+    covers no data."""
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), **kwargs)
 
 
 def _suptitle(fig: Figure, text: str) -> None:
@@ -117,8 +127,10 @@ def _suptitle(fig: Figure, text: str) -> None:
                                                        / width))))
 
 
-def _figure(width: float, height: float) -> Figure:
-    fig = Figure(figsize=(width, height), dpi=DPI, layout="constrained")
+def _figure(width: float, height: float, layout: str = "constrained") -> Figure:
+    """A figure on an Agg canvas; ``layout="compressed"`` for one whose panels have a fixed
+    aspect (equal axes), which the constrained layout places with labels cut off."""
+    fig = Figure(figsize=(width, height), dpi=DPI, layout=layout)
     FigureCanvasAgg(fig)
     return fig
 
@@ -218,12 +230,12 @@ def _terrain_map(fig, ax, rows: list[dict], config: RunConfig, surface: Surface,
                  aspect: float) -> tuple[str, list]:
     """Draw a run's terrain under ``ax`` (contour lines or a DEM's relief, with its colour
     bar), fitted to every settled and ideal position at ``aspect`` and equal axes, and the
-    leader's path; return the length unit's label and the leader's rows."""
+    leader's path; return the axis label's length unit and the leader's rows."""
     positions = np.array([(r[f"{c}_x"], r[f"{c}_y"]) for r in rows for c in ("pos", "ideal")
                           if r.get(f"{c}_x") is not None])
     low, high = widen_to_aspect(np.nanmin(positions, axis=0) - config.spacing,
                                 np.nanmax(positions, axis=0) + config.spacing, aspect)
-    length = f"({DEM_UNITS[0]})" if isinstance(surface, DemSurface) else LENGTH
+    length = LENGTH
     contours = _surface_contours(ax, surface, low, high)
     fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {length}")
     lead = sorted((r for r in rows if r["agent"] == 0), key=lambda r: r["tick"])
@@ -279,29 +291,28 @@ def _draw_effectiveness(rows: list[dict], config: RunConfig, surface: Surface, p
            title=f"leader and {config.followers} follower(s) over the "
                  f"{'hillshaded relief' if isinstance(surface, DemSurface) else 'contour lines'}, "
                  f"estimator {_estimator_label(config)}")
-    ax.legend(loc="best", framealpha=0.9)
     for col, k in enumerate(followers):
         rel = leader_relative(rows, k)
         for row, (ideal, est, label, scale) in enumerate((
                 ("r_ideal", "r_est", f"distance {length}", 1.0),
                 ("theta_ideal", "theta_est", "bearing (deg)", 180 / math.pi)), start=1):
             sub = fig.add_subplot(grid[row, col])
+            first = row == 1 and col == 0  # labels its curves, once, for the figure's legend
             sub.plot(rel["tick"], rel[ideal] * scale, "o-", color=IDEAL_COLOR, ms=3, lw=1,
-                     label="ideal (measured)")
+                     label="leader seen from the ideal position (measured)" if first else None)
             sub.plot(rel["tick"], rel[est] * scale, "x--", color=ESTIMATE_COLOR, ms=4, lw=1,
-                     label="estimated (predicted)")
+                     label="from the estimate (predicted)" if first else None)
             sub.axvline(config.init_ticks - 0.5, color="0.5", ls=":", lw=1,
-                        label="estimation starts")
+                        label="estimation starts" if first else None)
             sub.ticklabel_format(axis="y", useOffset=False)
             sub.set(title=f"follower {k}: leader's {label.split()[0]}")
             if col == 0:
                 sub.set_ylabel(label)
             if row == 2:
                 sub.set_xlabel("tick j (t = j·T_c)")
-            if row == 1 and col == 0:
-                sub.legend(loc="best", framealpha=0.9, fontsize=9)
+    _figure_legend(fig)
     _suptitle(fig, title or f"{config.surface}: trajectory estimation, T_c = "
-                            f"{config.comm_period:g}")
+                            f"{config.comm_period:g} {TIME_UNIT}")
     return _save(fig, path)
 
 
@@ -309,34 +320,37 @@ def _draw_effectiveness(rows: list[dict], config: RunConfig, surface: Surface, p
 def _draw_required_range(rows: list[dict], config: RunConfig, summary: dict,
                          path: str | Path) -> Path:
     """Required sensing range of one run: per-follower means against the two baselines
-    (bars, from ``summary.json``) and per tick (lines, from ``ticks.csv``)."""
-    fig = _figure(12.0, 4.6)
-    bars, lines = fig.subplots(1, 2, width_ratios=(1, 1.4))
+    (markers, from ``summary.json``) and per tick (lines, from ``ticks.csv``); each panel's
+    legend below it, off the data."""
+    fig = _figure(12.0, 5.6)
+    means, lines = fig.subplots(1, 2, width_ratios=(1, 1.4))
     followers = sorted(summary["followers"], key=int)
     x = np.arange(len(followers))
-    series = ((f"{_estimator_label(config)} (this run)", "mean_required_range", ESTIMATE_COLOR),
-              ("stay (counterfactual)", "mean_stay_range", ESTIMATOR_STYLE["stay"][0]),
-              ("persist (counterfactual)", "mean_persist_range", ESTIMATOR_STYLE["persist"][0]))
-    for i, (label, key, color) in enumerate(series):
+    series = ((f"{_estimator_label(config)} (this run)", "mean_required_range", ESTIMATE_COLOR,
+               ESTIMATOR_STYLE["edmd-b"][1]),
+              ("stay (counterfactual)", "mean_stay_range", *ESTIMATOR_STYLE["stay"]),
+              ("persist (counterfactual)", "mean_persist_range", *ESTIMATOR_STYLE["persist"]))
+    for i, (label, key, color, marker) in enumerate(series):
         values = [_nan(summary["followers"][k][key]) for k in followers]
-        bars.bar(x + (i - 1) * 0.27, values, 0.27, color=color, label=label)
-    bars.set_xticks(x, [f"follower {k}" for k in followers])
-    if _log_y(bars):
-        bars.set_ylim(top=bars.get_ylim()[1] * 30)  # room for the legend above the bars
-    bars.set(ylabel=f"{RANGE_LABEL} {LENGTH}", title="mean over estimated ticks")
-    bars.legend(loc="upper center", ncol=1, framealpha=0.9)
+        _dots(means, x + (i - 1) * 0.15, values, color, marker, label=label)
+    means.set_xticks(x, [f"F{k}" for k in followers])
+    means.set_xlim(-0.5, len(followers) - 0.5)
+    _log_y(means)
+    means.set(xlabel="follower", ylabel=f"{RANGE_LABEL} {LENGTH}",
+              title="mean over estimated ticks")
+    _legend_below(means, ncol=1, fontsize=9.5)
     for k in followers:
         mine = sorted((r for r in rows if r["agent"] == int(k) and r["required_range"] is not None),
                       key=lambda r: r["tick"])
         line, = lines.plot([r["tick"] for r in mine], [r["required_range"] for r in mine], ".-",
                            label=f"follower {k}")
         lines.plot([r["tick"] for r in mine], [r["persist_range"] for r in mine], ":",
-                   color=line.get_color(), label=f"follower {k}, persist")
+                   color=line.get_color())
     _log_y(lines)
     lines.set(xlabel="tick j", ylabel=f"required sensing range {LENGTH}",
               title="per tick (dotted: persist counterfactual)")
-    lines.legend(loc="best", ncol=2, fontsize=8.5, framealpha=0.9)
-    _suptitle(fig, f"{config.surface}, T_c = {config.comm_period:g}: "
+    _legend_below(lines, ncol=min(len(followers), 5), fontsize=9.5)
+    _suptitle(fig, f"{config.surface}, T_c = {config.comm_period:g} {TIME_UNIT}: "
                    "distance from the estimate to the ideal position")
     return _save(fig, path)
 
@@ -401,7 +415,7 @@ def _draw_driven_paths(rows: list[dict], config: RunConfig, surface: Surface,
     """A drive run's paths: every follower's path control step by control step (blue,
     :func:`driven_paths`) from where it started, over the terrain, against its ideal
     positions (red), with the leader (black)."""
-    fig = _figure(13.0, 6.5)
+    fig = _figure(13.0, 6.5, layout="compressed")
     ax = fig.add_subplot()
     length, _ = _terrain_map(fig, ax, rows, config, surface, aspect=2.0)
     paths = driven_paths(config, surface, rows, controls)
@@ -415,10 +429,11 @@ def _draw_driven_paths(rows: list[dict], config: RunConfig, surface: Surface,
         ax.plot([r["pos_x"] for r in mine], [r["pos_y"] for r in mine], "x",
                 color=ESTIMATE_COLOR, ms=4, mew=1, label="settled" if k == 1 else None)
     ax.set(xlabel=f"x {length}", ylabel=f"y {length}")
-    ax.legend(loc="best", framealpha=0.9)
+    _figure_legend(fig)
     _suptitle(fig, f"{config.surface}: driving followers ({config.control_steps} control + "
-                   f"{config.snap_steps} correction steps per T_c = {config.comm_period:g}, "
-                   f"top speed {config.max_speed:.3g}, estimator {_estimator_label(config)})")
+                   f"{config.snap_steps} correction steps per T_c = {config.comm_period:g} "
+                   f"{TIME_UNIT}, top speed {config.max_speed:.3g} {SPEED_UNIT}, "
+                   f"estimator {_estimator_label(config)})")
     return _save(fig, path)
 
 
@@ -473,32 +488,44 @@ def _panels(fig: Figure, n: int, **kwargs) -> list:
     return list(axes)
 
 
-def _label_bars(ax, bars, values: Sequence[float]) -> None:
-    ax.bar_label(bars, labels=["" if math.isnan(v) else f"{v:.2g}" for v in values],
-                 fontsize=10, padding=1)
+def _dots(ax, x: Sequence[float], values: Sequence[float], color: str, marker: str,
+          label: str | None = None, joined: bool = False, values_shown: bool = False) -> None:
+    """``values`` at ``x`` as markers (on a log axis a bar has no honest base: its length
+    would be the axis floor's choice), ``joined`` by a thin line, each ``values_shown`` to
+    two digits beside it."""
+    ax.plot(x, values, marker=marker, color=color, ms=8, ls="-" if joined else "none", lw=0.8,
+            label=label)
+    if values_shown:
+        for xi, v in zip(x, values):
+            if not math.isnan(v):
+                ax.annotate(f"{v:.2g}", (xi, v), xytext=(7, 0), textcoords="offset points",
+                            va="center", fontsize=10,
+                            bbox={"fc": "white", "ec": "none", "alpha": 0.75, "pad": 0.5})
 
 
 @_styled
 def plot_sensing_range(rows: list[dict], path: str | Path) -> Path:
-    """Bars of the mean required sensing range per follower and estimator, one panel per
-    surface (the paper's Fig. "averaged follower required sensing range"), log scale."""
+    """The mean required sensing range per follower and estimator as markers (one line per
+    estimator down the column), one panel per surface (the paper's Fig. "averaged follower
+    required sensing range", drawn there as bars), log scale."""
     surfaces = _surfaces(rows)
     fig = _figure(PANEL_WIDTH * len(surfaces) + 0.6, 4.8)
     estimators = list(dict.fromkeys(r["estimator"] for r in rows))
     for ax, surface in zip(_panels(fig, len(surfaces), sharey=True), surfaces):
         mine = [r for r in rows if r["surface"] == surface]
         followers = sorted({r["follower"] for r in mine})
-        width = 0.8 / len(estimators)
+        width = 0.5 / len(estimators)  # markers side by side, so that equal values both show
         styles = estimator_styles(estimators)
         for i, est in enumerate(estimators):
             values = [next((r["mean_required_range"] for r in mine
                             if r["follower"] == k and r["estimator"] == est), math.nan)
                       for k in followers]
             x = np.arange(len(followers)) + (i - (len(estimators) - 1) / 2) * width
-            ax.bar(x, values, width, color=styles[est][0],
-                   label=est if surface == surfaces[0] else None)
+            _dots(ax, x, values, *styles[est], label=est if surface == surfaces[0] else None,
+                  joined=True)
         ax.set_xticks(np.arange(len(followers)), [f"F{k}" for k in followers])
         ax.set_xlabel("follower")
+        ax.set_xlim(-0.5, len(followers) - 0.5)
         _log_y(ax)
         ax.set_title(SURFACE_TITLES.get(surface, surface))
     fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
@@ -508,8 +535,9 @@ def plot_sensing_range(rows: list[dict], path: str | Path) -> Path:
 
 @_styled
 def plot_dictionaries(rows: list[dict], surface: str, path: str | Path) -> Path:
-    """RMSE per dictionary on one surface: (a) local measurements a–c, (b) absolute positions
-    d–g (the paper's two panels), with the ``stay`` and ``persist`` baselines as lines."""
+    """RMSE per dictionary on one surface, markers on a log scale: (a) local measurements a–c,
+    (b) absolute positions d–g (the paper's two panels, bars there), with the ``stay`` and
+    ``persist`` baselines as lines."""
     mine = {r["dictionary"]: r for r in rows if r["surface"] == surface}
     fig = _figure(11.0, 4.8)
     panels = _panels(fig, 2, sharey=True, width_ratios=(3, 4))
@@ -517,20 +545,18 @@ def plot_dictionaries(rows: list[dict], surface: str, path: str | Path) -> Path:
             ("(a) local measurements", "abc", "tab:blue"),
             ("(b) absolute position (GPS)", "defg", "tab:orange"))):
         names = [n for n in names if n in mine]
-        values = [mine[n]["rmse"] for n in names]
-        drawn = ax.bar(range(len(names)), values, 0.6, color=color)
-        _label_bars(ax, drawn, values)
+        _dots(ax, range(len(names)), [mine[n]["rmse"] for n in names], color, "o",
+              values_shown=True)
         ax.set_xticks(range(len(names)), [DICTIONARY_LABELS[n] for n in names])
         for base, style in (("persist", "--"), ("stay", ":")):
             if base in mine and not math.isnan(mine[base]["rmse"]):
                 ax.axhline(mine[base]["rmse"], color=ESTIMATOR_STYLE[base][0], ls=style, lw=1.5,
-                           label=f"{base}: {mine[base]['rmse']:.2g}")
+                           label=f"{base}: {mine[base]['rmse']:.2g}" if ax is panels[0] else None)
         ax.set(title=title, xlabel="dictionary (lifted measurements)")
         _log_y(ax)
-        ax.margins(x=0.08)
+        ax.set_xlim(-0.5, len(names) - 0.5)
     panels[0].set_ylabel(f"RMSE of the estimate {LENGTH}")
-    if panels[0].get_legend_handles_labels()[0]:
-        panels[0].legend(loc="best", framealpha=0.9)
+    _figure_legend(fig)
     _suptitle(fig, f"{SURFACE_TITLES.get(surface, surface)}: dictionaries for data-streaming "
                    "EDMD (idealised: oracle velocity for c)")
     return _save(fig, path)
@@ -572,19 +598,18 @@ def plot_practical(rows: list[dict], path: str | Path) -> Path:
         title = SURFACE_TITLES.get(surface, surface)
         ax.set_xticks(np.arange(len(noises)), [f"{nv:g}" for nv in noises])
         ax.set(title=title + (f"\n(stay, not drawn: {np.mean(stay):.2g})" if stay else ""),
-               xlabel="velocity noise σ_v (length/time)")
+               xlabel=f"velocity noise σ_v ({SPEED_UNIT})")
         ax.set_ylim(bottom=0)
     fig.axes[0].set_ylabel(f"RMSE of the estimate {LENGTH}")
     seeds = max((r["seeds"] for r in rows), default=0)
-    _suptitle(fig, f"Practical case: actuation noise σ_move = {move:g} per move; "
+    _suptitle(fig, f"Practical case: actuation noise σ_move = {move:g} {LENGTH_UNIT} per move; "
                    f"mean ± s.d. over {seeds} seed(s)")
     _figure_legend(fig)
     return _save(fig, path)
 
 
 @_styled
-def plot_comm_period(rows: list[dict], path: str | Path,
-                     units: tuple[str, str] = UNITS) -> Path:
+def plot_comm_period(rows: list[dict], path: str | Path) -> Path:
     """Mean required sensing range against the comm period T_c (log–log), one panel per
     surface, one curve per estimator."""
     surfaces = _surfaces(rows)
@@ -606,15 +631,14 @@ def plot_comm_period(rows: list[dict], path: str | Path,
         ax.set_xticks(periods, [f"{p:g}" for p in periods], rotation=45)
         ax.xaxis.set_minor_locator(NullLocator())
         ax.set(title=SURFACE_TITLES.get(surface, surface),
-               xlabel=f"comm period T_c ({units[1]})")
-    fig.axes[0].set_ylabel(f"{RANGE_LABEL} ({units[0]})")
+               xlabel=f"comm period T_c ({TIME_UNIT})")
+    fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
     _figure_legend(fig)
     return _save(fig, path)
 
 
 @_styled
-def plot_position(rows: list[dict], path: str | Path,
-                  units: tuple[str, str] = UNITS) -> Path:
+def plot_position(rows: list[dict], path: str | Path) -> Path:
     """Mean required sensing range against the position in the column (follower 1 … N), one
     panel per comm period, one curve per estimator (log y)."""
     periods = sorted({r["comm_period"] for r in rows})
@@ -631,7 +655,150 @@ def plot_position(rows: list[dict], path: str | Path,
         _log_y(ax)
         followers = sorted({r["follower"] for r in rows})
         ax.set_xticks(followers, [str(k) for k in followers])
-        ax.set(title=f"T_c = {period:g}", xlabel="position in the column (follower k)")
-    fig.axes[0].set_ylabel(f"{RANGE_LABEL} ({units[0]})")
+        ax.set(title=f"T_c = {period:g} {TIME_UNIT}", xlabel="position in the column (follower k)")
+    fig.axes[0].set_ylabel(f"{RANGE_LABEL} {LENGTH}")
     _figure_legend(fig)
+    return _save(fig, path)
+
+
+SURFACE_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:brown", "tab:purple", "tab:olive")
+"""A surface's colour in a figure of several surfaces, in the order they come."""
+
+
+def _plain_ticks(ax, values: Sequence[float], labels: Sequence[str] | None = None) -> None:
+    """Ticks at ``values`` labelled as plain numbers (``0.64``, not ``2^-0.64``) or
+    ``labels``, no others."""
+    ax.set_xticks(list(values), labels or [f"{v:g}" for v in values])
+    ax.xaxis.set_minor_locator(NullLocator())
+
+
+@_styled
+def plot_drive_study(rows: list[dict], spec, path: str | Path) -> Path:
+    """The drive study's figure: mean formation error (top) and mean required sensing range
+    (bottom) against the control steps, the top speed (at the base comm period) and the comm
+    period (at the base top speed); colour the surface, marker the estimator.
+
+    The top speed is drawn as its margin over the leader's speed (``speed_factor − 1``, +2 %
+    … +200 %) on a log axis, where the factors 1.02, 1.05 and 1.1 stay apart. The unbounded
+    robot (``speed_factor`` inf) has no place on a numeric axis: it is drawn in a narrow
+    panel of its own beside it, sharing its y axis.
+
+    Parameters
+    ----------
+    rows : list of dict
+        ``tables/drive.csv``'s rows (:func:`swarm.grid.read_table`).
+    spec : swarm.drive_study.DriveStudySpec
+        The study's grid: its surfaces, estimators, base steps, factor and period, followers.
+    path : str or Path
+        The PNG to write.
+    """
+    fig = _figure(15.0, 9.0)
+    grid = fig.add_gridspec(2, 4, width_ratios=(1, 0.82, 0.1, 1))
+    colours = dict(zip(spec.surfaces, SURFACE_COLORS, strict=False))
+    markers = {label: ESTIMATOR_STYLE.get(label, OTHER_STYLES[0])[1]
+               for label in spec.estimators}
+    base = f"{spec.base_factor:g}× the leader's"
+    panels = (("steps", "control_steps", "control steps per comm interval", None,
+               f"T_c = {spec.base_period:g} {TIME_UNIT}, top speed {base}"),
+              ("speed", "speed_factor", "top speed above the leader's", spec.base_period,
+               f"T_c = {spec.base_period:g} {TIME_UNIT}, {spec.base_steps} control steps"),
+              ("speed", "comm_period", f"comm period T_c ({TIME_UNIT})", spec.base_factor,
+               f"top speed {base}, {spec.base_steps} control steps"))
+    for row, (y_key, y_label) in enumerate((("mean_formation_error", "formation error"),
+                                            ("mean_required_range", "required sensing range"))):
+        unbounded = fig.add_subplot(grid[row, 2])
+        for (block, x_key, x_label, fixed, title), col in zip(panels, (0, 1, 3)):
+            ax = fig.add_subplot(grid[row, col], sharey=unbounded if col == 1 else None)
+            xs_seen: set[float] = set()
+            for surface in spec.surfaces:
+                for label in spec.estimators:
+                    mine = [r for r in rows if r["block"] == block
+                            and r["surface"] == surface and r["estimator"] == label]
+                    if x_key == "speed_factor":
+                        mine = [r for r in mine if r["comm_period"] == fixed]
+                    if x_key == "comm_period":
+                        mine = [r for r in mine if r["speed_factor"] == fixed]
+                    mine.sort(key=lambda r: r[x_key])
+                    finite = [r for r in mine if math.isfinite(r[x_key])]
+                    xs = [r[x_key] - (x_key == "speed_factor") for r in finite]
+                    style = {"marker": markers[label], "color": colours[surface], "ms": 5}
+                    ax.plot(xs, [r[y_key] for r in finite], lw=1, **style)
+                    xs_seen.update(xs)
+                    if x_key == "speed_factor":
+                        unbounded.plot([0.0] * (len(mine) - len(finite)),
+                                       [r[y_key] for r in mine if not math.isfinite(r[x_key])],
+                                       ls="none", **style)
+            ax.set_xscale("log", base=2)
+            _log_y(ax)
+            _plain_ticks(ax, sorted(xs_seen), [f"+{100 * x:.0f}%" for x in sorted(xs_seen)]
+                         if x_key == "speed_factor" else None)
+            if x_key == "speed_factor":
+                ax.tick_params(axis="x", labelrotation=40)
+            ax.set(xlabel=x_label, ylabel=f"mean {y_label} {LENGTH}", title=title)
+            if col == 1:
+                ax.set_ylabel("")
+        unbounded.set_xticks([0.0], ["un-\nbounded"])
+        unbounded.set_xlim(-1, 1)
+        unbounded.tick_params(axis="y", labelleft=False)
+        unbounded.grid(axis="x", visible=False)
+    proxies = [matplotlib.lines.Line2D([], [], color=c, lw=2, label=s) for s, c in colours.items()]
+    proxies += [matplotlib.lines.Line2D([], [], color="k", marker=m, ls="none", label=e)
+                for e, m in markers.items()]
+    fig.legend(handles=proxies, loc="outside lower center", ncol=len(proxies))
+    _suptitle(fig, "driving followers (--motion drive), noise-free: mean over the column's "
+                   f"{spec.followers} followers (colour: surface; marker: estimator)")
+    return _save(fig, path)
+
+
+@_styled
+def plot_column_noise(rows: list[dict], path: str | Path) -> Path:
+    """Errors travelling down a noisy column (``bench/bench_column_noise.py``): mean formation
+    error (top) and mean required sensing range (bottom) per follower, one panel per surface;
+    colour the noise level, line and marker the estimator (log y).
+
+    Parameters
+    ----------
+    rows : list of dict
+        ``tables/column_noise.csv``'s rows: ``surface``, ``noise_range``, ``noise_bearing``,
+        ``estimator``, ``follower``, ``mean_formation_error``, ``mean_required_range``.
+    path : str or Path
+        The PNG to write.
+    """
+    surfaces = _surfaces(rows)
+    levels = list(dict.fromkeys((r["noise_range"], r["noise_bearing"]) for r in rows))
+    estimators = list(dict.fromkeys(r["estimator"] for r in rows))
+    colours = dict(zip(levels, ("tab:green", "tab:blue", "tab:red", *SURFACE_COLORS),
+                       strict=False))
+    lines = dict(zip(estimators, ("--", "-", ":", "-."), strict=False))
+    markers = {e: estimator_styles(estimators)[e][1] for e in estimators}
+    fig = _figure(PANEL_WIDTH * len(surfaces) + 0.6, 7.6)
+    axes = fig.subplots(2, len(surfaces), sharex=True, squeeze=False)
+    for col, surface in enumerate(surfaces):
+        for row, (key, label) in enumerate((("mean_formation_error", "formation error"),
+                                            ("mean_required_range", "required sensing range"))):
+            ax = axes[row][col]
+            for level in levels:
+                for est in estimators:
+                    mine = sorted((r["follower"], r[key]) for r in rows
+                                  if r["surface"] == surface and r["estimator"] == est
+                                  and (r["noise_range"], r["noise_bearing"]) == level)
+                    ax.plot(*zip(*mine), lines[est], marker=markers[est], ms=4, lw=1.2,
+                            color=colours[level], mfc="white" if lines[est] != "-" else None)
+            _log_y(ax)
+            if col == 0:
+                ax.set_ylabel(f"mean {label} {LENGTH}")
+            if row == 1:
+                ax.set_xlabel("follower k (position in the column)")
+        axes[0][col].set_title(SURFACE_TITLES.get(surface, surface))
+    followers = sorted({r["follower"] for r in rows})
+    axes[1][0].set_xticks(followers, [str(k) for k in followers])
+    proxies = [matplotlib.lines.Line2D([], [], color=c, lw=2,
+                                       label=f"σ_range {nr:g} {LENGTH_UNIT}, σ_bearing {nb:g} rad")
+               for (nr, nb), c in colours.items()]
+    proxies += [matplotlib.lines.Line2D([], [], color="k", ls=lines[e], marker=markers[e],
+                                        mfc="white" if lines[e] != "-" else None, label=e)
+                for e in estimators]
+    fig.legend(handles=proxies, loc="outside lower center", ncol=len(proxies))
+    _suptitle(fig, "Errors down a noisy column: mean over seeds per follower (colour: noise "
+                   "on range and bearing; line and marker: estimator)")
     return _save(fig, path)

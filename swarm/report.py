@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from protocol.config import LENGTH, SPEED, TIME
 from protocol.folder import write_atomic
 from swarm.grid import is_nan, read_table
 
@@ -149,11 +150,12 @@ def _practical_text(rows: list[dict]) -> str:
     b_persist = [_ratio(rmse[(s, "b", noises[0])], rmse[(s, "persist", noises[0])])
                  for s in surfaces]
     near = max(abs(1 - x) for x in b_persist)
-    return (f"Noise: σ_v ∈ {{{', '.join(f'{nv:g}' for nv in noises)}}} on every velocity "
-            f"reading, σ_move = {move:g} on every move, none on range or bearing; mean RMSE over "
+    return (f"Noise: σ_v ∈ {{{', '.join(f'{nv:g}' for nv in noises)}}} {SPEED} on every "
+            f"velocity reading, σ_move = {move:g} {LENGTH} on every move, none on range or "
+            f"bearing; mean RMSE over "
             f"{max(r['seeds'] for r in rows)} seeds. With σ_v > 0, b has the lowest RMSE of the "
             f"three EDMD variants in {len(b_best)} of {len(noisy)} (surface, σ_v) cells, which "
-            f"{verdict}. At σ_v = {top:g}: " + "; ".join(
+            f"{verdict}. At σ_v = {top:g} {SPEED}: " + "; ".join(
                 f"{s} b {_g(rmse[(s, 'b', top)])}, c-lagged {_g(rmse[(s, 'c-lagged', top)])}, "
                 f"c-estimated {_g(rmse[(s, 'c-estimated', top)])}" for s in surfaces)
             + f". b reads no velocity, so its RMSE does not move with σ_v (largest change "
@@ -161,10 +163,11 @@ def _practical_text(rows: list[dict]) -> str:
             + ("" if is_nan(spread["rmse_std"]) else
                f" The largest spread over seeds is {spread['variant']}'s (s.d. "
                f"{_g(spread['rmse_std'])} on {spread['surface']} at σ_v = "
-               f"{spread['noise_velocity']:g}).")
+               f"{spread['noise_velocity']:g} {SPEED}).")
             + f" A follower's snap is a move by the rod-end offset it reads (exact here: no "
             f"range or bearing noise) with the same actuation noise, so actuation noise does not "
-            f"accumulate but puts a floor of about 2·σ_move = {_g(2 * move)} under every RMSE "
+            f"accumulate but puts a floor of about 2·σ_move = {_g(2 * move)} {LENGTH} under "
+            f"every RMSE "
             f"(the move's and the last snap's, σ_move·√2 each). b's RMSE over persist's: "
             + ", ".join(f"{s} {_times(x)}" for s, x in zip(surfaces, b_persist))
             + (f": with actuation noise, b is within {100 * near:.0f}% of simply assuming a "
@@ -180,18 +183,18 @@ def _comm_period_text(rows: list[dict], paper_period: float) -> str:
     for s in surfaces:
         worse = [tc for tc in periods if not value[(s, tc, "edmd-b")] < value[(s, tc, "persist")]]
         at = ("edmd-b is not lower than persist at T_c ∈ "
-              f"{{{', '.join(f'{tc:g}' for tc in worse)}}}"
+              f"{{{', '.join(f'{tc:g}' for tc in worse)}}} {TIME}"
               if worse else "edmd-b is lower than persist at every T_c")
         gains = [_times(_ratio(value[(s, tc, "persist")], value[(s, tc, "edmd-b")]))
                  for tc in periods]
         parts.append(f"On {s}, persist's range over edmd-b's goes " + ", ".join(gains)
-                     + f" over T_c = {periods[0]:g} … {periods[-1]:g}; {at}")
+                     + f" over T_c = {periods[0]:g} … {periods[-1]:g} {TIME}; {at}")
     cells = [(s, tc) for s in surfaces for tc in periods]
     others = ("stay", "persist", "edmd-b")
     auto_best = sum(value[(*c, "auto")] <= min(value[(*c, e)] for e in others) for c in cells)
     stay = [_ratio(value[(s, periods[-1], "stay")], value[(s, periods[0], "stay")])
             for s in surfaces]
-    return (f"Beyond the paper, which uses T_c = {paper_period:g} only. Every run "
+    return (f"Beyond the paper, which uses T_c = {paper_period:g} {TIME} only. Every run "
             f"has the same number of ticks, so the leader travels further at larger T_c. While "
             f"T_c grows "
             f"{_times(periods[-1] / periods[0])}, stay grows {_times(min(stay))} to "
@@ -228,12 +231,14 @@ def paper_report(tables_dir: str | Path) -> str:
         f"parallel. Wall time {run_time + figure_time:.0f} s (runs {run_time:.0f} s, tables "
         f"and figures {figure_time:.0f} s) on {setup['cpus']} CPU(s).", "",
         f"Setup: {setup['ticks']} ticks per run ({setup['init_ticks']} initial, "
-        f"{setup['ticks'] - setup['init_ticks']} estimated), rod length {setup['spacing']:g}, "
+        f"{setup['ticks'] - setup['init_ticks']} estimated), rod length "
+        f"{setup['spacing']:g} {LENGTH}, "
         f"unlimited sensing range (after moving to its estimate every follower moves by the "
         f"rod-end offset it reads: onto the rod end without noise, near it with noise), each "
-        f"surface's paper leader start, T_c = {setup['comm_period']:g} "
-        f"unless swept. Seeds fixed (0 unless listed). Numbers are lengths in the surface's "
-        f"units; the required sensing range is the distance from the estimate to the true "
+        f"surface's paper leader start, T_c = {setup['comm_period']:g} {TIME} "
+        f"unless swept. Seeds fixed (0 unless listed). Lengths are in metres ({LENGTH}; the "
+        f"paper's surfaces are read as metres), times in seconds ({TIME}); the required "
+        f"sensing range is the distance from the estimate to the true "
         f"ideal position. Tables: `tables/*.csv`; every row names the run folder(s) under "
         f"`runs/` behind it; `tables/runs.csv` lists every run with its status.", "",
     ]

@@ -207,9 +207,9 @@ def draw_terrain_figures(out_dir: Path, dem: str | Path, runs: list[GridRun], sp
             folder / "terrain_trajectories.png",
             title="Column over real terrain (hillshade and contour lines of the DEM)"),
         "terrain_comm_period": lambda: plots.plot_comm_period(
-            comm_rows, folder / "terrain_comm_period.png", units=plots.DEM_UNITS),
+            comm_rows, folder / "terrain_comm_period.png"),
         "terrain_position": lambda: plots.plot_position(
-            position_rows, folder / "terrain_position.png", units=plots.DEM_UNITS),
+            position_rows, folder / "terrain_position.png"),
     }
     return draw_jobs(jobs)
 

@@ -602,11 +602,11 @@ def _check_map(page, relief: bool, contour_slack: float) -> dict:
         assert low <= v0 + slack and high >= v1 - slack, state
     assert state["relief"] == relief
     assert state["glyphs"] and all(n > 0 for n in state["glyphs"].values()), state["glyphs"]
-    assert "the run's estimator: edmd" in state["strip"] and "auto" not in state["strip"]
+    assert "(estimator edmd" in state["strip"] and "auto" not in state["strip"]
     agents = state["agents"]
     assert all(x0 < x < x1 and y0 < y < y1
                for x, y in zip(agents["x"], agents["y"], strict=True))
-    scale = width / (x1 - x0)  # pixels per length unit, the same on both axes
+    scale = width / (x1 - x0)  # pixels per metre, the same on both axes
     shown = [(x * scale, y * scale) for x, y, label in
              zip(agents["x"], agents["y"], agents["label"], strict=True) if label]
     assert "L" in agents["label"] and len(shown) >= 2
@@ -829,6 +829,33 @@ def test_replay_page_plays_one_tick_per_refresh(tmp_path):
     assert page.status.text == "tick 5 of 5 · t = 6.40 · complete"
     page.slider.value = 2
     assert page.status.text.startswith("tick 2 of 5 · t = 2.56")
+
+
+def test_page_panels_are_labelled_and_show_what_was_followed_at_estimated_ticks(tmp_path):
+    """Every panel's axes say what they hold (lengths in m); the estimator strip shows what a
+    follower followed only at the ticks the range plots cover, the estimated ones (its
+    observations name a choice from tick 0 on)."""
+    from bokeh.document import Document
+
+    from swarm.live.page import Page
+
+    config = RunConfig(run_id="labels", followers=2, ticks=8)
+    launch(config, tmp_path / "run", in_process=True)
+    store = load_run(tmp_path / "run")
+    assert min(j for j, _ in store.snapshot().choices) == 0
+    page = Page(Document(), store, replay=True)
+    plots = [page.map, page.choice_plot, *page.map.document.select({"type": type(page.map)})]
+    for plot in plots:
+        assert plot.xaxis[0].axis_label and plot.yaxis[0].axis_label, plot.name
+    assert page.map.xaxis[0].axis_label == "x (m)"
+    ranges = [p for p in plots if (p.name or "").startswith("ranges-")]
+    assert len(ranges) == 2 and {p.yaxis[0].axis_label for p in ranges} == {"range (m)"}
+    shown = set(zip(page.choices.data["tick"], page.choices.data["follower"]))
+    ranged = {(j, str(k)) for k, (sources, _, _) in page.range_plots.items()
+              for j, r in zip(sources["ranges"].data["tick"], sources["ranges"].data["required"])
+              if not math.isnan(r)}
+    assert shown == ranged
+    assert min(j for j, _ in shown) == config.init_ticks
 
 
 def test_cli_refuses_bad_live_arguments(tmp_path, capsys):

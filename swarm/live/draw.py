@@ -81,7 +81,7 @@ def fit_view(box: Sequence[float], points: np.ndarray, margin: float,
              aspect: float) -> tuple[float, float, float, float]:
     """The view ``(x0, x1, y0, y1)`` at width/height ratio ``aspect`` that holds the map's
     ``box`` ``[x0, x1, y0, y1]`` and every point of ``points`` (n, 2) grown by ``margin``,
-    about the centre of what it holds (one length unit the same on both axes of a frame of
+    about the centre of what it holds (one metre the same on both axes of a frame of
     that ratio)."""
     points = np.asarray(points, dtype=float).reshape(-1, 2)
     low = np.array([box[0], box[2]], dtype=float)
@@ -228,6 +228,17 @@ def log_span(ranges: Mapping[str, Sequence[float]], default: tuple[float, float]
 
 def _positive(value: float | None) -> float:
     return value if value is not None and value > 0 else math.nan
+
+
+def estimated_choices(choices: Mapping[tuple[int, int], str],
+                      frames: Sequence[Frame]) -> dict[tuple[int, int], str]:
+    """The (tick, follower) choices of ``choices`` at the follower's estimated ticks only:
+    those whose row in ``frames`` holds a required range (the world measures it from the first
+    estimated tick, ``init_ticks``, on). What a follower followed before is never used, and
+    the page's range plots start there too."""
+    estimated = {(frame.tick, k) for frame in frames for k, row in frame.rows.items()
+                 if row.get("required_range") is not None}
+    return {key: label for key, label in choices.items() if key in estimated}
 
 
 def choice_points(choices: Mapping[tuple[int, int], str], followers: int) -> dict[str, list]:

@@ -4,7 +4,7 @@ Live, the map follows the newest complete tick; in a replay a slider (and play/p
 tick. A periodic callback (every :data:`REFRESH_MS`) compares the store's version with the
 one drawn and refreshes the sources when it changed.
 
-The map is drawn at true aspect (one length unit the same number of pixels both ways): its
+The map is drawn at true aspect (one metre the same number of pixels both ways): its
 frame takes the shape of the world's map box, whose contour lines (and relief, on a DEM)
 therefore fill the view; the view grows only to hold an agent that leaves the box. Labels
 closer than :data:`LABEL_GAP` pixels to another are left out. Every range is set here, never
@@ -16,12 +16,14 @@ import math
 
 import numpy as np
 
+from protocol.config import LENGTH, TIME
 from protocol.distribution import needs
 from swarm.live.draw import (
     agent_color,
     choice_points,
     contour_levels,
     empty_map_columns,
+    estimated_choices,
     fit_view,
     follower_series,
     height_grid,
@@ -81,7 +83,7 @@ def strip_title(view_map: dict | None) -> str:
     name = view_map["estimator"]
     if name == "edmd":
         name += f", dictionary {view_map['dictionary']}"
-    return f"followed per tick (the run's estimator: {name})"
+    return f"followed per estimated tick (estimator {name})"
 
 
 class Page:
@@ -106,8 +108,9 @@ class Page:
         # by the browser from data (which warns while there is none)
         self.ticks_range = Range1d(-0.5, 0.5)
         self.choice_plot = figure(height=190, width=480, y_range=FactorRange(),
-                                  x_range=self.ticks_range, x_axis_label="tick",
-                                  title=strip_title(None), name="choices-plot",
+                                  x_range=self.ticks_range, x_axis_label="tick j",
+                                  y_axis_label="followed", title=strip_title(None),
+                                  name="choices-plot",
                                   toolbar_location=None)
         self.choice_plot.scatter("tick", "y", color="color", legend_field="follower",
                                  source=self.choices, size=5)
@@ -126,8 +129,9 @@ class Page:
 
     def _map_figure(self):
         fig = figure(frame_width=MAP_SIDE, frame_height=MAP_SIDE * 2 // 3, x_range=Range1d(0, 1),
-                     y_range=Range1d(0, 1), title="column on the surface", x_axis_label="x",
-                     y_axis_label="y", name="map", tools="pan,wheel_zoom,reset,save")
+                     y_range=Range1d(0, 1), title="column on the surface",
+                     x_axis_label=f"x ({LENGTH})", y_axis_label=f"y ({LENGTH})", name="map",
+                     tools="pan,wheel_zoom,reset,save")
         fig.add_tools(BoxZoomTool(match_aspect=True))
         src = self.sources
         drawn = {
@@ -193,7 +197,7 @@ class Page:
             legend.items = [i for i in legend.items if i.label.value != RS_LABEL]
         self.map.title.text = (f"{view_map['surface']} surface, {view_map['followers']} "
                                f"follower(s), {view_map['estimator']}, "
-                               f"T_c {view_map['comm_period']:g}")
+                               f"T_c {view_map['comm_period']:g} {TIME}")
         self.ticks_range.start, self.ticks_range.end = -0.5, view_map["ticks"] - 0.5
         self.choice_plot.title.text = strip_title(view_map)
         self.choice_plot.legend.ncols = math.ceil(view_map["followers"] / FOLLOWERS_PER_COLUMN)
@@ -216,8 +220,9 @@ class Page:
 
     def _add_range_plot(self, k: int) -> None:
         y_range = Range1d(*log_span({}))
-        fig = figure(height=200, width=480, y_axis_type="log", toolbar_location=None,
-                     x_range=self.ticks_range, y_range=y_range,
+        fig = figure(height=230, width=480, y_axis_type="log", toolbar_location=None,
+                     x_range=self.ticks_range, y_range=y_range, x_axis_label="tick j",
+                     y_axis_label=f"range ({LENGTH})",
                      title=f"follower {k}: sensing range needed per tick", name=f"ranges-{k}")
         sources = {name: ColumnDataSource(data=data) for name, data in
                    follower_series((), k).items()}
@@ -276,7 +281,8 @@ class Page:
             for name, data in series.items():
                 sources[name].data = data
             y_range.start, y_range.end = log_span(series["ranges"])
-        points = choice_points(snap.choices, snap.map["followers"] if snap.map else 1)
+        points = choice_points(estimated_choices(snap.choices, snap.frames),
+                               snap.map["followers"] if snap.map else 1)
         labels = sorted(set(points["label"]))
         if list(self.choice_plot.y_range.factors) != labels:
             self.choice_plot.y_range.factors = labels
