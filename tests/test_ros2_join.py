@@ -27,7 +27,10 @@ from swarm.ros2_join import check_ros2_listen, config_override, join_block, reac
 
 RUN_ID, DOMAIN = "rosjoin", 23
 INTRUDER = b"intruder"
-ZENOH_1_4 = "1.4.0"  # what rmw_zenoh_cpp 0.2.5's zenoh_cpp_vendor builds (zenoh-c 1.4.0)
+RMW_ZENOH_ZENOH = {"0.2.5": "1.4.0", "0.2.9": "1.6.2"}
+"""The Zenoh release that rmw_zenoh_cpp releases' ``zenoh_cpp_vendor`` builds (zenoh-c at
+1.4.0, 1.6.2), where PyPI has a wheel of it: 0.2.10's 1.8.0 is a source distribution only
+(docs/ros2.md)."""
 
 
 def test_join_block_is_the_recipe():
@@ -230,8 +233,6 @@ SUBSCRIBER = textwrap.dedent("""
                           "attachment": None if attachment is None
                           else attachment.to_bytes().hex()}), flush=True)
     with zenoh.open(conf) as session:
-        print(json.dumps({"zenoh": zenoh.__version__ if hasattr(zenoh, "__version__")
-                          else "?"}), flush=True)
         subscriber = session.declare_subscriber(domain + "/**", on_sample)
         time.sleep(seconds)
         subscriber.undeclare()
@@ -239,8 +240,9 @@ SUBSCRIBER = textwrap.dedent("""
 
 
 def zenoh_venv(version: str, cache: Path) -> Path:
-    """The python of a venv holding eclipse-zenoh ``version`` alone, made once in ``cache``
-    (outside the checkout); skips the test when PyPI cannot be reached."""
+    """The python of a venv holding eclipse-zenoh ``version`` alone (its wheel: nothing is
+    compiled), made once in ``cache`` (outside the checkout); skips the test when PyPI cannot
+    be reached."""
     home = cache / f"eclipse-zenoh-{version}"
     python = home / "bin" / "python"
     ready = home / ".installed"
@@ -249,7 +251,8 @@ def zenoh_venv(version: str, cache: Path) -> Path:
     venv.EnvBuilder(with_pip=True, clear=True).create(home)
     try:
         done = subprocess.run([str(python), "-m", "pip", "install", "-q", "--no-input",
-                               "--disable-pip-version-check", f"eclipse-zenoh=={version}"],
+                               "--disable-pip-version-check", "--only-binary", ":all:",
+                               f"eclipse-zenoh=={version}"],
                               capture_output=True, text=True, timeout=300)
     except subprocess.TimeoutExpired:
         pytest.skip(f"installing eclipse-zenoh=={version} from PyPI took over 300 s")
@@ -262,13 +265,17 @@ def zenoh_venv(version: str, cache: Path) -> Path:
 
 @pytest.mark.slow
 @pytest.mark.timeout(600)
-def test_rmw_zenoh_0_2_5_zenoh_receives_the_topics_with_their_attachments(tmp_path):
+@pytest.mark.parametrize("rmw_zenoh", sorted(RMW_ZENOH_ZENOH))
+def test_rmw_zenohs_zenoh_receives_the_topics_with_their_attachments(tmp_path, rmw_zenoh):
+    """A subscriber on the Zenoh release ``rmw_zenoh`` vendors, in a venv of its own under
+    the user's cache folder (made once), joins a ``--ros2`` run from its printed block."""
+    zenoh_version = RMW_ZENOH_ZENOH[rmw_zenoh]
     cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "koopman-swarm"
-    python = zenoh_venv(ZENOH_1_4, cache)
+    python = zenoh_venv(zenoh_version, cache)
     version = subprocess.run([str(python), "-c", "import importlib.metadata as m; "
                               "print(m.version('eclipse-zenoh'))"], capture_output=True,
                              text=True, timeout=60, check=True).stdout.strip()
-    assert version == ZENOH_1_4
+    assert version == zenoh_version
     run = LiveRun(tmp_path / "run")
     try:
         domain, override = run.block()
@@ -278,12 +285,13 @@ def test_rmw_zenoh_0_2_5_zenoh_receives_the_topics_with_their_attachments(tmp_pa
         assert run.finish() == 0
     finally:
         run.close()
-    records = [json.loads(line) for line in sub.stdout.splitlines()[1:]]
+    records = [json.loads(line) for line in sub.stdout.splitlines()]
     by_topic: dict[str, list[dict]] = {}
     for record in records:
         by_topic.setdefault(record["key"], []).append(record)
     key = pose_key(domain, 1)
     assert len(by_topic.get(key, [])) >= 3, sorted(by_topic)
+    print(f"zenoh {version}: {len(records)} samples on {len(by_topic)} topics")
     expected = {ros2.topic_key(domain, topic, msgtype, ros2.type_hash(msgtype))
                 for topic, msgtype in ros2.run_topics(2)}
     assert set(by_topic) <= expected
