@@ -35,7 +35,8 @@ def add_ros2_listen_flag(parser: argparse.ArgumentParser) -> None:
 
 def check_ros2_listen(endpoint: str | None, ros2_on: bool) -> str | None:
     """``endpoint`` if it is a ``tcp/HOST:PORT`` endpoint (port 1-65535) given with
-    ``--ros2``; None if it is None; else ValueError naming ``--ros2-listen``."""
+    ``--ros2`` where this machine can listen now; None if it is None; else ValueError naming
+    ``--ros2-listen``."""
     if endpoint is None:
         return None
     match = _TCP.fullmatch(endpoint) if isinstance(endpoint, str) else None
@@ -45,7 +46,21 @@ def check_ros2_listen(endpoint: str | None, ros2_on: bool) -> str | None:
     if not ros2_on:
         raise ValueError("--ros2-listen needs --ros2 (it is where ROS 2 machines join the "
                          "run's topics)")
+    _check_bindable(match["host"].strip("[]"), int(match["port"]), endpoint)
     return endpoint
+
+
+def _check_bindable(host: str, port: int, endpoint: str) -> None:
+    """ValueError unless a TCP socket can listen on ``host:port`` right now (the router
+    binds it a moment later: a busy port is refused before anything runs)."""
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port,
+                                                             type=socket.SOCK_STREAM)[0]
+        with socket.socket(family, kind, proto) as probe:
+            probe.bind(address)
+    except OSError as exc:
+        raise ValueError(f"--ros2-listen {endpoint}: cannot listen there "
+                         f"({exc.strerror or exc})") from None
 
 
 def reachable(endpoint: str) -> str:

@@ -9,6 +9,7 @@ import json
 import os
 import queue
 import re
+import socket
 import subprocess
 import sys
 import textwrap
@@ -57,15 +58,24 @@ def test_join_block_is_the_recipe():
 
 def test_ros2_listen_refusals(tmp_path, capsys):
     assert check_ros2_listen(None, False) is None
-    assert check_ros2_listen("tcp/0.0.0.0:7447", True) == "tcp/0.0.0.0:7447"
+    free = free_tcp_endpoint()
+    assert check_ros2_listen(free, True) == free
     for bad in ("udp/0.0.0.0:7447", "tcp/0.0.0.0", "tcp/host:0", "tcp/host:70000", "7447"):
         with pytest.raises(ValueError, match="--ros2-listen"):
             check_ros2_listen(bad, True)
+    with socket.socket() as busy:  # a port in use is refused before anything runs
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        taken = f"tcp/127.0.0.1:{busy.getsockname()[1]}"
+        with pytest.raises(ValueError, match="cannot listen there"):
+            check_ros2_listen(taken, True)
+        assert main(["run", "--ros2", "--ros2-listen", taken, "--out", str(tmp_path / "b")]) == 2
+        assert not (tmp_path / "b").exists()
     out = tmp_path / "run"
     assert main(["run", "--ros2-listen", "tcp/0.0.0.0:7447", "--out", str(out)]) == 2
     assert main(["run", "--ros2", "--ros2-listen", "tcp/x", "--out", str(out)]) == 2
     err = capsys.readouterr().err.splitlines()
-    assert [line for line in err if line.startswith("error:")] == [
+    assert [line for line in err if line.startswith("error:")][-2:] == [
         "error: --ros2-listen needs --ros2 (it is where ROS 2 machines join the run's topics)",
         "error: --ros2-listen must be tcp/HOST:PORT (port 1-65535), e.g. tcp/0.0.0.0:7447, "
         "got 'tcp/x'"]
