@@ -86,14 +86,14 @@ def test_ros2_listen_refusals(tmp_path, capsys):
 
 
 class LiveRun:
-    """``python -m swarm run --ros2 --ros2-listen ENDPOINT`` in realtime (about 8 s of wall
+    """``python -m swarm run --ros2 --ros2-listen ENDPOINT`` in realtime (about 5 s of wall
     time), its standard output read line by line."""
 
     def __init__(self, out: Path) -> None:
         self.endpoint = free_tcp_endpoint()
         cmd = [sys.executable, "-m", "swarm", "run", "--ros2", "--ros-domain", str(DOMAIN),
                "--ros2-listen", self.endpoint, "--in-process", "--run-id", RUN_ID,
-               "--followers", "2", "--ticks", "60", "--mode", "realtime", "--time-scale",
+               "--followers", "2", "--ticks", "40", "--mode", "realtime", "--time-scale",
                "0.1", "--out", str(out)]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
                                      stdin=subprocess.DEVNULL, text=True, cwd=out.parent)
