@@ -126,6 +126,7 @@ def offered_qos():
     )
 
     q = ros2.PUBLISHER_QOS
+
     def duration(value):
         return QosTime(*(value or ros2.DURATION_INFINITE))
 
