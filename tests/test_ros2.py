@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xxhash
+import zenoh
 import zenoh.ext
 
 from protocol import ros2
@@ -139,6 +140,24 @@ def test_attachment_layout():
             ros2.parse_attachment(bad)
     with pytest.raises(ValueError):
         ros2.attachment(1, 1, b"short")
+
+
+def test_attachment_of_rmw_zenoh_0_2_3_and_earlier_differs():
+    """rmw_zenoh_cpp 0.2.0-0.2.3 wrote each field's name before it (docs/ros2.md, Versions):
+    their subscribers read ours as a name and find none (they throw), and theirs is no
+    attachment of ours."""
+    gid = bytes(range(16))
+    ours = zenoh.ZBytes(ros2.attachment(7, -2, gid))
+    old_layout = tuple[str, zenoh.ext.Int64, str, zenoh.ext.Int64, str, list[zenoh.ext.UInt8]]
+    theirs = zenoh.ext.z_serialize(("sequence_number", zenoh.ext.Int64(7), "source_timestamp",
+                                    zenoh.ext.Int64(-2), "source_gid",
+                                    [zenoh.ext.UInt8(b) for b in gid]))
+    assert zenoh.ext.z_deserialize(old_layout, theirs)[0] == "sequence_number"
+    assert zenoh.ext.z_deserialize(str, ours) != "sequence_number"
+    with pytest.raises(zenoh.ext.ZDeserializeError):
+        zenoh.ext.z_deserialize(old_layout, ours)
+    with pytest.raises(ValueError, match="33 bytes"):
+        ros2.parse_attachment(theirs.to_bytes())
 
 
 def _libxxhash():
