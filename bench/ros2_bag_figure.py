@@ -31,8 +31,8 @@ ROD_EVERY = 8
 
 def read_bag(bag: Path) -> tuple[np.ndarray, np.ndarray, dict[int, np.ndarray], list]:
     """Terrain triangles (m, 3, 3) and colours (m, 3), each agent's positions (n, 3), and the
-    rods (tick index, list of (p, 3) points) of every ``/swarm/markers`` message after the
-    terrain's."""
+    rods (tick index, list of (p, 3) points) of every ``/swarm/markers`` message of a tick
+    (not a terrain's)."""
     from rosbags.rosbag2 import Reader
 
     store = ros2.typestore()
@@ -50,8 +50,10 @@ def read_bag(bag: Path) -> tuple[np.ndarray, np.ndarray, dict[int, np.ndarray], 
     [terrain] = markers[0].markers
     vertices = np.array([(v.x, v.y, v.z) for v in terrain.points]).reshape(-1, 3, 3)
     colors = np.array([(c.r, c.g, c.b) for c in terrain.colors]).reshape(-1, 3, 3).mean(axis=1)
+    ticks = [array for array in markers  # the terrain is recorded again every 5 s
+             if all(m.ns != "terrain" for m in array.markers)]
     rods = [(j, [np.array([(p.x, p.y, p.z) for p in m.points]) for m in array.markers
-                 if m.ns == "rods"]) for j, array in enumerate(markers[1:])]
+                 if m.ns == "rods"]) for j, array in enumerate(ticks)]
     return vertices, colors, {k: np.array(v) for k, v in sorted(poses.items())}, rods
 
 

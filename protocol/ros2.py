@@ -18,7 +18,7 @@ The layout follows ``rmw_zenoh_cpp`` of ROS 2 Jazzy, release 0.2.5 (jazzy branch
   (reliable, volatile, keep last, depth 42, infinite durations, automatic liveliness), the
   numbers being the ``rmw/types.h`` enum values: depth 10 otherwise default is ``::,10:,:,:,,``;
 - **GID** of an entity: XXH3-128 of its liveliness token, low 64 bits then high 64 bits, each
-  little-endian (16 bytes);
+  little-endian (16 bytes; ``xxhash``, the ``[ros]`` extra);
 - **attachment** of every sample (0.2.4 and later, "Change serialization format in
   attachment_helpers.cpp"): zenoh-ext serialisation of ``int64 sequence number`` (per
   publisher, from 1), ``int64 source timestamp`` (ns since the Unix epoch) and the GID as
@@ -26,8 +26,8 @@ The layout follows ``rmw_zenoh_cpp`` of ROS 2 Jazzy, release 0.2.5 (jazzy branch
   ``<q q B 16s`` with the length byte ``0x10``;
 - **payload**: CDR with its 4-byte encapsulation header (``rosbags``' ``serialize_cdr``).
 
-Types, CDR and hashes come from ``rosbags`` (the ``[ros]`` extra), imported only where they
-are needed (:func:`typestore`).
+Types, CDR and hashes come from ``rosbags``, the GID's XXH3 from ``xxhash`` (both the ``[ros]``
+extra), imported only where they are needed (:func:`typestore`, :func:`gid`).
 """
 from __future__ import annotations
 
@@ -38,7 +38,6 @@ from dataclasses import dataclass
 from functools import cache
 
 from protocol.distribution import needs
-from protocol.xxh3 import xxh3_128_halves
 
 ADMIN_SPACE = "@ros2_lv"
 DOMAIN_RANGE = (0, 232)
@@ -58,6 +57,7 @@ RELIABLE, BEST_EFFORT = 1, 2
 TRANSIENT_LOCAL, VOLATILE = 1, 2
 KEEP_LAST, KEEP_ALL = 1, 2
 AUTOMATIC = 1
+DURATION_INFINITE = (9223372036, 854775807)  # RMW_DURATION_INFINITE as (s, ns)
 
 
 @dataclass(frozen=True)
@@ -268,9 +268,12 @@ def parse_token(token: str) -> Entity:
 
 
 def gid(token: str) -> bytes:
-    """An entity's 16-byte GID: XXH3-128 of its token, low then high half, little-endian."""
-    low, high = xxh3_128_halves(token.encode())
-    return struct.pack("<QQ", low, high)
+    """An entity's 16-byte GID: XXH3-128 (seed 0) of its token, low then high half, each
+    little-endian: the 128-bit value as 16 little-endian bytes (:mod:`xxhash`, the ``[ros]``
+    extra: :class:`protocol.distribution.MissingExtra` without it)."""
+    with needs("ros"):
+        import xxhash
+    return xxhash.xxh3_128_intdigest(token.encode()).to_bytes(GID_SIZE, "little")
 
 
 def attachment(sequence_number: int, source_timestamp: int, source_gid: bytes) -> bytes:

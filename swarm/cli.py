@@ -35,6 +35,7 @@ from protocol.config import (
 from protocol.distribution import DISTRIBUTION, version
 from protocol.folder import FolderLock, check_out_dir
 from protocol.session import add_connection_flags, connection_config
+from swarm.ros2_join import add_ros2_listen_flag, check_ros2_listen
 
 
 def option_help(declared: Option) -> str:
@@ -202,6 +203,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         from world.main import require_extras
 
         require_extras(config)  # before anything runs
+        check_ros2_listen(args.ros2_listen, config.ros2)
         out = Path(args.out) if args.out else default_out(config.run_id)
         if args.live:  # its arguments are checked before anything is written
             from protocol.session import free_tcp_endpoint
@@ -246,7 +248,7 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
         with run_failures(out):  # e.g. a raster larger than the limit: refused, nothing ran
             summary = launch(config, out, in_process=args.in_process,
                              on_tick=lambda j: bar.update(1), endpoint=endpoint,
-                             force=args.force, lock=lock,
+                             force=args.force, lock=lock, ros2_listen=args.ros2_listen,
                              before_agents=None if live is None else observe)
     except KeyboardInterrupt:
         print(f"interrupted: partial result in {out}", file=sys.stderr)
@@ -581,6 +583,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--live", action="store_true",
                      help="serve a live view of the run on localhost (kept up until Ctrl-C)")
     add_live_port(run)
+    add_ros2_listen_flag(run)
     add_log_level_flag(run)
     run.set_defaults(func=cmd_run, in_process=False)
     experiment = sub.add_parser("experiment",

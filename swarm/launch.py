@@ -38,6 +38,7 @@ from swarm.deploy import (
     write_credentials,
     write_secret,
 )
+from swarm.ros2_join import announce, check_ros2_listen
 from world.main import run_world
 from world.service import WorldService
 
@@ -94,12 +95,13 @@ class RunCredentials:
         return self.folder / f"{user}.password"
 
 
-def embedded_router_config(config: RunConfig, endpoint: str,
-                           credentials: RunCredentials) -> zenoh.Config:
-    """The world's router configuration for ``swarm run``: listens on ``endpoint``, admits
-    only the run's users, with the access-control rules of a deployment (swarm/deploy.py)."""
+def embedded_router_config(config: RunConfig, endpoint: str, credentials: RunCredentials,
+                           ros2_listen: str | None = None) -> zenoh.Config:
+    """The world's router configuration for ``swarm run``: listens on ``endpoint`` (and on
+    ``ros2_listen``, where ROS 2 machines join), admits only the run's users, with the
+    access-control rules of a deployment (swarm/deploy.py)."""
     return zenoh.Config.from_json5(json.dumps(router_config(
-        config.run_id, config.followers, listen=[endpoint],
+        config.run_id, config.followers, listen=[endpoint, *filter(None, [ros2_listen])],
         dictionary_file=str(credentials.dictionary), ros_domain=config.ros_domain,
         drive=config.drives)))
 
@@ -256,7 +258,8 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
            credentials_dir: str | Path | None = None,
            credentials: RunCredentials | None = None,
            before_agents: Callable[[RunCredentials], None] | None = None,
-           force: bool = False, lock: FolderLock | None = None) -> dict:
+           force: bool = False, lock: FolderLock | None = None,
+           ros2_listen: str | None = None) -> dict:
     """Run ``config`` end to end; return the summary (also in ``out_dir/summary.json``).
 
     The world listens on ``endpoint`` (default: a free loopback port) as a router that admits
@@ -271,8 +274,14 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
 
     Raises RuntimeError if the agents do not come up. Ctrl-C stops every agent and leaves a
     partial result marked incomplete.
+
+    With ``config.ros2`` the router also listens on ``ros2_listen`` (a ``tcp/HOST:PORT``
+    endpoint, :func:`swarm.ros2_join.check_ros2_listen`) if given, and once it is up the
+    recipe for a ROS 2 machine to join as the observer is printed
+    (:func:`swarm.ros2_join.announce`).
     """
     out_dir = Path(out_dir)  # run_world resolves the config and writes config.toml first
+    check_ros2_listen(ros2_listen, config.ros2)
     endpoint = endpoint or free_tcp_endpoint()
     with contextlib.ExitStack() as scratch:  # a temporary folder is removed at the end
         if credentials is None:
@@ -281,26 +290,31 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
             ) / "run"
             credentials = RunCredentials.create(folder, config.followers)
         return _launch(config, out_dir, in_process, on_tick, endpoint, credentials,
-                       before_agents, force, lock)
+                       before_agents, force, lock, ros2_listen)
 
 
 def _launch(config: RunConfig, out_dir: Path, in_process: bool,
             on_tick: Callable[[int], None] | None, endpoint: str,
             credentials: RunCredentials,
             before_agents: Callable[[RunCredentials], None] | None = None,
-            force: bool = False, lock: FolderLock | None = None) -> dict:
+            force: bool = False, lock: FolderLock | None = None,
+            ros2_listen: str | None = None) -> dict:
     agents = (_ThreadAgents(endpoint, credentials) if in_process
               else _ProcessAgents(config, out_dir, endpoint, credentials))
     log.info("run %s: credentials in %s (observer: %s)", config.run_id, credentials.folder,
              credentials.password_file(OBSERVER))
 
     def ready(service: WorldService) -> None:
+        if config.ros2:
+            announce(config.ros_domain, ros2_listen or endpoint, OBSERVER,
+                     credentials.passwords[OBSERVER])
         if before_agents is not None:
             before_agents(credentials)
         agents.start(service)
 
     try:
-        summary = run_world(config, embedded_router_config(config, endpoint, credentials),
+        summary = run_world(config, embedded_router_config(config, endpoint, credentials,
+                                                           ros2_listen),
                             out_dir, on_tick=on_tick, on_ready=ready, force=force,
                             lock=lock)
     except BaseException:  # Ctrl-C or a failure: end every agent now

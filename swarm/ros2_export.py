@@ -6,28 +6,136 @@ The bag holds the topics of :func:`protocol.ros2.run_topics`, one message per ag
 on each per-agent topic (``estimate`` and ``required_range`` on estimated ticks only), each
 recorded and stamped at the tick's simulation time; the first ``/swarm/markers`` message is
 the terrain (at most :data:`world.ros2.EXPORT_TERRAIN_CELLS` nodes over the box the run
-covers). A drive run's bag also holds each follower's control steps on ``cmd_vel``, one twist
-per step, recorded at the step's time (``controls.csv``'s ``t``). Messages come from
+covers), recorded again every :data:`world.ros2.TERRAIN_EVERY_S` of simulation time as the
+live publisher sends it again, so a player that starts late or seeks still shows it. A drive
+run's bag also holds each follower's control steps on ``cmd_vel``, one twist per step,
+recorded at the step's time (``controls.csv``'s ``t``). Messages come from
 :class:`world.ros2.RosScene`, the builder the live publisher uses, fed with ``ticks.csv`` and
 ``controls.csv`` read back (floats round-trip exactly). The bag is written in a scratch
 folder beside ``BAG_DIR`` and renamed into place when complete.
+
+The container is what rosbag2 Jazzy's MCAP storage plugin writes: each channel's metadata
+holds ``offered_qos_profiles`` (the world's publishers': reliable, volatile, keep last 10) and
+``topic_type_hash`` (the RIHS01 hash), and ``metadata.yaml`` and the file's ``rosbag2``
+metadata record say ``ros_distro: jazzy``. rosbags' :class:`~rosbags.rosbag2.Writer` keeps
+the bag (connections, definitions, hashes, ``metadata.yaml``) through its storage-writer
+interface, here over the ``mcap`` library's writer (:func:`_writer_class`).
 """
 from __future__ import annotations
 
 import itertools
 import json
 import os
+import re
 import shutil
+from functools import cache
 from pathlib import Path
 
 import numpy as np
 
 from protocol import ros2
 from protocol.config import load_config
+from protocol.distribution import version
 from protocol.record import CONTROLS_FILE, SUMMARY_FILE, TICKS_FILE, read_controls, read_ticks
 
 BAG_VERSION = 9  # rosbag2's metadata version of Jazzy
 BAG_FILES = {"metadata.yaml"}
+ROS_DISTRO = "jazzy"
+_ROSBAGS_DISTRO = re.compile(r"^(\s*ros_distro: )rosbags$", re.MULTILINE)
+
+
+@cache
+def _writer_class():
+    """rosbags' bag writer with its MCAP storage written by the ``mcap`` library as rosbag2
+    Jazzy writes it (see the module docstring); imported on first use (the ``[ros]``
+    extra)."""
+    from mcap.writer import CompressionType
+    from mcap.writer import Writer as McapFileWriter
+    from rosbags.interfaces import MessageDefinitionFormat
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    def jazzy(text: str) -> str:
+        """rosbags' metadata YAML saying ``ros_distro: jazzy`` (one line of it changed: YAML
+        parsed and dumped again costs a second for a bag of many topics)."""
+        text, found = _ROSBAGS_DISTRO.subn(rf"\g<1>{ROS_DISTRO}", text)
+        if found != 1:
+            raise RuntimeError("rosbags wrote no single 'ros_distro: rosbags' line; this "
+                               "rosbags version is not one this export knows")
+        return text
+
+    class McapStorage:
+        """rosbags' storage-writer interface (``add_msgtype``, ``add_connection``, ``write``,
+        ``close``, ``abort``) over ``mcap.writer.Writer``, its chunks zstd-compressed (what
+        rosbag2's ``zstd_fast`` preset writes): the terrain recorded every 5 s makes an
+        uncompressed bag five times larger (docs/ros2.md, Benchmarks)."""
+
+        def __init__(self, path: Path, compression) -> None:
+            self.path = path / f"{path.name}.mcap"
+            self._file = self.path.open("xb")
+            self._writer = McapFileWriter(self._file, compression=CompressionType.ZSTD)
+            self._writer.start(profile="ros2", library=f"koopman-swarm {version()}")
+            self._schemas: dict[str, int] = {}
+            self._channels: dict[int, int] = {}
+
+        def add_msgtype(self, connection) -> None:
+            encoding = ("ros2msg" if connection.msgdef.format == MessageDefinitionFormat.MSG
+                        else "ros2idl")
+            self._schemas[connection.msgtype] = self._writer.register_schema(
+                connection.msgtype, encoding, connection.msgdef.data.encode())
+
+        def add_connection(self, connection, offered_qos_profiles: str) -> None:
+            self._channels[connection.id] = self._writer.register_channel(
+                connection.topic, connection.ext.serialization_format,
+                self._schemas[connection.msgtype],
+                {"offered_qos_profiles": offered_qos_profiles,
+                 "topic_type_hash": connection.digest})
+
+        def write(self, connection, timestamp: int, data) -> None:
+            self._writer.add_message(self._channels[connection.id], timestamp, bytes(data),
+                                     timestamp)
+
+        def close(self, version_: int, metadata: str) -> None:
+            self._writer.add_metadata("rosbag2", {"serialized_metadata": jazzy(metadata)})
+            self._writer.finish()
+            self._file.close()
+
+        def abort(self) -> None:
+            self._file.close()
+
+    class JazzyWriter(Writer):
+        STORAGE_PLUGINS = {StoragePlugin.MCAP: McapStorage}
+
+        def close(self) -> None:
+            super().close()
+            path = self.metapath
+            path.write_text(jazzy(path.read_text(encoding="utf-8")), encoding="utf-8")
+
+    return JazzyWriter
+
+
+def offered_qos():
+    """The world's publishers' QoS (:data:`protocol.ros2.PUBLISHER_QOS`) as rosbags' Qos: what
+    rosbag2 records as a topic's offered profile (an infinite duration as rmw's)."""
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
+
+    q = ros2.PUBLISHER_QOS
+
+    def duration(value):
+        return QosTime(*(value or ros2.DURATION_INFINITE))
+
+    return Qos(history=QosHistory(q.history), depth=q.depth,
+               reliability=QosReliability(q.reliability), durability=QosDurability(q.durability),
+               deadline=duration(q.deadline), lifespan=duration(q.lifespan),
+               liveliness=QosLiveliness(q.liveliness),
+               liveliness_lease_duration=duration(q.lease),
+               avoid_ros_namespace_conventions=False)
 
 
 def check_run_dir(run_dir: Path) -> None:
@@ -102,10 +210,10 @@ def export_run(run_dir: str | Path, out: str | Path | None = None, *,
     the ``[ros]`` extra.
     """
     from world.main import resolve_with_surface
-    from world.ros2 import EXPORT_TERRAIN_CELLS, RosScene, stamp_ns
+    from world.ros2 import EXPORT_TERRAIN_CELLS, TERRAIN_EVERY_S, Period, RosScene, stamp_ns
 
     store = ros2.typestore()  # MissingExtra before anything else
-    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2 import StoragePlugin
 
     run_dir = Path(run_dir)
     out = Path(out) if out is not None else run_dir / "bag"
@@ -128,16 +236,21 @@ def export_run(run_dir: str | Path, out: str | Path | None = None, *,
     scratch.mkdir()
     partial = scratch / out.name  # rosbags names the .mcap file after its folder
     try:
-        with Writer(partial, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP) as writer:
+        with _writer_class()(partial, version=BAG_VERSION,
+                             storage_plugin=StoragePlugin.MCAP) as writer:
             connections = {
-                topic: writer.add_connection(topic, msgtype, typestore=store)
+                topic: writer.add_connection(topic, msgtype, typestore=store,
+                                             offered_qos_profiles=[offered_qos()])
                 for topic, msgtype in ros2.run_topics(config.followers, drive)}
             first = ticks[0][0]["t"]
             markers = ros2.MARKERS
-            writer.write(connections[markers[0]], stamp_ns(first), store.serialize_cdr(
-                scene.terrain(points, EXPORT_TERRAIN_CELLS, first), markers[1]))
+            terrain = store.serialize_cdr(scene.terrain(points, EXPORT_TERRAIN_CELLS, first),
+                                          markers[1])
+            terrain_due = Period(TERRAIN_EVERY_S)
             for tick, steps in zip(ticks, controls, strict=True):
                 stamp = stamp_ns(tick[0]["t"])
+                if terrain_due(tick[0]["t"]):  # the same message, as live
+                    writer.write(connections[markers[0]], stamp, terrain)
                 for topic, msgtype, message in scene.tick_messages(tick):
                     writer.write(connections[topic], stamp, store.serialize_cdr(message, msgtype))
                 # the tick's control steps, in time order (they fill its comm interval)

@@ -1,6 +1,7 @@
 """ROS 2 naming without ROS (design §10): key expressions, liveliness tokens, QoS chunks, GIDs,
 attachments and type hashes, against literals from rmw_zenoh's ``docs/design.md`` (jazzy),
-rosbags' RIHS01 hashes, zenoh-ext's serializer and the system's libxxhash; the pose frame."""
+rosbags' RIHS01 hashes, zenoh-ext's serializer, known XXH3-128 vectors and the system's
+libxxhash; the pose frame."""
 from __future__ import annotations
 
 import argparse
@@ -12,11 +13,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import xxhash
+import zenoh
 import zenoh.ext
 
 from protocol import ros2
 from protocol.config import RunConfig
-from protocol.xxh3 import xxh3_128_halves
 from world.ros2 import quaternion, stamp_ns, stamp_parts, surface_quaternion
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -140,6 +142,24 @@ def test_attachment_layout():
         ros2.attachment(1, 1, b"short")
 
 
+def test_attachment_of_rmw_zenoh_0_2_3_and_earlier_differs():
+    """rmw_zenoh_cpp 0.2.0-0.2.3 wrote each field's name before it (docs/ros2.md, Versions):
+    their subscribers read ours as a name and find none (they throw), and theirs is no
+    attachment of ours."""
+    gid = bytes(range(16))
+    ours = zenoh.ZBytes(ros2.attachment(7, -2, gid))
+    old_layout = tuple[str, zenoh.ext.Int64, str, zenoh.ext.Int64, str, list[zenoh.ext.UInt8]]
+    theirs = zenoh.ext.z_serialize(("sequence_number", zenoh.ext.Int64(7), "source_timestamp",
+                                    zenoh.ext.Int64(-2), "source_gid",
+                                    [zenoh.ext.UInt8(b) for b in gid]))
+    assert zenoh.ext.z_deserialize(old_layout, theirs)[0] == "sequence_number"
+    assert zenoh.ext.z_deserialize(str, ours) != "sequence_number"
+    with pytest.raises(zenoh.ext.ZDeserializeError):
+        zenoh.ext.z_deserialize(old_layout, ours)
+    with pytest.raises(ValueError, match="33 bytes"):
+        ros2.parse_attachment(theirs.to_bytes())
+
+
 def _libxxhash():
     path = ctypes.util.find_library("xxhash")
     if path is None:
@@ -154,6 +174,26 @@ def _libxxhash():
     return lib
 
 
+# XXH3-128 (seed 0) of a few inputs, as the 128-bit value (high half first): b"" is the
+# specification's own test value; the others were computed with the system's libxxhash 0.8
+# (and agreed with the pure-Python implementation this project kept before using xxhash).
+KNOWN_XXH3_128 = {
+    b"": 0x99AA06D3014798D86001C324468D497F,
+    b"a": 0xA96FAF705AF16834E6C632B61E964E1F,
+    b"abc": 0x06B05AB6733A618578AF5F94892F3950,
+    bytes(range(20)): 0x21773A7052C02D6CCD7648AFA6F388D9,
+    bytes(range(200)): 0xCB0395310643BA0EDD97E9AF3609D9F5,
+    bytes(range(256)) * 3: 0xA9EE10CBF43517E44066A57F4496584A,
+}
+TALKER_PUBLISHER_GID = "eb85fa883b7846dc448a4501890ad062"  # by the rule above (the pure-Python
+# XXH3 this project had before gave the same)
+
+
+def test_xxh3_known_vectors():
+    for data, value in KNOWN_XXH3_128.items():
+        assert xxhash.xxh3_128_intdigest(data) == value, len(data)
+
+
 def test_xxh3_matches_libxxhash_at_every_length_class():
     lib = _libxxhash()
     rng = random.Random(22)
@@ -161,14 +201,16 @@ def test_xxh3_matches_libxxhash_at_every_length_class():
     for n in lengths:
         data = bytes(rng.randrange(256) for _ in range(n))
         expected = lib.XXH3_128bits(data, n)
-        assert xxh3_128_halves(data) == (expected.low64, expected.high64), n
+        value = xxhash.xxh3_128_intdigest(data)
+        assert (value & (2**64 - 1), value >> 64) == (expected.low64, expected.high64), n
 
 
 def test_gid_is_the_tokens_xxh3_halves_little_endian():
-    low, high = xxh3_128_halves(TALKER_PUBLISHER.encode())
+    value = xxhash.xxh3_128_intdigest(TALKER_PUBLISHER.encode())
+    low, high = value & (2**64 - 1), value >> 64
     gid = ros2.gid(TALKER_PUBLISHER)
-    assert len(gid) == 16
     assert gid == low.to_bytes(8, "little") + high.to_bytes(8, "little")
+    assert gid.hex() == TALKER_PUBLISHER_GID
     assert ros2.gid(LISTENER_NODE) != gid
 
 

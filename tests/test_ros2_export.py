@@ -130,17 +130,26 @@ def test_bag_read_back_with_rosbags_matches_ticks_csv(run_dir, bag):
     messages = _rosbags_messages(bag)
     _check_run_topics(messages, ticks, surface)
     markers = messages["/swarm/markers"]
-    assert len(markers) == len(ticks) + 1
-    # the terrain, once, first: a triangle mesh on the surface, at most 100 x 100 nodes
-    [terrain] = markers[0][1].markers
+    # the terrain first, and again every 5 s of simulation time (T_c 1.28 s: ticks 0, 4, 8,
+    # 12) before that tick's markers: a triangle mesh on the surface, at most 100 x 100 nodes
+    terrains = [(stamp, array) for stamp, array in markers
+                if any(m.ns == "terrain" for m in array.markers)]
+    assert any(m.ns == "terrain" for m in markers[0][1].markers)
+    assert [stamp for stamp, _ in terrains] == [stamp_ns(ticks[j][0]["t"]) for j in (0, 4, 8, 12)]
+    [terrain] = terrains[0][1].markers
     assert terrain.ns == "terrain" and terrain.type == terrain.TRIANGLE_LIST
     assert len(terrain.points) % 3 == 0 and 0 < len(terrain.points) <= 2 * 99 * 99 * 3
     assert len(terrain.colors) == len(terrain.points)
     for v in terrain.points[::97]:
         assert v.z == pytest.approx(surface.height(np.array([v.x, v.y])), abs=1e-12)
-    assert all(m.ns != "terrain" for _, array in markers[1:] for m in array.markers)
+    for _, again in terrains[1:]:
+        [copy] = again.markers
+        assert [(v.x, v.y, v.z) for v in copy.points] == [(v.x, v.y, v.z) for v in terrain.points]
+    per_tick = [(stamp, array) for stamp, array in markers
+                if all(m.ns != "terrain" for m in array.markers)]
+    assert len(per_tick) + len(terrains) == len(markers)
     # each tick: the agents, and the rods along the geodesic from holder to rod end
-    for (_, array), tick in zip(markers[1:], ticks, strict=True):
+    for (_, array), tick in zip(per_tick, ticks, strict=True):
         agents, *rods = array.markers
         assert agents.type == agents.SPHERE_LIST and len(agents.points) == FOLLOWERS + 1
         assert [r.id for r in rods] == list(range(1, FOLLOWERS + 1))
@@ -164,12 +173,62 @@ def test_bag_read_back_with_mcap_matches_ticks_csv(run_dir, bag):
 
 
 def test_bag_metadata_names_types_and_hashes(bag):
+    from mcap.reader import make_reader
     from rosbags.rosbag2 import Reader
 
+    expected = {topic: (msgtype, ros2.type_hash(msgtype))
+                for topic, msgtype in ros2.run_topics(FOLLOWERS)}
     with Reader(bag) as reader:
         found = {c.topic: (c.msgtype, c.digest) for c in reader.connections}
-    assert found == {topic: (msgtype, ros2.type_hash(msgtype))
-                     for topic, msgtype in ros2.run_topics(FOLLOWERS)}
+        assert reader.ros_distro == "jazzy"
+        assert {(q.reliability.name, q.durability.name, q.history.name, q.depth)
+                for c in reader.connections for q in c.ext.offered_qos_profiles} == {
+            ("RELIABLE", "VOLATILE", "KEEP_LAST", 10)}
+    assert found == expected
+    metadata = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert metadata["ros_distro"] == "jazzy"
+    # the MCAP file as rosbag2 Jazzy writes it: per channel the offered QoS and the type
+    # hash, and the bag's metadata in a "rosbag2" record
+    with (bag / "bag.mcap").open("rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        records = {m.name: m.metadata for m in reader.iter_metadata()}
+    channels = {c.topic: c for c in summary.channels.values()}
+    assert set(channels) == set(expected)
+    for topic, channel in channels.items():
+        assert set(channel.metadata) == {"offered_qos_profiles", "topic_type_hash"}
+        assert channel.metadata["topic_type_hash"] == expected[topic][1]
+        [qos] = yaml.safe_load(channel.metadata["offered_qos_profiles"])
+        assert (qos["reliability"], qos["durability"], qos["history"], qos["depth"]) == (
+            "reliable", "volatile", "keep_last", 10)
+        assert qos["deadline"] == {"sec": 9223372036, "nsec": 854775807}  # infinite
+    stored = yaml.safe_load(records["rosbag2"]["serialized_metadata"])
+    assert stored["ros_distro"] == "jazzy"
+    assert stored["topics_with_message_count"] == metadata["topics_with_message_count"]
+
+
+def test_a_player_that_starts_at_half_time_still_gets_the_terrain(run_dir, bag):
+    """Read from the middle of the bag on (a late start, a seek), with either reader: the
+    terrain arrives within 5 s of simulation time."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+    from rosbags.rosbag2 import Reader
+
+    store = ros2.typestore()
+    with Reader(bag) as reader:
+        half = (reader.start_time + reader.end_time) // 2
+        connection = [c for c in reader.connections if c.topic == "/swarm/markers"]
+        seen = [(stamp, store.deserialize_cdr(raw, c.msgtype)) for c, stamp, raw in
+                reader.messages(connections=connection, start=half)]
+    with (bag / "bag.mcap").open("rb") as fh:
+        decoded = [(message.log_time, ros_msg) for _, _, message, ros_msg in
+                   make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+                       topics=["/swarm/markers"]) if message.log_time >= half]
+    for messages in (seen, decoded):
+        assert messages and messages[0][0] >= half
+        terrain = [stamp for stamp, array in messages
+                   if any(m.ns == "terrain" for m in array.markers)]
+        assert terrain and terrain[0] - half <= 5e9
 
 
 @pytest.fixture(scope="module")

@@ -4,8 +4,9 @@ run's Zenoh session the way rmw_zenoh does, or written to a bag (``swarm/ros2_ex
 :class:`RosScene` turns each completed tick's rows (``WorldSim.finish_tick``, or ``ticks.csv``
 read back) into the messages of every topic of :func:`protocol.ros2.run_topics`, a drive run's
 control steps (``WorldSim.control_rows``, or ``controls.csv``) into ``cmd_vel`` twists, and
-draws the terrain once as a triangle mesh. :class:`Ros2Publisher` publishes them, with the key
-expressions, attachments and liveliness tokens of :mod:`protocol.ros2`.
+draws the terrain as a triangle mesh (sent again every :data:`TERRAIN_EVERY_S`).
+:class:`Ros2Publisher` publishes them, with the key expressions, attachments and liveliness
+tokens of :mod:`protocol.ros2`.
 
 Frames and poses: frame ``map`` is the world's x, y and ``z = F(x, y)``. An agent at ``p`` with
 heading ``h`` (xy) has the pose whose position is ``(x, y, F(x, y))`` and whose orientation is
@@ -40,8 +41,31 @@ LIVE_PATH_POSES = 16
 """Live ``/path`` samples carry the last this many settled poses (a trail; a bag carries them
 all): one sample per agent and tick stays small and cheap however long the run."""
 TERRAIN_EVERY_S = 5.0
-"""Live: the terrain marker is sent again at most this often, so a late rviz gets it."""
+"""The terrain marker is sent again every this many seconds (live: of the wall clock, at
+most this often; in a bag: of simulation time), so a viewer that starts late, or a player
+that seeks, gets it (:class:`Period`)."""
 _TERRAIN_COLORS = np.array([[0.16, 0.42, 0.20], [0.62, 0.52, 0.34], [0.93, 0.93, 0.90]])
+
+
+class Period:
+    """Whether something is due on a clock: the first call, then once ``seconds`` have gone
+    by since it was last due.
+
+    >>> due = Period(5.0)
+    >>> [t for t in (0.0, 1.28, 5.0, 6.4, 10.24) if due(t)]
+    [0.0, 5.0, 10.24]
+    """
+
+    def __init__(self, seconds: float) -> None:
+        if not (isinstance(seconds, (int, float)) and math.isfinite(seconds) and seconds > 0):
+            raise ValueError(f"seconds must be a finite number > 0, got {seconds!r}")
+        self.seconds, self._last = float(seconds), -math.inf
+
+    def __call__(self, now: float) -> bool:
+        if now - self._last < self.seconds:
+            return False
+        self._last = now
+        return True
 
 
 def stamp_parts(t: float) -> tuple[int, int]:
@@ -351,7 +375,7 @@ class Ros2Publisher:
             self._publishers[topic] = (publisher, ros2.gid(token), [1])
         terrain = self.scene.terrain(ideal, LIVE_TERRAIN_CELLS)
         self._terrain = bytes(self.scene.serialize(terrain, ros2.MARKERS[1]))
-        self._terrain_sent = -math.inf
+        self._terrain_due = Period(TERRAIN_EVERY_S)
 
     def _put(self, topic: str, payload: bytes) -> None:
         publisher, source, sequence = self._publishers[topic]
@@ -362,10 +386,8 @@ class Ros2Publisher:
         """Publish one completed tick (ticks in order) from what it recorded: its rows, then
         its control steps (``cmd_vel``, each robot's in step order); and the terrain when it
         is due."""
-        now = time.monotonic()
-        if now - self._terrain_sent >= TERRAIN_EVERY_S:
+        if self._terrain_due(time.monotonic()):
             self._put(ros2.MARKERS[0], self._terrain)
-            self._terrain_sent = now
         for topic, msgtype, message in self.scene.tick_messages(rows):
             self._put(topic, bytes(self.scene.serialize(message, msgtype)))
         for topic, msgtype, message, _ in self.scene.control_messages(controls):
