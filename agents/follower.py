@@ -210,15 +210,19 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = parser("Follower agent of a column-formation run.")
-    p.add_argument("--id", type=int, required=True, help="follower id K (1 = behind the leader)")
+    p = parser("python -m agents.follower", "Follower agent of a column-formation run.")
+    p.add_argument("--id", type=int, help="follower id K (1 = behind the leader); default: "
+                                          "its brief's, which it must match if given")
     p.add_argument("--state-dir", help="where to keep this follower's state (replay log) "
-                                        "(default: <config dir>/state; 'none' disables); "
+                                        "(default: <brief's folder>/state; 'none' disables); "
                                         "removed at the end of a complete run if then empty")
     args = p.parse_args(argv)
+    if args.id is not None and args.id < 1:
+        p.error(f"argument --id: a follower's id is 1 or more, got {args.id}")
     state = args.state_dir or str(Path(args.config).resolve().parent / "state")
     state = None if state == "none" else state
-    return run_cli(args, lambda session, settings: run_follower(session, settings, args.id, state))
+    return run_cli(args, args.id, lambda session, brief: run_follower(
+        session, brief.settings, brief.agent, state))
 
 
 if __name__ == "__main__":

@@ -42,8 +42,9 @@ def run_leader(session: zenoh.Session, settings: AgentSettings) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parser("Leader agent of a column-formation run.").parse_args(argv)
-    return run_cli(args, run_leader)
+    args = parser("python -m agents.leader",
+                  "Leader agent of a column-formation run.").parse_args(argv)
+    return run_cli(args, 0, lambda session, brief: run_leader(session, brief.settings))
 
 
 if __name__ == "__main__":

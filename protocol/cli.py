@@ -158,6 +158,16 @@ def _exit_interrupted(grace: float, status: int) -> None:
     os._exit(status)
 
 
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose refusal of a command line is one line (design §9: status 2),
+    ``PROG: error: MESSAGE (PROG --help lists the options)``, not the usage block first.
+    Its subcommands' parsers are of the same class."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(REFUSED, f"{self.prog}: error: {_one_line(message)} "
+                           f"({self.prog} --help lists the options)\n")
+
+
 def add_log_level_flag(parser: argparse.ArgumentParser) -> None:
     """``--log-level`` (case-insensitive); argparse refuses any other value with usage."""
     parser.add_argument("--log-level", type=str.upper, choices=LOG_LEVELS, default="WARNING",

@@ -12,6 +12,7 @@ from protocol.cli import (
     FAILED,
     INTERRUPTED,
     REFUSED,
+    Parser,
     add_log_level_flag,
     add_results_flags,
     default_out,
@@ -23,6 +24,7 @@ from protocol.cli import (
 )
 from protocol.config import (
     OPTIONS,
+    AgentBrief,
     Option,
     RunConfig,
     applies_to,
@@ -554,6 +556,35 @@ def cmd_deploy(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_agent_config(args: argparse.Namespace) -> int:
+    """``agent-config RUN.toml (--id K | --all) [--out PATH]``: the brief of an agent of the
+    run (:class:`protocol.config.AgentBrief`), what its process is given instead of the run's
+    configuration: to ``--out`` or stdout, or with ``--all`` every agent's into the folder
+    ``--out`` as ``<user>.toml``."""
+    from swarm.deploy import agent_user
+    from swarm.launch import write_briefs
+
+    with ends_with(REFUSED, ValueError):
+        config = config_from_file(file_options(args.config), args.config)
+        if args.all:
+            if args.out is None:
+                raise ValueError("--all needs --out DIR (one brief per agent goes there)")
+        elif args.id is None:
+            raise ValueError("give --id K (0 = the leader) or --all")
+        else:
+            brief = AgentBrief.of(config, args.id)
+    with ends_with(FAILED, OSError):
+        if args.all:
+            folder = write_briefs(config, Path(args.out))
+            print(f"briefs of the leader and {config.followers} followers: "
+                  f"{folder}/{agent_user(0)}.toml … {agent_user(config.followers)}.toml")
+        elif args.out is None:
+            sys.stdout.write(brief.text())
+        else:
+            print(f"brief of the {brief.role}: {brief.write(args.out)}")
+    return 0
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     """``export RUN_DIR [--out BAG_DIR] [--force]``: a finished run as a rosbag2/MCAP bag."""
     from swarm.ros2_export import export_run
@@ -565,7 +596,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m swarm",
+    p = Parser(prog="python -m swarm",
                                 description="Column formation on an unknown surface over Zenoh.")
     p.add_argument("--version", action="version", version=f"{DISTRIBUTION} {version()}")
     sub = p.add_subparsers(dest="command", required=True)
@@ -657,6 +688,16 @@ def build_parser() -> argparse.ArgumentParser:
     deploy.add_argument("--force", action="store_true",
                         help="replace the passwords and keys already in OUT/secrets")
     deploy.set_defaults(func=cmd_deploy)
+    brief = sub.add_parser("agent-config", help="an agent's brief (what its process is "
+                                                 "given) from a run's configuration")
+    brief.add_argument("config", metavar="RUN.toml", help="the run's configuration (e.g. the "
+                                                          "config.toml of a run)")
+    which = brief.add_mutually_exclusive_group()
+    which.add_argument("--id", type=int, metavar="K", help="the agent (0 = the leader)")
+    which.add_argument("--all", action="store_true", help="every agent's brief, into --out DIR")
+    brief.add_argument("--out", metavar="PATH",
+                       help="the file to write (default: stdout), or the folder with --all")
+    brief.set_defaults(func=cmd_agent_config)
     export = sub.add_parser("export", help="a finished run as a rosbag2 bag (MCAP) for ROS 2 "
                                            "tools (needs the [ros] extra)")
     export.add_argument("run_dir", metavar="RUN_DIR", help="a complete results folder")

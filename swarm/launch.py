@@ -25,7 +25,7 @@ from agents.follower import run_follower
 from agents.leader import run_leader
 from agents.link import AgentAbort, RunFinished
 from protocol.cli import describe
-from protocol.config import AgentSettings, RunConfig
+from protocol.config import AgentBrief, AgentSettings, RunConfig
 from protocol.folder import FolderLock, open_file
 from protocol.messages import safe_text
 from protocol.session import free_tcp_endpoint, zenoh_config
@@ -46,12 +46,26 @@ log = logging.getLogger(__name__)
 POLL_S = 0.2
 
 
-def agent_commands(config_path: Path, endpoint: str, n_followers: int,
+def write_briefs(config: RunConfig, folder: Path) -> Path:
+    """Write every agent's brief (:class:`protocol.config.AgentBrief`) of the run ``config``
+    into ``folder`` (made if need be) as ``<user>.toml`` (``leader.toml``,
+    ``follower-K.toml``); return ``folder``. What :func:`agent_commands` gives the agents."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for agent in range(config.followers + 1):
+        AgentBrief.of(config, agent).write(folder / f"{agent_user(agent)}.toml")
+    return folder
+
+
+def agent_commands(briefs: Path, endpoint: str, n_followers: int,
                    credentials: RunCredentials | None = None) -> list[list[str]]:
-    """The command lines of the leader and every follower for a hand-assembled run (each
-    with its own user and password file when ``credentials`` are given)."""
+    """The command lines of the leader and every follower for a hand-assembled run, each
+    given its own brief in the folder ``briefs`` (:func:`write_briefs`) and, when
+    ``credentials`` are given, its own user and password file. No argument holds anything
+    but the brief's path and how to connect: never the run's configuration."""
     def base(agent: int) -> list[str]:
-        flags = ["--config", str(config_path), "--connect", endpoint]
+        flags = ["--config", str(Path(briefs) / f"{agent_user(agent)}.toml"),
+                 "--connect", endpoint]
         if credentials is not None:
             flags += ["--user", agent_user(agent),
                       "--password-file", str(credentials.password_file(agent_user(agent)))]
@@ -133,8 +147,10 @@ class _ProcessAgents:
         self._stop = threading.Event()
 
     def start(self, service: WorldService) -> None:
-        cmds = agent_commands(self.out_dir / "config.toml", self.endpoint, self.config.followers,
-                              self.credentials)
+        # each agent reads its brief from the run's private folder, never the config.toml of
+        # the results folder (the world's secrets); a follower keeps its state there too
+        briefs = write_briefs(service.config, self.credentials.folder)
+        cmds = agent_commands(briefs, self.endpoint, self.config.followers, self.credentials)
         for k, cmd in enumerate(cmds):
             log_fd = open_file(self.out_dir / "logs" / f"agent-{k}.log",
                                os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
@@ -196,7 +212,7 @@ class _ThreadAgents:
 
     def start(self, service: WorldService) -> None:
         # what the world resolved (e.g. a drive run's default top speed), as the processes
-        # read it from the config.toml the world wrote
+        # read it from the briefs written from it (one interpreter: plug-ins are trusted code)
         self.settings = AgentSettings.from_config(service.config)
         bodies: list[Callable[[zenoh.Session], None]] = [
             lambda s: run_leader(s, self.settings)]

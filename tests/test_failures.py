@@ -22,6 +22,7 @@ from protocol.cli import add_log_level_flag
 from protocol.config import (
     MAX_CONFIG_BYTES,
     OPTIONS,
+    AgentBrief,
     RunConfig,
     dump_config,
     load_config,
@@ -269,8 +270,8 @@ def test_world_reports_a_failing_results_disk(tmp_path, monkeypatch, capsys, cod
 
 
 def test_agent_without_a_world_says_so_in_one_line(tmp_path, capsys):
-    path = tmp_path / "run.toml"
-    dump_config(RunConfig(run_id="alone", start_timeout=1.0), path)
+    path = AgentBrief.of(RunConfig(run_id="alone", start_timeout=1.0), 0).write(
+        tmp_path / "leader.toml")
     endpoint = free_tcp_endpoint()
     assert leader.main(["--config", str(path), "--connect", endpoint]) == 1
     line = one_error_line(capsys)

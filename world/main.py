@@ -14,6 +14,7 @@ import zenoh
 from protocol.cli import (
     DONE,
     REFUSED,
+    Parser,
     add_log_level_flag,
     add_results_flags,
     default_out,
@@ -87,7 +88,8 @@ def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(
+    p = Parser(
+        prog="python -m world",
         description="The world process: hidden surface, sensing, motion, results.")
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--config", help="run configuration TOML")
