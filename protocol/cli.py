@@ -10,6 +10,7 @@ import contextlib
 import logging
 import os
 import re
+import shutil
 import signal
 import sys
 import threading
@@ -101,6 +102,61 @@ def run_failures(out: str | os.PathLike[str]) -> Iterator[None]:
         fail(f"cannot write the results in {out}: {describe(exc)}")
     except EXPECTED_FAILURES as exc:
         fail(describe(exc))
+
+
+class NewFolder:
+    """The results folder ``path`` of a command that may make it, with whatever missing
+    parents: :meth:`discard` removes what the command made, so that a refused command, or a
+    run that ended before its first tick, leaves nothing behind (design §9).
+
+    Made while nothing existed yet, only the topmost new folder is removed: with ``run_id``
+    (a run's folder) the whole of it, once its one-writer lock is taken (a folder another
+    writer holds is left alone); without, only its empty folders (a grid's, whose runs are
+    kept).
+    """
+
+    def __init__(self, path: str | os.PathLike[str], run_id: str | None = None) -> None:
+        self.run_id = run_id
+        self.path = path = Path(path).absolute()
+        self.top: Path | None = None  # the topmost folder that does not exist yet
+        while not os.path.lexists(path):
+            self.top, path = path, path.parent
+
+    @property
+    def made(self) -> bool:
+        """Whether the command made (or is to make) the folder."""
+        return self.top is not None
+
+    def discard(self) -> None:
+        """Remove what the command made (nothing if it found the folder there)."""
+        from protocol.folder import FolderLock
+
+        top = self.top
+        if top is None or top.is_symlink() or not top.is_dir():
+            return
+        if self.run_id is None:
+            for folder, _, _ in sorted(os.walk(top), key=lambda entry: -len(entry[0])):
+                with contextlib.suppress(OSError):
+                    os.rmdir(folder)  # only empty ones
+            return
+        try:
+            with FolderLock(self.path, self.run_id):
+                shutil.rmtree(top, ignore_errors=True)
+        except (Refused, OSError):  # another writer holds it now: it is not ours to remove
+            return
+
+    @contextlib.contextmanager
+    def undone_if_refused(self) -> Iterator[NewFolder]:
+        """Within the block, a refusal (status 2, or a missing extra) discards the folder."""
+        try:
+            yield self
+        except CommandError as exc:
+            if exc.status == REFUSED:
+                self.discard()
+            raise
+        except (MissingExtra, Refused):
+            self.discard()
+            raise
 
 
 INTERRUPT_GRACE_S = 8.0

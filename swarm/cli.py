@@ -12,6 +12,7 @@ from protocol.cli import (
     FAILED,
     INTERRUPTED,
     REFUSED,
+    NewFolder,
     Parser,
     add_log_level_flag,
     add_results_flags,
@@ -200,10 +201,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
     live = endpoint = None
     with ends_with(REFUSED, ValueError, RuntimeError):
-        config = config_from_args(args)
-        from world.main import require_extras
-
-        require_extras(config)  # before anything runs
+        config, surface = prepare_run(config_from_args(args))
         out = Path(args.out) if args.out else default_out(config.run_id)
         if args.live:  # its arguments are checked before anything is written
             from protocol.session import free_tcp_endpoint
@@ -211,26 +209,51 @@ def cmd_run(args: argparse.Namespace) -> int:
 
             live = LiveView(port=args.live_port, run_id=config.run_id)
             endpoint = free_tcp_endpoint()
-        check_out_dir(out)
+    folder = NewFolder(out, config.run_id)
     lock = FolderLock(out, config.run_id)
     try:  # the folder is checked under its one-writer lock, held until the run ends
-        with ends_with(REFUSED, ValueError, OSError):
-            lock.acquire()
-            if (out / "summary.json").exists() and not args.force:
-                raise ValueError(f"{out} already holds a run's results; choose another --out "
-                                 "or replace them with --force (nothing was overwritten)")
-        if live is not None:
-            with ends_with(REFUSED, RuntimeError):
-                print(f"live view: {live.start()}", flush=True)
-        return _run_and_report(args, config, out, live, endpoint, lock)
+        with folder.undone_if_refused():
+            try:
+                with ends_with(REFUSED, ValueError, OSError):
+                    check_out_dir(out)
+                    lock.acquire()
+                    if (out / "summary.json").exists() and not args.force:
+                        raise ValueError(f"{out} already holds a run's results; choose another "
+                                         "--out or replace them with --force (nothing was "
+                                         "overwritten)")
+                if live is not None:
+                    with ends_with(REFUSED, RuntimeError):
+                        print(f"live view: {live.start()}", flush=True)
+                return _run_and_report(args, config, surface, out, live, endpoint, lock,
+                                       folder)
+            finally:
+                lock.release()
     finally:
-        lock.release()
         if live is not None:
             live.close()
 
 
-def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live, endpoint,
-                    lock: FolderLock) -> int:
+def prepare_run(config: RunConfig):
+    """Everything ``config`` can be refused for before a run writes anything (ValueError,
+    one line; a missing extra): the extras it needs, its surface, raster and start
+    (:func:`world.main.resolve_with_surface`) and that a plug-in estimator is importable here
+    (found, none of its code run: the world's process never runs an agent's code). Returns
+    the config and its surface, built once."""
+    from protocol.config import PLUGIN_ESTIMATOR
+    from protocol.imports import user_module_exists
+    from world.main import require_extras, resolve_with_surface
+
+    require_extras(config)
+    if PLUGIN_ESTIMATOR.match(config.estimator):
+        module = config.estimator.split(":")[0]
+        if not user_module_exists(module):
+            raise ValueError(f"estimator {config.estimator!r}: no module {module!r} is "
+                             "importable here (the installed packages and the current folder)")
+    return config, resolve_with_surface(config)[1]
+
+
+def _run_and_report(args: argparse.Namespace, config: RunConfig, surface, out: Path, live,
+                    endpoint, lock: FolderLock, folder: NewFolder) -> int:
     from tqdm import tqdm
 
     from swarm.launch import launch
@@ -244,14 +267,26 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
 
     bar = tqdm(total=config.ticks, desc=f"{config.surface} {config.estimator}", unit="tick",
                disable=None)
+    ticks = []
+
+    def on_tick(tick: int) -> None:
+        ticks.append(tick)
+        bar.update(1)
+
     try:
         with run_failures(out):  # e.g. a raster larger than the limit: refused, nothing ran
-            summary = launch(config, out, in_process=args.in_process,
-                             on_tick=lambda j: bar.update(1), endpoint=endpoint,
-                             force=args.force, lock=lock,
+            summary = launch(config, out, in_process=args.in_process, on_tick=on_tick,
+                             endpoint=endpoint, force=args.force, lock=lock, surface=surface,
                              before_agents=None if live is None else observe)
     except KeyboardInterrupt:
-        print(f"interrupted: partial result in {out}", file=sys.stderr)
+        bar.close()
+        if not ticks and folder.made:  # nothing recorded: nothing is kept
+            lock.release()
+            folder.discard()
+            print(f"interrupted before the first tick: nothing kept ({out} removed)",
+                  file=sys.stderr)
+        else:
+            print(f"interrupted: partial result in {out} ({len(ticks)} ticks)", file=sys.stderr)
         return INTERRUPTED
     finally:
         bar.close()

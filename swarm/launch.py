@@ -40,6 +40,7 @@ from swarm.deploy import (
 )
 from world.main import run_world
 from world.service import WorldService
+from world.surfaces import Surface
 
 log = logging.getLogger(__name__)
 
@@ -272,7 +273,8 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
            credentials_dir: str | Path | None = None,
            credentials: RunCredentials | None = None,
            before_agents: Callable[[RunCredentials], None] | None = None,
-           force: bool = False, lock: FolderLock | None = None) -> dict:
+           force: bool = False, lock: FolderLock | None = None,
+           surface: Surface | None = None) -> dict:
     """Run ``config`` end to end; return the summary (also in ``out_dir/summary.json``).
 
     The world listens on ``endpoint`` (default: a free loopback port) as a router that admits
@@ -283,7 +285,8 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
     ``before_agents`` is called with them once the world is up, before the agents start
     (the live view connects there, as the ``observer`` user). A folder that holds results
     is refused unless ``force`` (which replaces them). ``lock``: the folder's one-writer lock,
-    when the caller holds it already (see :func:`world.main.run_world`).
+    when the caller holds it already, and ``surface``, when the caller built it (see
+    :func:`world.main.run_world`).
 
     Raises RuntimeError if the agents do not come up. Ctrl-C stops every agent and leaves a
     partial result marked incomplete.
@@ -297,14 +300,15 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
             ) / "run"
             credentials = RunCredentials.create(folder, config.followers)
         return _launch(config, out_dir, in_process, on_tick, endpoint, credentials,
-                       before_agents, force, lock)
+                       before_agents, force, lock, surface)
 
 
 def _launch(config: RunConfig, out_dir: Path, in_process: bool,
             on_tick: Callable[[int], None] | None, endpoint: str,
             credentials: RunCredentials,
             before_agents: Callable[[RunCredentials], None] | None = None,
-            force: bool = False, lock: FolderLock | None = None) -> dict:
+            force: bool = False, lock: FolderLock | None = None,
+            surface: Surface | None = None) -> dict:
     agents = (_ThreadAgents(endpoint, credentials) if in_process
               else _ProcessAgents(config, out_dir, endpoint, credentials))
     log.info("run %s: credentials in %s (observer: %s)", config.run_id, credentials.folder,
@@ -318,7 +322,7 @@ def _launch(config: RunConfig, out_dir: Path, in_process: bool,
     try:
         summary = run_world(config, embedded_router_config(config, endpoint, credentials),
                             out_dir, on_tick=on_tick, on_ready=ready, force=force,
-                            lock=lock)
+                            lock=lock, surface=surface)
     except BaseException:  # Ctrl-C or a failure: end every agent now
         agents.stop(timeout=1.0)
         raise

@@ -197,5 +197,5 @@ def test_cli_rejects_bad_flags(capsys):
     assert "followers must be an integer" in capsys.readouterr().err
     assert main(["run", "--leader-start", "1,2,x,4"]) == 2
     assert "--leader-start must be X,Y,VX,VY" in capsys.readouterr().err
-    assert main(["run", "--surface", "nope"]) == 1
+    assert main(["run", "--surface", "nope"]) == 2
     assert "nope" in capsys.readouterr().err

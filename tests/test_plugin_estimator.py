@@ -73,19 +73,22 @@ def test_plugin_errors_name_the_problem():
     assert policy.name == "mean-step"
 
 
-def test_an_unimportable_plugin_is_reported_by_swarm_run_in_one_line(tmp_path, capsys,
-                                                                      monkeypatch):
-    """Only the follower process imports the estimator; `swarm run` still says why it
-    stopped (the follower's own error line), not just its exit status."""
+def test_a_plugin_that_fails_in_its_follower_is_reported_by_swarm_run_in_one_line(
+        tmp_path, capsys, monkeypatch):
+    """Only the follower process imports the estimator (`swarm run` checks only that its
+    module is there, running none of it); `swarm run` still says why it stopped (the
+    follower's own error line), not just its exit status."""
     from swarm.cli import main
 
     monkeypatch.chdir(tmp_path)
-    assert main(["run", "--estimator", "tests.nowhere:X", "--ticks", "6",
+    (tmp_path / "empty_plugin.py").write_text("")
+    assert main(["run", "--estimator", "empty_plugin:X", "--ticks", "6",
                  "--out", str(tmp_path / "o")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1, err
     assert err[0].startswith("error: run aborted before it started: agent 1 exited with status 2: "
-                             "estimator 'tests.nowhere:X': cannot import 'tests.nowhere'")
+                             "estimator 'empty_plugin:X': empty_plugin has no class or factory "
+                             "'X'")
     assert err[0].endswith(f"(see {tmp_path / 'o' / 'logs' / 'agent-1.log'}) (agent 1 had not "
                            "come up)")
 
