@@ -394,16 +394,22 @@ def _print_experiment(result: dict, wall_line: str) -> int:
 
 def _run_grid(run, out) -> dict:
     """``run()``'s result. An output folder that cannot hold results, or a grid that cannot
-    start (an unreachable scheduler), is refused; Ctrl-C ends the command, naming where the
-    finished runs are kept."""
-    with ends_with(REFUSED, ValueError):
-        check_out_dir(out)
-    try:
-        with ends_with(REFUSED, RuntimeError):
-            return run()
-    except KeyboardInterrupt:
-        print(f"interrupted: finished runs are in {Path(out) / 'runs'}", file=sys.stderr)
-        raise
+    start (bad options, a DEM or start refused, an unreachable scheduler), is refused and
+    leaves no folder it made; Ctrl-C ends the command, naming where the finished runs are
+    kept (and removing the folders it made if none is)."""
+    folder = NewFolder(out)
+    with folder.undone_if_refused():
+        with ends_with(REFUSED, ValueError):
+            check_out_dir(out)
+        try:
+            with ends_with(REFUSED, ValueError, RuntimeError):
+                return run()
+        except KeyboardInterrupt:
+            folder.discard()  # its empty folders only
+            kept = Path(out) / "runs"
+            print(f"interrupted: finished runs are in {kept}" if kept.exists() else
+                  "interrupted before any run finished: nothing kept", file=sys.stderr)
+            raise
 
 
 def _print_failed(failed) -> int:

@@ -1,0 +1,79 @@
+"""A refused command (design §9: status 2) says why in one line and leaves nothing: every
+check of the command line, the configuration, the surface, the raster, the start and a plug-in
+comes before a results folder is made."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+import world.main
+from protocol.config import RunConfig, dump_config
+from swarm.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+HILLS = ROOT / "tests" / "data" / "hills.tif"
+README = ROOT / "README.md"
+
+
+def _refused_in_one_line(capsys, command, *args: str) -> str:
+    """Run ``command(args)`` (status returned, or raised by argparse); it must be 2 with one
+    line on stderr, which is returned."""
+    try:
+        status = command(list(args))
+    except SystemExit as exc:
+        status = exc.code
+    err = capsys.readouterr().err
+    assert status == 2, err
+    assert len(err.splitlines()) == 1, err
+    return err
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["--surface", "ellipic"], "name 'ellipic' is not a preset"),
+    (["--surface", "dem:missing.tif"], "no such DEM file"),
+    (["--surface", f"dem:{README}"], "is not a raster rasterio can read"),
+    (["--surface", f"dem:{HILLS}"], "has no default leader start: give leader_start"),
+    (["--surface", f"dem:{HILLS}", "--leader-start", "1e6,0,1,0"], "lies outside the DEM grid"),
+    (["--surface", f"dem:{HILLS}", "--leader-start", "49.9,8,0,1", "--followers", "3",
+      "--spacing", "20"], "rod leaves the surface's domain"),
+    (["--estimator", "nosuch.module:Mine"], "no module 'nosuch.module' is importable here"),
+    (["--seed", "abc"], "argument --seed: invalid int value: 'abc'"),
+], ids=["surface-typo", "dem-missing", "dem-not-a-raster", "dem-no-start", "start-off-grid",
+        "column-off-grid", "plugin-missing", "seed-not-a-number"])
+@pytest.mark.parametrize("layout", ["--processes", "--in-process"])
+def test_a_refused_run_leaves_nothing(tmp_path, monkeypatch, capsys, args, fragment, layout):
+    monkeypatch.chdir(tmp_path)  # the default results folder is runs/<id> here
+    err = _refused_in_one_line(capsys, main, "run", layout, "--ticks", "6", *args)
+    assert fragment in err
+    assert not err.startswith("usage")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_refused_run_into_a_given_folder_leaves_nothing(tmp_path, capsys):
+    out = tmp_path / "deep" / "er" / "run"
+    err = _refused_in_one_line(capsys, main, "run", "--surface", "ellipic", "--out", str(out))
+    assert "not a preset" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_hand_started_world_refuses_a_start_off_its_dem_before_making_a_folder(tmp_path,
+                                                                                 capsys):
+    dump_config(RunConfig(run_id="off", surface=f"dem:{HILLS}",
+                          leader_start=(80.0, 8.0, 1.0, 0.0)), tmp_path / "run.toml")
+    err = _refused_in_one_line(capsys, world.main.main, "--config", str(tmp_path / "run.toml"),
+                               "--out", str(tmp_path / "out"))
+    assert "lies outside the DEM grid" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.toml"]
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["--dem", "missing.tif", "--leader-start", "0,0,1,0"], "no such DEM file"),
+    (["--dem", str(HILLS), "--leader-start", "90,8,1,0"], "lies outside the DEM grid"),
+], ids=["dem-missing", "start-off-grid"])
+def test_a_refused_terrain_experiment_leaves_no_folder(tmp_path, monkeypatch, capsys, args,
+                                                       fragment):
+    monkeypatch.chdir(tmp_path)  # its default folder is runs/experiment-terrain here
+    err = _refused_in_one_line(capsys, main, "experiment", "terrain", "--quick", *args)
+    assert fragment in err
+    assert list(tmp_path.iterdir()) == []
