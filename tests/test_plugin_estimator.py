@@ -109,3 +109,32 @@ def test_a_plugin_is_not_told_the_top_speed_of_a_drive_run():
     seen = example_estimator.SETTINGS_SEEN
     assert len(seen) == 3 and all(s.motion == "drive" for s in seen)
     assert [s.max_speed for s in seen] == [None, None, None]
+
+
+@pytest.mark.parametrize("command, layout", [
+    (["{python}", "-m", "swarm"], "--in-process"),
+    (["{bin}/swarm"], "--in-process"),
+    (["{python}", "-m", "swarm"], "--processes"),
+    (["{bin}/swarm"], "--processes"),
+], ids=["python-m-in-process", "console-in-process", "python-m-processes", "console-processes"])
+def test_a_plugin_in_the_current_folder_resolves_in_every_entry_point_and_layout(
+        tmp_path, command, layout):
+    """docs/estimators.md: a plug-in resolves from the current folder, whichever way the tool
+    was started (the console script puts no folder on sys.path of its own) and wherever the
+    followers run. The module exists only in the current folder."""
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    bin_dir = Path(sys.executable).parent
+    if not (bin_dir / "swarm").exists():
+        pytest.skip("the swarm console script is not installed beside this interpreter")
+    source = Path(__file__).with_name("example_estimator.py")
+    shutil.copy(source, tmp_path / "my_plugin.py")
+    argv = [part.format(python=sys.executable, bin=bin_dir) for part in command]
+    proc = subprocess.run([*argv, "run", layout, "--ticks", "8", "--estimator",
+                           "my_plugin:MeanStep", "--out", "run"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    with open(tmp_path / "run" / "observations.csv", newline="") as fh:
+        assert {r["estimator"] for r in csv.DictReader(fh) if r["agent"] == "1"} == {"mean-step"}
