@@ -25,7 +25,7 @@ from protocol.cli import (
     setup_logging,
 )
 from protocol.config import BRIEF_COMMAND, AgentBrief
-from protocol.session import add_connection_flags, connection_config, open_session
+from protocol.session import LOCAL_ROUTER, add_connection_flags, connection_config, open_session
 
 
 def parser(program: str, description: str) -> argparse.ArgumentParser:
@@ -55,11 +55,14 @@ def _run(args: argparse.Namespace, agent: int | None,
         if brief.agent != agent and (agent is not None or brief.agent == 0):
             refuse(f"{args.config} is {_whose(brief.agent)} brief, not {_whose(agent)}")
         settings = brief.settings
-        conf = connection_config(args, connect_timeout=settings.start_timeout)
+        # a client given no endpoint looks where a hand-started world listens by default
+        local = (LOCAL_ROUTER,) if (args.session_mode or "client") == "client" else ()
+        conf = connection_config(args, connect_timeout=settings.start_timeout,
+                                 default_connect=local)
     try:
         session = open_session(conf)
     except zenoh.ZError as exc:
-        where = ", ".join(args.connect) or "the network"
+        where = ", ".join(args.connect or (() if args.listen else local)) or "the network"
         fail(f"no world reachable at {where} within {settings.start_timeout:g} s (is the world "
              f"or the Zenoh router running there?): {describe(exc)}")
     with ends_with(REFUSED, ValueError), \

@@ -211,11 +211,11 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
 
 def main(argv: list[str] | None = None) -> int:
     p = parser("python -m agents.follower", "Follower agent of a column-formation run.")
-    p.add_argument("--id", type=int, help="follower id K (1 = behind the leader); default: "
-                                          "its brief's, which it must match if given")
+    p.add_argument("--id", type=int, help="follower id K (1 = behind the leader), which must "
+                                          "match its brief's [default the brief's]")
     p.add_argument("--state-dir", help="where to keep this follower's state (replay log) "
-                                        "(default: <brief's folder>/state; 'none' disables); "
-                                        "removed at the end of a complete run if then empty")
+                                        "('none' disables); removed at the end of a complete "
+                                        "run if then empty [default <brief's folder>/state]")
     args = p.parse_args(argv)
     if args.id is not None and args.id < 1:
         p.error(f"argument --id: a follower's id is 1 or more, got {args.id}")

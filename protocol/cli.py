@@ -16,7 +16,7 @@ import sys
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import zenoh
 
@@ -223,11 +223,26 @@ class Parser(argparse.ArgumentParser):
         self.exit(REFUSED, f"{self.prog}: error: {_one_line(message)} "
                            f"({self.prog} --help lists the options)\n")
 
+    def parse_known_args(self, args=None, namespace=None):
+        parsed, extra = super().parse_known_args(args, namespace)
+        if not hasattr(parsed, "_page"):  # the deepest subcommand's parser sets it first
+            parsed._page = self
+        return parsed, extra
+
+    def parse_args(self, args=None, namespace=None):
+        """As argparse's, but arguments no parser knows are refused by the page of the
+        subcommand they were given to (``python -m swarm experiment paper: error: ...``)."""
+        parsed, extra = self.parse_known_args(args, namespace)
+        page = vars(parsed).pop("_page", self)
+        if extra:
+            page.error(f"unrecognized arguments: {' '.join(extra)}")
+        return parsed
+
 
 def add_log_level_flag(parser: argparse.ArgumentParser) -> None:
     """``--log-level`` (case-insensitive); argparse refuses any other value with usage."""
     parser.add_argument("--log-level", type=str.upper, choices=LOG_LEVELS, default="WARNING",
-                        metavar="LEVEL", help=f"one of {', '.join(LOG_LEVELS)} (default WARNING)")
+                        metavar="LEVEL", help=f"one of {', '.join(LOG_LEVELS)} [default WARNING]")
 
 
 def default_out(run_id: str) -> Path:
@@ -237,9 +252,20 @@ def default_out(run_id: str) -> Path:
 
 def add_results_flags(parser: argparse.ArgumentParser) -> None:
     """``--out`` (default :func:`default_out`) and ``--force`` of a command that runs a run."""
-    parser.add_argument("--out", help=f"results folder (default {default_out('<run_id>')})")
+    parser.add_argument("--out", help=f"results folder [default {default_out('<run_id>')}]")
     parser.add_argument("--force", action="store_true",
-                        help="replace the results already in --out (default: refuse)")
+                        help="replace the results already in --out [default refuse]")
+
+
+def quantity(value: Any, unit: str) -> str:
+    """``value`` and its unit, a counted word in the singular for one.
+
+    >>> quantity(1, "agents"), quantity(3, "followers"), quantity(1.0, "m/s")
+    ('1 agent', '3 followers', '1.0 m/s')
+    """
+    if str(value) == "1" and unit.isalpha() and unit.endswith("s"):
+        unit = unit[:-1]
+    return f"{value} {unit}" if unit else str(value)
 
 
 def setup_logging(level: str) -> None:

@@ -21,6 +21,7 @@ from protocol.cli import (
     default_out,
     ends_with,
     fail,
+    quantity,
     run_command,
     run_failures,
     setup_logging,
@@ -28,13 +29,13 @@ from protocol.cli import (
 from protocol.config import RunConfig, config_from_file, dump_config, file_options, with_env_domain
 from protocol.distribution import require
 from protocol.folder import FolderLock, check_out_dir
-from protocol.session import add_connection_flags, connection_config, open_session
+from protocol.session import LOCAL_ROUTER, add_connection_flags, connection_config, open_session
 from world import checkpoint, geometry
 from world.service import WorldService
 from world.sim import default_max_speed, resolve_leader_start
 from world.surfaces import Surface, make_surface, require_surface_extra
 
-DEFAULT_LISTEN = ("tcp/127.0.0.1:7447",)
+DEFAULT_LISTEN = (LOCAL_ROUTER,)
 """Where the world listens as embedded router when given no ``--listen``."""
 
 
@@ -112,8 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     add_log_level_flag(p)
     p.add_argument("--ros2", action="store_true", default=None,
                    help="also publish the run's ROS 2 topics (rmw_zenoh layout; [ros] extra)")
-    p.add_argument("--ros-domain", type=int, help="ROS 2 domain id, 0-232 (default: the "
-                                                  "config's, else ROS_DOMAIN_ID, else 0)")
+    p.add_argument("--ros-domain", type=int, help="ROS 2 domain id, 0-232 [default the "
+                                                  "config's, else ROS_DOMAIN_ID, else 0]")
     args = p.parse_args(argv)
     setup_logging(args.log_level)
     return run_command(lambda: _serve(args))
@@ -157,7 +158,7 @@ def waiting_line(config: RunConfig, args: argparse.Namespace, out: str | Path) -
     else:
         where = "listening on " + ", ".join(args.listen or DEFAULT_LISTEN)
     return (f"world: run {config.run_id} {where}; waiting up to {config.start_timeout:g} s for "
-            f"the leader and {config.followers} follower(s); results into {out}")
+            f"the leader and {quantity(config.followers, 'followers')}; results into {out}")
 
 
 def _serve(args: argparse.Namespace) -> int:
