@@ -156,8 +156,11 @@ class _ProcessAgents:
             log_fd = open_file(self.out_dir / "logs" / f"agent-{k}.log",
                                os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
             with os.fdopen(log_fd, "wb") as log_file:
+                # a session of its own: a terminal's Ctrl-C reaches the launcher only, which
+                # ends the run and then its agents in order (no agent vanishes mid-tick)
                 self.procs.append(subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT,
-                                                   stdin=subprocess.DEVNULL))
+                                                   stdin=subprocess.DEVNULL,
+                                                   start_new_session=True))
         threading.Thread(target=self._watch, args=(service,), daemon=True).start()
 
     def _watch(self, service: WorldService) -> None:

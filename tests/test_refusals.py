@@ -77,3 +77,31 @@ def test_a_refused_terrain_experiment_leaves_no_folder(tmp_path, monkeypatch, ca
     err = _refused_in_one_line(capsys, main, "experiment", "terrain", "--quick", *args)
     assert fragment in err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_ctrl_c_before_the_first_tick_says_so_and_keeps_nothing(tmp_path):
+    """The follower's plug-in takes its time at import (it is only found, never run, by
+    `swarm run`), so tick 0 cannot complete; Ctrl-C once the run's folder is made: status 130,
+    one line saying nothing was kept, no folder, no warning about vanished agents, and no
+    agent left running."""
+    import signal
+    import subprocess
+    import sys
+
+    from tests.waiting import children, running, signalled, wait_for
+
+    (tmp_path / "slow_plugin.py").write_text("import time\ntime.sleep(60)\n")
+    proc = subprocess.Popen([sys.executable, "-m", "swarm", "run", "--followers", "2",
+                             "--estimator", "slow_plugin:Never", "--out", "run"],
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        wait_for(lambda: len(children(proc.pid)) == 3, 60, "the three agent processes")
+        agents = children(proc.pid)
+        assert (tmp_path / "run" / "config.toml").exists()
+    finally:
+        code, _, err = signalled(proc, signal.SIGINT, timeout=30)
+    assert code == 130, err
+    assert err.splitlines() == ["interrupted before the first tick: nothing kept (run removed)"]
+    assert list(tmp_path.iterdir()) == [tmp_path / "slow_plugin.py"]
+    assert not any(running(pid) for pid in agents)
