@@ -409,11 +409,14 @@ def _print_failed(failed) -> int:
     return FAILED if failed else 0
 
 
-def _run_sweep_and_print(name, base, axes, out, follower, workers, scheduler=None) -> int:
+def _run_sweep_and_print(name, base, axes, out, follower, workers, scheduler=None,
+                         caption: str | None = None) -> int:
     from swarm.sweep import format_means, run_sweep
 
     result = _run_grid(lambda: run_sweep(name, base, axes, out, follower=follower,
                                          workers=workers, scheduler=scheduler), out)
+    if caption:
+        print(caption)
     print(format_means(result["means"], result["keys"]))
     for path in result["tables"].values():
         print(f"table: {path}")
@@ -453,7 +456,19 @@ def cmd_compare(args: argparse.Namespace) -> int:
             raise ValueError(f"--follower must be in 1..{followers}, got {args.follower}")
     out = Path(args.out or Path("runs") / f"compare-{base.get('run_id') or new_run_id()}")
     return _run_sweep_and_print("compare", base, axes, out, args.follower, args.workers,
-                                args.scheduler)
+                                args.scheduler, compare_caption(runs[0].config, args.follower,
+                                                                seeds))
+
+
+def compare_caption(config: RunConfig, follower: int, seeds: list[int]) -> str:
+    """What ``compare``'s table shows: whose metrics, over which seeds, on which setup and
+    noise (every noise channel set, or noise-free)."""
+    noises = [f"{name.removeprefix('noise_')} σ {getattr(config, name):g} {OPTIONS[name].unit}"
+              for name in OPTIONS if name.startswith("noise_") and getattr(config, name)]
+    return (f"follower {follower} of {config.followers}, mean over "
+            f"{quantity(len(seeds), 'seeds')} ({', '.join(map(str, seeds))}); surface "
+            f"{config.surface}, comm period {config.comm_period:g} s, {config.ticks} ticks; "
+            + ("noise: " + ", ".join(noises) if noises else "noise-free"))
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:

@@ -126,11 +126,16 @@ def test_world_start_timeout(tmp_path):
     from protocol.config import dump_config
 
     dump_config(RunConfig(run_id="lonely", start_timeout=1.0), tmp_path / "c.toml")
+    endpoint = free_tcp_endpoint()
     proc = subprocess.run([sys.executable, "-m", "world", "--config", str(tmp_path / "c.toml"),
-                           "--listen", free_tcp_endpoint(), "--out", str(tmp_path / "o")],
+                           "--listen", endpoint, "--out", str(tmp_path / "o")],
                           cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1
     assert "agents 0, 1 (2 of 2) did not come up within 1 s" in proc.stderr
+    # a hand-started world says where it listens and whom it waits for, once
+    assert proc.stdout.splitlines() == [
+        f"world: run lonely listening on {endpoint}; waiting up to 1 s for the leader and 1 "
+        f"follower; results into {tmp_path / 'o'}"]
 
 
 def test_an_in_process_agent_whose_session_fails_is_named(tmp_path):

@@ -63,3 +63,23 @@ def test_a_flag_of_another_experiment_is_refused_in_one_line(tmp_path, capsys):
                                 "arguments: --spacing 5 (python -m swarm experiment paper "
                                 "--help lists the options)"]
     assert not (tmp_path / "o").exists()
+
+
+def test_compare_says_which_follower_seeds_and_noise_its_table_shows():
+    from protocol.config import RunConfig
+    from swarm.cli import compare_caption
+
+    noisy = RunConfig(followers=3, noise_range=0.02, noise_bearing=0.01, surface="wavy")
+    assert compare_caption(noisy, 2, [0, 1, 2]) == (
+        "follower 2 of 3, mean over 3 seeds (0, 1, 2); surface wavy, comm period 1.28 s, "
+        "40 ticks; noise: range σ 0.02 m, bearing σ 0.01 rad")
+    assert compare_caption(RunConfig(), 1, [7]).endswith("mean over 1 seed (7); surface "
+                                                         "elliptic, comm period 1.28 s, 40 "
+                                                         "ticks; noise-free")
+
+
+def test_ros2_on_a_core_install_names_the_extra_for_live_topics():
+    from protocol.distribution import missing_extra_message
+
+    assert missing_extra_message("ros").startswith("ROS 2 (bags, and live topics with --ros2) "
+                                                   "needs the [ros] extra")
