@@ -28,6 +28,7 @@ from agents.cli import parser, run_cli
 from agents.drive import Limits, drive_tick
 from agents.link import AgentAbort, AgentLink, MarkedMissed, Rejoin, RunFinished
 from agents.policies import NotReady, Policy, make_policy, move_variance, reading_variance, relative
+from protocol.cli import program
 from protocol.config import AgentSettings
 from protocol.messages import Move, Observation, Sensing, Snap
 
@@ -210,7 +211,8 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = parser("python -m agents.follower", "Follower agent of a column-formation run.")
+    p = parser(program("agents.follower", "swarm-follower"),
+               "Follower agent of a column-formation run.")
     p.add_argument("--id", type=int, help="follower id K (1 = behind the leader), which must "
                                           "match its brief's [default the brief's]")
     p.add_argument("--state-dir", help="where to keep this follower's state (replay log) "

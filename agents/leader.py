@@ -9,6 +9,7 @@ import zenoh
 
 from agents.cli import parser, run_cli
 from agents.link import AgentLink, MarkedMissed, Rejoin
+from protocol.cli import program
 from protocol.config import AgentSettings
 from protocol.messages import Drive
 
@@ -42,7 +43,7 @@ def run_leader(session: zenoh.Session, settings: AgentSettings) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parser("python -m agents.leader",
+    args = parser(program("agents.leader", "swarm-leader"),
                   "Leader agent of a column-formation run.").parse_args(argv)
     return run_cli(args, 0, lambda session, brief: run_leader(session, brief.settings))
 

@@ -239,6 +239,12 @@ class Parser(argparse.ArgumentParser):
         return parsed
 
 
+def program(module: str, script: str) -> str:
+    """How a command names itself in its usage and errors: the installed ``script`` (e.g.
+    ``swarm-follower``) when started as it, else ``python -m module``."""
+    return script if Path(sys.argv[0]).name == script else f"python -m {module}"
+
+
 def add_log_level_flag(parser: argparse.ArgumentParser) -> None:
     """``--log-level`` (case-insensitive); argparse refuses any other value with usage."""
     parser.add_argument("--log-level", type=str.upper, choices=LOG_LEVELS, default="WARNING",

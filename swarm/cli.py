@@ -18,6 +18,7 @@ from protocol.cli import (
     add_results_flags,
     default_out,
     ends_with,
+    program,
     quantity,
     refuse,
     run_command,
@@ -649,7 +650,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="python -m swarm",
+    p = Parser(prog=program("swarm", "swarm"),
                                 description="Column formation on an unknown surface over Zenoh.")
     p.add_argument("--version", action="version", version=f"{DISTRIBUTION} {version()}")
     sub = p.add_subparsers(dest="command", required=True)

@@ -21,6 +21,7 @@ from protocol.cli import (
     default_out,
     ends_with,
     fail,
+    program,
     quantity,
     run_command,
     run_failures,
@@ -101,7 +102,7 @@ def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
 
 def main(argv: list[str] | None = None) -> int:
     p = Parser(
-        prog="python -m world",
+        prog=program("world", "swarm-world"),
         description="The world process: hidden surface, sensing, motion, results.")
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--config", help="run configuration TOML")
