@@ -493,3 +493,4 @@ def test_the_drive_study_writes_its_table_figure_and_report(tmp_path, capsys):
     assert all(m["min_speed_factor"] in QUICK.speed_factors for m in minimum)
     assert (out / "figures" / "drive.png").stat().st_size > 10_000
     assert "Minimum top speed" in (out / "report.md").read_text()
+    assert "\r" not in capsys.readouterr().err  # a progress bar on a terminal only, not in a log
