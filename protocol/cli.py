@@ -109,10 +109,10 @@ class NewFolder:
     parents: :meth:`discard` removes what the command made, so that a refused command, or a
     run that ended before its first tick, leaves nothing behind (design §9).
 
-    Made while nothing existed yet, only the topmost new folder is removed: with ``run_id``
-    (a run's folder) the whole of it, once its one-writer lock is taken (a folder another
-    writer holds is left alone); without, only its empty folders (a grid's, whose runs are
-    kept).
+    Only what did not exist when the command started is removed: with ``run_id`` (a run's
+    folder) the whole folder, once its one-writer lock is taken (a folder another writer holds
+    is left alone); without, only its empty folders (a grid's, whose runs are kept). The new
+    parents go only if empty (another run may have put its folder beside).
     """
 
     def __init__(self, path: str | os.PathLike[str], run_id: str | None = None) -> None:
@@ -134,16 +134,27 @@ class NewFolder:
         top = self.top
         if top is None or top.is_symlink() or not top.is_dir():
             return
-        if self.run_id is None:
-            for folder, _, _ in sorted(os.walk(top), key=lambda entry: -len(entry[0])):
+        if self.run_id is not None:
+            if not self.path.is_dir() or self.path.is_symlink():
+                return
+            try:
+                with FolderLock(self.path, self.run_id):
+                    shutil.rmtree(self.path, ignore_errors=True)
+            except (Refused, OSError):  # another writer holds it now: not ours to remove
+                return
+        else:  # a grid's: its empty folders, deepest first
+            for folder, _, _ in sorted(os.walk(self.path), key=lambda entry: -len(entry[0])):
                 with contextlib.suppress(OSError):
-                    os.rmdir(folder)  # only empty ones
-            return
-        try:
-            with FolderLock(self.path, self.run_id):
-                shutil.rmtree(top, ignore_errors=True)
-        except (Refused, OSError):  # another writer holds it now: it is not ours to remove
-            return
+                    os.rmdir(folder)
+        folder = self.path
+        while folder != top.parent:  # then the parents it made, while they are empty
+            try:
+                os.rmdir(folder)
+            except FileNotFoundError:  # gone already
+                pass
+            except OSError:
+                return
+            folder = folder.parent
 
     @contextlib.contextmanager
     def undone_if_refused(self) -> Iterator[NewFolder]:

@@ -105,3 +105,24 @@ def test_ctrl_c_before_the_first_tick_says_so_and_keeps_nothing(tmp_path):
     assert err.splitlines() == ["interrupted before the first tick: nothing kept (run removed)"]
     assert list(tmp_path.iterdir()) == [tmp_path / "slow_plugin.py"]
     assert not any(running(pid) for pid in agents)
+
+
+def test_a_discarded_folder_takes_nothing_that_is_not_its_own(tmp_path):
+    """A refused run removes the folder it made and the parents it made if they are empty;
+    not a run folder made beside it meanwhile, nor one another writer holds."""
+    from protocol.cli import NewFolder
+    from protocol.folder import FolderLock
+
+    mine = NewFolder(tmp_path / "runs" / "a", "a")
+    (tmp_path / "runs" / "a").mkdir(parents=True)
+    (tmp_path / "runs" / "a" / "config.toml").write_text("x")
+    (tmp_path / "runs" / "b").mkdir()  # another run's, made meanwhile
+    mine.discard()
+    assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == ["b"]
+    held = NewFolder(tmp_path / "new" / "c", "c")
+    with FolderLock(tmp_path / "new" / "c", "someone-else"):
+        held.discard()
+        assert (tmp_path / "new" / "c" / ".swarm.lock").exists()
+    found = NewFolder(tmp_path / "runs", None)  # it was there: nothing is made, nothing goes
+    found.discard()
+    assert (tmp_path / "runs" / "b").is_dir() and not found.made
