@@ -28,6 +28,7 @@ from agents.cli import parser, run_cli
 from agents.drive import Limits, drive_tick
 from agents.link import AgentAbort, AgentLink, MarkedMissed, Rejoin, RunFinished
 from agents.policies import NotReady, Policy, make_policy, move_variance, reading_variance, relative
+from protocol.cli import program
 from protocol.config import AgentSettings
 from protocol.messages import Move, Observation, Sensing, Snap
 
@@ -210,15 +211,20 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = parser("Follower agent of a column-formation run.")
-    p.add_argument("--id", type=int, required=True, help="follower id K (1 = behind the leader)")
+    p = parser(program("agents.follower", "swarm-follower"),
+               "Follower agent of a column-formation run.")
+    p.add_argument("--id", type=int, help="follower id K (1 = behind the leader), which must "
+                                          "match its brief's [default the brief's]")
     p.add_argument("--state-dir", help="where to keep this follower's state (replay log) "
-                                        "(default: <config dir>/state; 'none' disables); "
-                                        "removed at the end of a complete run if then empty")
+                                        "('none' disables); removed at the end of a complete "
+                                        "run if then empty [default <brief's folder>/state]")
     args = p.parse_args(argv)
+    if args.id is not None and args.id < 1:
+        p.error(f"argument --id: a follower's id is 1 or more, got {args.id}")
     state = args.state_dir or str(Path(args.config).resolve().parent / "state")
     state = None if state == "none" else state
-    return run_cli(args, lambda session, settings: run_follower(session, settings, args.id, state))
+    return run_cli(args, args.id, lambda session, brief: run_follower(
+        session, brief.settings, brief.agent, state))
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ import zenoh
 
 from agents.cli import parser, run_cli
 from agents.link import AgentLink, MarkedMissed, Rejoin
+from protocol.cli import program
 from protocol.config import AgentSettings
 from protocol.messages import Drive
 
@@ -42,8 +43,9 @@ def run_leader(session: zenoh.Session, settings: AgentSettings) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parser("Leader agent of a column-formation run.").parse_args(argv)
-    return run_cli(args, run_leader)
+    args = parser(program("agents.leader", "swarm-leader"),
+                  "Leader agent of a column-formation run.").parse_args(argv)
+    return run_cli(args, 0, lambda session, brief: run_leader(session, brief.settings))
 
 
 if __name__ == "__main__":

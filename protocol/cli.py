@@ -10,12 +10,13 @@ import contextlib
 import logging
 import os
 import re
+import shutil
 import signal
 import sys
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import zenoh
 
@@ -103,6 +104,72 @@ def run_failures(out: str | os.PathLike[str]) -> Iterator[None]:
         fail(describe(exc))
 
 
+class NewFolder:
+    """The results folder ``path`` of a command that may make it, with whatever missing
+    parents: :meth:`discard` removes what the command made, so that a refused command, or a
+    run that ended before its first tick, leaves nothing behind (design §9).
+
+    Only what did not exist when the command started is removed: with ``run_id`` (a run's
+    folder) the whole folder, once its one-writer lock is taken (a folder another writer holds
+    is left alone); without, only its empty folders (a grid's, whose runs are kept). The new
+    parents go only if empty (another run may have put its folder beside).
+    """
+
+    def __init__(self, path: str | os.PathLike[str], run_id: str | None = None) -> None:
+        self.run_id = run_id
+        self.path = path = Path(path).absolute()
+        self.top: Path | None = None  # the topmost folder that does not exist yet
+        while not os.path.lexists(path):
+            self.top, path = path, path.parent
+
+    @property
+    def made(self) -> bool:
+        """Whether the command made (or is to make) the folder."""
+        return self.top is not None
+
+    def discard(self) -> None:
+        """Remove what the command made (nothing if it found the folder there)."""
+        from protocol.folder import FolderLock
+
+        top = self.top
+        if top is None or top.is_symlink() or not top.is_dir():
+            return
+        if self.run_id is not None:
+            if not self.path.is_dir() or self.path.is_symlink():
+                return
+            try:
+                with FolderLock(self.path, self.run_id):
+                    shutil.rmtree(self.path, ignore_errors=True)
+            except (Refused, OSError):  # another writer holds it now: not ours to remove
+                return
+        else:  # a grid's: its empty folders, deepest first
+            for folder, _, _ in sorted(os.walk(self.path), key=lambda entry: -len(entry[0])):
+                with contextlib.suppress(OSError):
+                    os.rmdir(folder)
+        folder = self.path
+        while folder != top.parent:  # then the parents it made, while they are empty
+            try:
+                os.rmdir(folder)
+            except FileNotFoundError:  # gone already
+                pass
+            except OSError:
+                return
+            folder = folder.parent
+
+    @contextlib.contextmanager
+    def undone_if_refused(self) -> Iterator[NewFolder]:
+        """Within the block, a refusal (status 2, or a missing extra) discards the folder."""
+        try:
+            yield self
+        except CommandError as exc:
+            if exc.status == REFUSED:
+                self.discard()
+            raise
+        except (MissingExtra, Refused):
+            self.discard()
+            raise
+
+
 INTERRUPT_GRACE_S = 8.0
 """Seconds a process may spend cleaning up after Ctrl-C or SIGTERM before it exits regardless."""
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -158,10 +225,41 @@ def _exit_interrupted(grace: float, status: int) -> None:
     os._exit(status)
 
 
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose refusal of a command line is one line (design §9: status 2),
+    ``PROG: error: MESSAGE (PROG --help lists the options)``, not the usage block first.
+    Its subcommands' parsers are of the same class."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(REFUSED, f"{self.prog}: error: {_one_line(message)} "
+                           f"({self.prog} --help lists the options)\n")
+
+    def parse_known_args(self, args=None, namespace=None):
+        parsed, extra = super().parse_known_args(args, namespace)
+        if not hasattr(parsed, "_page"):  # the deepest subcommand's parser sets it first
+            parsed._page = self
+        return parsed, extra
+
+    def parse_args(self, args=None, namespace=None):
+        """As argparse's, but arguments no parser knows are refused by the page of the
+        subcommand they were given to (``python -m swarm experiment paper: error: ...``)."""
+        parsed, extra = self.parse_known_args(args, namespace)
+        page = vars(parsed).pop("_page", self)
+        if extra:
+            page.error(f"unrecognized arguments: {' '.join(extra)}")
+        return parsed
+
+
+def program(module: str, script: str) -> str:
+    """How a command names itself in its usage and errors: the installed ``script`` (e.g.
+    ``swarm-follower``) when started as it, else ``python -m module``."""
+    return script if Path(sys.argv[0]).name == script else f"python -m {module}"
+
+
 def add_log_level_flag(parser: argparse.ArgumentParser) -> None:
     """``--log-level`` (case-insensitive); argparse refuses any other value with usage."""
     parser.add_argument("--log-level", type=str.upper, choices=LOG_LEVELS, default="WARNING",
-                        metavar="LEVEL", help=f"one of {', '.join(LOG_LEVELS)} (default WARNING)")
+                        metavar="LEVEL", help=f"one of {', '.join(LOG_LEVELS)} [default WARNING]")
 
 
 def default_out(run_id: str) -> Path:
@@ -171,9 +269,20 @@ def default_out(run_id: str) -> Path:
 
 def add_results_flags(parser: argparse.ArgumentParser) -> None:
     """``--out`` (default :func:`default_out`) and ``--force`` of a command that runs a run."""
-    parser.add_argument("--out", help=f"results folder (default {default_out('<run_id>')})")
+    parser.add_argument("--out", help=f"results folder [default {default_out('<run_id>')}]")
     parser.add_argument("--force", action="store_true",
-                        help="replace the results already in --out (default: refuse)")
+                        help="replace the results already in --out [default refuse]")
+
+
+def quantity(value: Any, unit: str) -> str:
+    """``value`` and its unit, a counted word in the singular for one.
+
+    >>> quantity(1, "agents"), quantity(3, "followers"), quantity(1.0, "m/s")
+    ('1 agent', '3 followers', '1.0 m/s')
+    """
+    if str(value) == "1" and unit.isalpha() and unit.endswith("s"):
+        unit = unit[:-1]
+    return f"{value} {unit}" if unit else str(value)
 
 
 def setup_logging(level: str) -> None:

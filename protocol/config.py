@@ -7,7 +7,8 @@ derived from those declarations (:data:`OPTIONS`): the validation in
 :meth:`RunConfig.__post_init__`, the TOML keys (:func:`load_config`, :func:`dump_config`), the
 flags and ``--help`` of ``swarm run``/``compare`` (:mod:`swarm.cli`), :class:`AgentSettings`
 (the agent-visible subset: never the surface, the leader start, the seed or any other
-world-only option) and the table of ``docs/options.md`` (:func:`options_table`).
+world-only option), :class:`AgentBrief` (what an agent process is given: its id and those
+settings) and the table of ``docs/options.md`` (:func:`options_table`).
 
 An option that does nothing in a run is refused, not ignored: which estimator uses which
 option is declared once in :data:`ESTIMATOR_OPTIONS`, other dependencies in each option's
@@ -29,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from protocol.folder import write_atomic
-from protocol.keys import check_run_id
+from protocol.keys import check_agent_id, check_run_id
 from protocol.limits import MAX_RUN_ID
 from protocol.ros2 import DOMAIN_RANGE, domain_from_env
 
@@ -212,7 +213,7 @@ class RunConfig:
     noise_move: float = option(0.0, "σ of a move's actuation, per coordinate", unit=LENGTH,
                                low=0.0, high=1e3, agents=True, needs=("motion", "teleport"))
     noise_gps: float = option(0.0, "σ of a GPS reading, per coordinate", unit=LENGTH, low=0.0,
-                              high=1e6, needs=("gps", True))
+                              high=1e6, agents=True, needs=("gps", True))
     seed: int = option(0, "seed of every noise stream", low=0, high=2**63 - 1)
     sensing_range: float = option(math.inf, "R_s: how far a follower sees its leader's rod "
                                   "end (inf = unlimited)", unit=LENGTH, low=0.0, high=math.inf,
@@ -254,9 +255,11 @@ class RunConfig:
                              "end", unit="steps", low=0, high=10_000, agents=True,
                              needs=("motion", "drive"))
     noise_speed: float = option(0.0, "drive: σ of the forward speed's actuation per control "
-                                "step", unit=SPEED, low=0.0, high=1e3, needs=("motion", "drive"))
+                                "step", unit=SPEED, low=0.0, high=1e3, agents=True,
+                                needs=("motion", "drive"))
     noise_turn: float = option(0.0, "drive: σ of the turn rate's actuation per control step",
-                               unit=TURN, low=0.0, high=1e3, needs=("motion", "drive"))
+                               unit=TURN, low=0.0, high=1e3, agents=True,
+                               needs=("motion", "drive"))
     def __post_init__(self) -> None:
         check_run_id(self.run_id)
         if (not isinstance(self.surface, str) or not 0 < len(self.surface) <= MAX_SURFACE_NAME
@@ -383,8 +386,10 @@ def _agent_settings() -> type:
     fields = [(f.name, f.type) for f in dataclasses.fields(RunConfig) if f.name in AGENT_OPTIONS]
     return dataclasses.make_dataclass("AgentSettings", fields, frozen=True, namespace={
         "__module__": __name__,
-        "__doc__": "What an agent process is told: the agent-visible options of "
-                   ":class:`RunConfig` (timing, rods, its estimator; never the surface).",
+        "__doc__": "What a robot knows of its run: the agent-visible options of "
+                   ":class:`RunConfig` (timing, rods, its estimator, its own limits and "
+                   "noise σ; never the seed, the surface, the leader start or any other "
+                   "world option). :class:`AgentBrief` adds the agent's id.",
         "side_sign": RunConfig.side_sign,
         "drives": RunConfig.drives,
         "step_timeout": property(step_timeout),
@@ -546,14 +551,94 @@ def _depth(value: Any) -> int:
     return depth
 
 
-def load_agent_settings(path: str | os.PathLike[str]) -> AgentSettings:
-    """What an agent may read of a run configuration."""
-    return AgentSettings.from_config(load_config(path))
+BRIEF_COMMAND = "python -m swarm agent-config"
+"""The command that writes an agent's brief from a run configuration (hand assembly)."""
+
+
+@dataclass(frozen=True)
+class AgentBrief:
+    """Everything an agent process is told (design §5, §9): which agent it is (0 the leader,
+    K follower K) and what that robot knows, :class:`AgentSettings` — its estimator and its
+    options, its own limits, the declared σ of its own sensors and actuators, the comm period,
+    the rod's length and side, the tick counts and timeouts, and the run id its keys live
+    under. Never the seed, the surface or its parameters, the leader start, the sensing range
+    or any other world option. How to connect (endpoint, user, password file, TLS) is given on
+    the agent's command line: it belongs to the host it runs on, not to the run.
+
+    The launcher (``swarm run``), ``swarm deploy`` and ``swarm agent-config`` write it with
+    :meth:`write`; ``python -m agents.leader``/``agents.follower --config`` read it with
+    :meth:`load`, which refuses a run configuration.
+    """
+
+    agent: int
+    settings: AgentSettings
+
+    def __post_init__(self) -> None:
+        check_agent_id(self.agent)
+        if self.agent > self.settings.followers:
+            raise ValueError(f"agent id must be in 0..{self.settings.followers} (the run's "
+                             f"followers), got {self.agent}")
+
+    @classmethod
+    def of(cls, config: RunConfig, agent: int) -> AgentBrief:
+        """Agent ``agent``'s brief in the run ``config``."""
+        return cls(agent, AgentSettings.from_config(config))
+
+    @property
+    def role(self) -> str:
+        """``"leader"`` or ``"follower K"``."""
+        return "leader" if self.agent == 0 else f"follower {self.agent}"
+
+    def text(self) -> str:
+        """The brief as TOML: ``agent = K`` and a ``[settings]`` table (an option left None,
+        e.g. a drive run's top speed that the world resolves, is left out)."""
+        settings = {name: getattr(self.settings, name) for name in AGENT_OPTIONS}
+        program = "python -m agents." + ("leader" if self.agent == 0 else "follower")
+        lines = [f"# What the {self.role} of run {self.settings.run_id} is told (design §5): "
+                 "no seed, surface or other world option.",
+                 f"# `{program} --config THIS_FILE` reads it; made by `swarm run`, "
+                 f"`swarm deploy` or `{BRIEF_COMMAND}`.",
+                 f"agent = {self.agent}", "", "[settings]"]
+        lines += [f"{name} = {OPTIONS[name].show(value)}" for name, value in settings.items()
+                  if value is not None]
+        return "\n".join(lines) + "\n"
+
+    def write(self, path: str | os.PathLike[str]) -> Path:
+        """Write :meth:`text` to ``path`` atomically; return the path."""
+        write_atomic(Path(path), self.text())
+        return Path(path)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> AgentBrief:
+        """Read an agent's brief (under the input limits of :func:`read_toml`). ValueError, one
+        line naming the file: for a run configuration (it holds the world's secrets; the line
+        says what to pass instead), an option no agent is told, or a bad value."""
+        data = read_toml(Path(path), "agent brief")
+        if "agent" not in data and "settings" not in data:
+            raise ValueError(
+                f"{path} is a run configuration, which holds what only the world may know (the "
+                f"seed, the surface, the leader start): give an agent its brief instead, made by "
+                f"`{BRIEF_COMMAND} {path} --id K --out agent-K.toml`")
+        unknown = sorted(set(data) - {"agent", "settings"})
+        settings = data.get("settings")
+        if unknown or not isinstance(settings, dict):
+            raise ValueError(f"agent brief {path} must hold `agent = K` and a [settings] table"
+                             + (f", not {unknown}" if unknown else ""))
+        secret = sorted(set(settings) - set(AGENT_OPTIONS))
+        if secret:
+            raise ValueError(f"agent brief {path}: {', '.join(secret)} is not something an "
+                             "agent is told (unknown, or known only to the world)")
+        try:
+            return cls(data["agent"], AgentSettings.from_config(config_from_dict(settings)))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"agent brief {path}: {exc}") from None
 
 
 def dump_config(config: RunConfig, path: str | os.PathLike[str]) -> None:
     """Write ``config`` as TOML, atomically (temporary file, then rename)."""
-    lines = ["# Fully resolved run configuration: `python -m swarm run --config` repeats it."]
+    lines = ["# Fully resolved run configuration: `python -m swarm run --config` repeats it.",
+             "# It holds the world's secrets (seed, surface): agents are given their brief "
+             f"(`{BRIEF_COMMAND}`)."]
     tables = []
     for key, value in config.to_dict().items():
         if isinstance(value, dict):

@@ -36,7 +36,8 @@ EXTRAS: dict[str, tuple[str, tuple[str, ...]]] = {
     "live": ("the live view", ("bokeh", "tornado")),
     "cluster": ("running on a dask scheduler", ("distributed", "dask")),
     "deploy": ("generating TLS certificates", ("cryptography",)),
-    "ros": ("ROS 2 (bags and live topics)", ("rosbags", "mcap", "mcap_ros2", "xxhash")),
+    "ros": ("ROS 2 (bags, and live topics with --ros2)",
+            ("rosbags", "mcap", "mcap_ros2", "xxhash")),
 }
 """Every extra but ``test`` (which brings them all), as ``pyproject.toml`` declares them."""
 

@@ -199,7 +199,7 @@ def add_connection_flags(parser: argparse.ArgumentParser, *,
     parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
                         help="Zenoh endpoint to listen on (repeatable)")
     parser.add_argument("--session-mode", choices=session_modes, default=None,
-                        help=f"Zenoh session mode (default {default_mode})")
+                        help=f"Zenoh session mode [default {default_mode}]")
     parser.add_argument("--user", help="Zenoh user name (router with authentication)")
     secret = parser.add_mutually_exclusive_group()
     secret.add_argument("--password", help="Zenoh password (visible in process listings)")
@@ -213,14 +213,22 @@ def add_connection_flags(parser: argparse.ArgumentParser, *,
                         help="extra Zenoh configuration, inserted as JSON5")
 
 
+LOCAL_ROUTER = "tcp/127.0.0.1:7447"
+"""Where a hand-started world listens as the run's router unless told otherwise, and where an
+agent given no ``--connect`` looks for it."""
+
+
 def connection_config(args: argparse.Namespace, default_mode: str = "client",
                       connect_timeout: float = 30.0,
-                      default_listen: Sequence[str] = ()) -> zenoh.Config:
+                      default_listen: Sequence[str] = (),
+                      default_connect: Sequence[str] = ()) -> zenoh.Config:
     """The session configuration the flags of :func:`add_connection_flags` ask for (mode
     ``default_mode`` unless ``--session-mode`` is given, listening on ``default_listen``
-    unless ``--listen`` is). ValueError names a bad flag."""
+    unless ``--listen`` is, connecting to ``default_connect`` unless ``--connect`` or
+    ``--listen`` is). ValueError names a bad flag."""
     user, password = credentials(args)
-    return zenoh_config(args.session_mode or default_mode, connect=args.connect,
+    connect = args.connect or ([] if args.listen else list(default_connect))
+    return zenoh_config(args.session_mode or default_mode, connect=connect,
                         listen=args.listen or default_listen, user=user, password=password,
                         connect_timeout=connect_timeout, extra=args.cfg, **tls_options(args))
 

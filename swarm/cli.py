@@ -12,10 +12,14 @@ from protocol.cli import (
     FAILED,
     INTERRUPTED,
     REFUSED,
+    NewFolder,
+    Parser,
     add_log_level_flag,
     add_results_flags,
     default_out,
     ends_with,
+    program,
+    quantity,
     refuse,
     run_command,
     run_failures,
@@ -23,6 +27,7 @@ from protocol.cli import (
 )
 from protocol.config import (
     OPTIONS,
+    AgentBrief,
     Option,
     RunConfig,
     applies_to,
@@ -47,10 +52,12 @@ def option_help(declared: Option) -> str:
         return text
     unit = {"": "", "1": ", dimensionless"}.get(declared.unit, f" {declared.unit}")
     if declared.name in CLI_DEFAULTS:
-        default, unit = CLI_DEFAULTS[declared.name], unit and f"; in{unit.lstrip(',')}"
-    else:
-        default = declared.show(declared.default)
-    return f"{text} [default {default}{unit}]".replace("%", "%%")
+        default = CLI_DEFAULTS[declared.name] + (unit and f"; in{unit.lstrip(',')}")
+    elif declared.unit in ("", "1"):
+        default = declared.show(declared.default) + unit
+    else:  # a counted unit in the singular for one: [default 1 agent]
+        default = quantity(declared.show(declared.default), declared.unit)
+    return f"{text} [default {default}]".replace("%", "%%")
 
 
 CLI_DEFAULTS = {"run_id": "a new one from the clock", "leader_start": "the surface's",
@@ -77,7 +84,7 @@ def add_run_flags(p: argparse.ArgumentParser) -> None:
                        metavar=declared.metavar, **kind)
     p.add_argument("--smoothing", type=float, default=None,
                    help="DEM surfaces: scipy's spline smoothing s (0 = interpolate; TOML: "
-                        "surface_params.smoothing) (default 0 m²)")
+                        "surface_params.smoothing) [default 0 m²]")
     p.add_argument("--config", metavar="FILE",
                    help="TOML file with any of the options; flags override it")
 
@@ -199,10 +206,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
     live = endpoint = None
     with ends_with(REFUSED, ValueError, RuntimeError):
-        config = config_from_args(args)
-        from world.main import require_extras
-
-        require_extras(config)  # before anything runs
+        config, surface = prepare_run(config_from_args(args))
         check_ros2_listen(args.ros2_listen, config.ros2)
         out = Path(args.out) if args.out else default_out(config.run_id)
         if args.live:  # its arguments are checked before anything is written
@@ -211,26 +215,51 @@ def cmd_run(args: argparse.Namespace) -> int:
 
             live = LiveView(port=args.live_port, run_id=config.run_id)
             endpoint = free_tcp_endpoint()
-        check_out_dir(out)
+    folder = NewFolder(out, config.run_id)
     lock = FolderLock(out, config.run_id)
     try:  # the folder is checked under its one-writer lock, held until the run ends
-        with ends_with(REFUSED, ValueError, OSError):
-            lock.acquire()
-            if (out / "summary.json").exists() and not args.force:
-                raise ValueError(f"{out} already holds a run's results; choose another --out "
-                                 "or replace them with --force (nothing was overwritten)")
-        if live is not None:
-            with ends_with(REFUSED, RuntimeError):
-                print(f"live view: {live.start()}", flush=True)
-        return _run_and_report(args, config, out, live, endpoint, lock)
+        with folder.undone_if_refused():
+            try:
+                with ends_with(REFUSED, ValueError, OSError):
+                    check_out_dir(out)
+                    lock.acquire()
+                    if (out / "summary.json").exists() and not args.force:
+                        raise ValueError(f"{out} already holds a run's results; choose another "
+                                         "--out or replace them with --force (nothing was "
+                                         "overwritten)")
+                if live is not None:
+                    with ends_with(REFUSED, RuntimeError):
+                        print(f"live view: {live.start()}", flush=True)
+                return _run_and_report(args, config, surface, out, live, endpoint, lock,
+                                       folder)
+            finally:
+                lock.release()
     finally:
-        lock.release()
         if live is not None:
             live.close()
 
 
-def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live, endpoint,
-                    lock: FolderLock) -> int:
+def prepare_run(config: RunConfig):
+    """Everything ``config`` can be refused for before a run writes anything (ValueError,
+    one line; a missing extra): the extras it needs, its surface, raster and start
+    (:func:`world.main.resolve_with_surface`) and that a plug-in estimator is importable here
+    (found, none of its code run: the world's process never runs an agent's code). Returns
+    the config and its surface, built once."""
+    from protocol.config import PLUGIN_ESTIMATOR
+    from protocol.imports import user_module_exists
+    from world.main import require_extras, resolve_with_surface
+
+    require_extras(config)
+    if PLUGIN_ESTIMATOR.match(config.estimator):
+        module = config.estimator.split(":")[0]
+        if not user_module_exists(module):
+            raise ValueError(f"estimator {config.estimator!r}: no module {module!r} is "
+                             "importable here (the installed packages and the current folder)")
+    return config, resolve_with_surface(config)[1]
+
+
+def _run_and_report(args: argparse.Namespace, config: RunConfig, surface, out: Path, live,
+                    endpoint, lock: FolderLock, folder: NewFolder) -> int:
     from tqdm import tqdm
 
     from swarm.launch import launch
@@ -244,14 +273,27 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
 
     bar = tqdm(total=config.ticks, desc=f"{config.surface} {config.estimator}", unit="tick",
                disable=None)
+    ticks = []
+
+    def on_tick(tick: int) -> None:
+        ticks.append(tick)
+        bar.update(1)
+
     try:
         with run_failures(out):  # e.g. a raster larger than the limit: refused, nothing ran
-            summary = launch(config, out, in_process=args.in_process,
-                             on_tick=lambda j: bar.update(1), endpoint=endpoint,
-                             force=args.force, lock=lock, ros2_listen=args.ros2_listen,
+            summary = launch(config, out, in_process=args.in_process, on_tick=on_tick,
+                             endpoint=endpoint, force=args.force, lock=lock, surface=surface,
+                             ros2_listen=args.ros2_listen,
                              before_agents=None if live is None else observe)
     except KeyboardInterrupt:
-        print(f"interrupted: partial result in {out}", file=sys.stderr)
+        bar.close()
+        if not ticks and folder.made:  # nothing recorded: nothing is kept
+            lock.release()
+            folder.discard()
+            print(f"interrupted before the first tick: nothing kept ({out} removed)",
+                  file=sys.stderr)
+        else:
+            print(f"interrupted: partial result in {out} ({len(ticks)} ticks)", file=sys.stderr)
         return INTERRUPTED
     finally:
         bar.close()
@@ -309,14 +351,10 @@ def _serve(live, conf) -> int:
     return 0
 
 
-TERRAIN_ONLY = ("dem", "leader_start", "spacing", "followers", "ticks", "smoothing",
-                "estimators", "comm_periods")
-"""The flags of ``experiment terrain`` that ``experiment paper`` refuses."""
-
-
 def cmd_experiment(args: argparse.Namespace) -> int:
     """``experiment paper``: the paper's Section 4 grid, tables, figures and report;
-    ``experiment terrain --dem PATH``: the terrain study (:mod:`swarm.terrain`)."""
+    ``experiment terrain --dem PATH``: the terrain study (:mod:`swarm.terrain`); ``experiment
+    drive``: the study of driving followers (:mod:`swarm.drive_study`)."""
     from swarm.experiment import FULL, QUICK, run_paper_experiment
 
     with ends_with(REFUSED, ValueError):
@@ -325,7 +363,6 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         return cmd_terrain(args)
     if args.name == "drive":
         return cmd_drive_study(args)
-    _refuse_terrain_flags(args)
     args.out = args.out or "runs/experiment-paper"
     result = _run_grid(lambda: run_paper_experiment(
         args.out, QUICK if args.quick else FULL, workers=args.workers, scheduler=args.scheduler),
@@ -333,14 +370,6 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     timing = result["timing"]
     return _print_experiment(result, f"wall time {timing['total']:.1f} s (runs "
                                      f"{timing['runs']:.1f} s, figures {timing['figures']:.1f} s)")
-
-
-def _refuse_terrain_flags(args: argparse.Namespace, allowed: tuple[str, ...] = ()) -> None:
-    """Refuse a flag of ``experiment terrain`` (:data:`TERRAIN_ONLY`) given to another
-    experiment, but those in ``allowed``."""
-    for name in TERRAIN_ONLY:
-        if name not in allowed and getattr(args, name) is not None:
-            refuse(f"--{name.replace('_', '-')} applies only to `experiment terrain`")
 
 
 def _print_experiment(result: dict, wall_line: str) -> int:
@@ -359,16 +388,22 @@ def _print_experiment(result: dict, wall_line: str) -> int:
 
 def _run_grid(run, out) -> dict:
     """``run()``'s result. An output folder that cannot hold results, or a grid that cannot
-    start (an unreachable scheduler), is refused; Ctrl-C ends the command, naming where the
-    finished runs are kept."""
-    with ends_with(REFUSED, ValueError):
-        check_out_dir(out)
-    try:
-        with ends_with(REFUSED, RuntimeError):
-            return run()
-    except KeyboardInterrupt:
-        print(f"interrupted: finished runs are in {Path(out) / 'runs'}", file=sys.stderr)
-        raise
+    start (bad options, a DEM or start refused, an unreachable scheduler), is refused and
+    leaves no folder it made; Ctrl-C ends the command, naming where the finished runs are
+    kept (and removing the folders it made if none is)."""
+    folder = NewFolder(out)
+    with folder.undone_if_refused():
+        with ends_with(REFUSED, ValueError):
+            check_out_dir(out)
+        try:
+            with ends_with(REFUSED, ValueError, RuntimeError):
+                return run()
+        except KeyboardInterrupt:
+            folder.discard()  # its empty folders only
+            kept = Path(out) / "runs"
+            print(f"interrupted: finished runs are in {kept}" if kept.exists() else
+                  "interrupted before any run finished: nothing kept", file=sys.stderr)
+            raise
 
 
 def _print_failed(failed) -> int:
@@ -378,11 +413,14 @@ def _print_failed(failed) -> int:
     return FAILED if failed else 0
 
 
-def _run_sweep_and_print(name, base, axes, out, follower, workers, scheduler=None) -> int:
+def _run_sweep_and_print(name, base, axes, out, follower, workers, scheduler=None,
+                         caption: str | None = None) -> int:
     from swarm.sweep import format_means, run_sweep
 
     result = _run_grid(lambda: run_sweep(name, base, axes, out, follower=follower,
                                          workers=workers, scheduler=scheduler), out)
+    if caption:
+        print(caption)
     print(format_means(result["means"], result["keys"]))
     for path in result["tables"].values():
         print(f"table: {path}")
@@ -422,7 +460,19 @@ def cmd_compare(args: argparse.Namespace) -> int:
             raise ValueError(f"--follower must be in 1..{followers}, got {args.follower}")
     out = Path(args.out or Path("runs") / f"compare-{base.get('run_id') or new_run_id()}")
     return _run_sweep_and_print("compare", base, axes, out, args.follower, args.workers,
-                                args.scheduler)
+                                args.scheduler, compare_caption(runs[0].config, args.follower,
+                                                                seeds))
+
+
+def compare_caption(config: RunConfig, follower: int, seeds: list[int]) -> str:
+    """What ``compare``'s table shows: whose metrics, over which seeds, on which setup and
+    noise (every noise channel set, or noise-free)."""
+    noises = [f"{name.removeprefix('noise_')} σ {getattr(config, name):g} {OPTIONS[name].unit}"
+              for name in OPTIONS if name.startswith("noise_") and getattr(config, name)]
+    return (f"follower {follower} of {config.followers}, mean over "
+            f"{quantity(len(seeds), 'seeds')} ({', '.join(map(str, seeds))}); surface "
+            f"{config.surface}, comm period {config.comm_period:g} s, {config.ticks} ticks; "
+            + ("noise: " + ", ".join(noises) if noises else "noise-free"))
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
@@ -468,24 +518,31 @@ def cmd_terrain(args: argparse.Namespace) -> int:
 def cmd_drive_study(args: argparse.Namespace) -> int:
     """``experiment drive [--quick] [--dem PATH --leader-start X,Y,VX,VY]``: the study of
     driving followers (:mod:`swarm.drive_study`)."""
+    from tqdm import tqdm
+
     from swarm.drive_study import DriveStudySpec, quick, run_drive_study
 
-    _refuse_terrain_flags(args, allowed=("dem", "leader_start"))
     spec = DriveStudySpec()
+    if (args.dem is None) != (args.leader_start is None):
+        refuse("experiment drive --dem needs one --leader-start X,Y,VX,VY, and the other way "
+               "round")
     if args.dem is not None:
-        if not args.leader_start or len(args.leader_start) != 1:
-            refuse("experiment drive --dem needs one --leader-start X,Y,VX,VY")
         with ends_with(REFUSED, ValueError):
-            spec = DriveStudySpec(dem=args.dem,
-                                  dem_start=parse_leader_start(args.leader_start[0]))
+            spec = DriveStudySpec(dem=args.dem, dem_start=parse_leader_start(args.leader_start))
     spec = quick(spec) if args.quick else spec
     out = args.out or "runs/experiment-drive"
-    with ends_with(REFUSED, ValueError):  # the options or the DEM
-        result = _run_grid(lambda: run_drive_study(
-            out, spec, workers=args.workers,
-            on_run=lambda done, total: print(f"\rrun {done}/{total}", end="", file=sys.stderr,
-                                             flush=True)), out)
-    print(file=sys.stderr)
+    bar = tqdm(desc="drive study", unit="run", disable=None)  # a bar on a terminal only
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        with ends_with(REFUSED, ValueError):  # the options or the DEM
+            result = _run_grid(lambda: run_drive_study(out, spec, workers=args.workers,
+                                                       on_run=progress), out)
+    finally:
+        bar.close()
     return _print_experiment({**result, "figure_problems": {}, "failed": []},
                              f"wall time {result['wall_time']:.1f} s ({result['runs']} runs in "
                              f"{result['runs_time']:.1f} s)")
@@ -556,6 +613,35 @@ def cmd_deploy(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_agent_config(args: argparse.Namespace) -> int:
+    """``agent-config RUN.toml (--id K | --all) [--out PATH]``: the brief of an agent of the
+    run (:class:`protocol.config.AgentBrief`), what its process is given instead of the run's
+    configuration: to ``--out`` or stdout, or with ``--all`` every agent's into the folder
+    ``--out`` as ``<user>.toml``."""
+    from swarm.deploy import agent_user
+    from swarm.launch import write_briefs
+
+    with ends_with(REFUSED, ValueError):
+        config = config_from_file(file_options(args.config), args.config)
+        if args.all:
+            if args.out is None:
+                raise ValueError("--all needs --out DIR (one brief per agent goes there)")
+        elif args.id is None:
+            raise ValueError("give --id K (0 = the leader) or --all")
+        else:
+            brief = AgentBrief.of(config, args.id)
+    with ends_with(FAILED, OSError):
+        if args.all:
+            folder = write_briefs(config, Path(args.out))
+            print(f"briefs of the leader and {quantity(config.followers, 'followers')}: "
+                  f"{folder}/{agent_user(0)}.toml … {agent_user(config.followers)}.toml")
+        elif args.out is None:
+            sys.stdout.write(brief.text())
+        else:
+            print(f"brief of the {brief.role}: {brief.write(args.out)}")
+    return 0
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     """``export RUN_DIR [--out BAG_DIR] [--force]``: a finished run as a rosbag2/MCAP bag."""
     from swarm.ros2_export import export_run
@@ -567,15 +653,15 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m swarm",
+    p = Parser(prog=program("swarm", "swarm"),
                                 description="Column formation on an unknown surface over Zenoh.")
     p.add_argument("--version", action="version", version=f"{DISTRIBUTION} {version()}")
     sub = p.add_subparsers(dest="command", required=True)
-    run = sub.add_parser("run", help="run one case (default: the paper's type I case)")
+    run = sub.add_parser("run", help="run one case [default the paper's type I case]")
     add_run_flags(run)
     layout = run.add_mutually_exclusive_group()
     layout.add_argument("--processes", dest="in_process", action="store_false",
-                        help="agents as separate processes (default)")
+                        help="agents as separate processes [default]")
     layout.add_argument("--in-process", dest="in_process", action="store_true",
                         help="agents as sessions in this process")
     add_results_flags(run)
@@ -586,48 +672,26 @@ def build_parser() -> argparse.ArgumentParser:
     add_ros2_listen_flag(run)
     add_log_level_flag(run)
     run.set_defaults(func=cmd_run, in_process=False)
-    experiment = sub.add_parser("experiment",
-                                help="regenerate the paper's tables, figures and report")
-    experiment.add_argument("name", choices=("paper", "terrain", "drive"),
-                            help="which experiment")
-    experiment.add_argument("--out", default=None,
-                            help="output folder D: D/runs, D/tables, D/figures, D/report.md "
-                                 "(default runs/experiment-<name>)")
-    experiment.add_argument("--quick", action="store_true",
-                            help="reduced grid to check the pipeline")
-    terrain = experiment.add_argument_group("terrain (experiment terrain only)")
-    terrain.add_argument("--dem", help="DEM raster (GeoTIFF or ESRI ASCII grid)")
-    terrain.add_argument("--leader-start", metavar="X,Y,VX,VY", action="append",
-                         help="leader start on the DEM (m, m/s); required; repeat it to "
-                              "average over several starts")
-    terrain.add_argument("--spacing", type=float, help="rod length (m), default 40")
-    terrain.add_argument("--followers", type=int, help="column length, default 10")
-    terrain.add_argument("--ticks", type=int, help="ticks per run, default 40")
-    terrain.add_argument("--smoothing", type=float, help="spline smoothing s, default 0")
-    terrain.add_argument("--estimators", help="comma-separated, default "
-                                              "stay,persist,edmd-b,cv,kalman,arx,gp,auto")
-    terrain.add_argument("--comm-periods", help="comma-separated, default 0.32,0.64,1.28,2.56,5.12")
-    add_grid_flags(experiment)
-    experiment.set_defaults(func=cmd_experiment)
+    add_experiment_parsers(sub)
     compare = sub.add_parser("compare", help="one setup, several estimators and seeds, one table")
     add_run_flags(compare)
     compare.add_argument("--estimators", default="persist,edmd-b,cv,kalman,arx,gp,auto",
                          help="comma-separated: edmd-<letter>, a built-in name, or "
-                              "package.module:Name (default: %(default)s)")
-    compare.add_argument("--seeds", help="comma-separated seeds (default: --seed)")
-    compare.add_argument("--follower", type=int, default=1, help="whose metrics (default 1)")
-    compare.add_argument("--out", help="output folder (default runs/compare-<run id>)")
+                              "package.module:Name [default %(default)s]")
+    compare.add_argument("--seeds", help="comma-separated seeds [default --seed's]")
+    compare.add_argument("--follower", type=int, default=1, help="whose metrics [default 1]")
+    compare.add_argument("--out", help="output folder [default runs/compare-<run id>]")
     add_grid_flags(compare)
     compare.set_defaults(func=cmd_compare)
     sweep = sub.add_parser("sweep", help="run a grid file (surfaces × estimators × ...)")
     sweep.add_argument("grid", metavar="GRID.toml", help="the grid: [base] options and [axes]")
-    sweep.add_argument("--out", help="output folder (default runs/sweep-<name>)")
+    sweep.add_argument("--out", help="output folder [default runs/sweep-<name>]")
     add_grid_flags(sweep)
     sweep.set_defaults(func=cmd_sweep)
     dem = sub.add_parser("dem-from-npz", help="write matplotlib's sample DEM (Jacksboro fault, "
                                               "USGS, public domain) as a GeoTIFF")
     dem.add_argument("out", metavar="OUT.tif")
-    dem.add_argument("--npz", help="another .npz in the same layout (default: the sample)")
+    dem.add_argument("--npz", help="another .npz in the same layout [default the sample]")
     dem.add_argument("--force", action="store_true", help="replace OUT if it exists")
     dem.set_defaults(func=cmd_dem_from_npz)
     crop = sub.add_parser("dem-crop", help="keep a rectangle of a DEM without no-data nodes "
@@ -639,8 +703,8 @@ def build_parser() -> argparse.ArgumentParser:
                            "south-west node)")
     crop.add_argument("--force", action="store_true", help="replace OUT if it exists")
     crop.add_argument("--max-cells", type=int, default=None, metavar="N",
-                      help="refuse a raster of more cells than N (default: twice what a run "
-                           "loads; see docs/reliability.md)")
+                      help="refuse a raster of more cells than N (docs/reliability.md) "
+                           "[default twice what a run loads]")
     crop.set_defaults(func=cmd_dem_crop)
     plot = sub.add_parser("plot", help="draw one run's figures into RUN_DIR/figures")
     plot.add_argument("run_dir", metavar="RUN_DIR", help="a results folder of `swarm run`")
@@ -650,20 +714,33 @@ def build_parser() -> argparse.ArgumentParser:
                                            "(router rules, credentials, TLS, compose, run.toml)")
     deploy.add_argument("--followers", type=int, required=True, help="number of followers N")
     deploy.add_argument("--out", required=True, help="folder to write (deploy/README.md)")
-    deploy.add_argument("--run-id", help="the run id the router's rules admit (default: new)")
+    deploy.add_argument("--run-id", help="the run id the router's rules admit [default a new "
+                                         "one]")
     deploy.add_argument("--start-timeout", type=float, default=60.0,
-                        help="seconds the world waits for the agents (containers start slowly)")
-    deploy.add_argument("--agent-timeout", type=float, default=30.0)
+                        help="how long the world waits for the agents, containers starting "
+                             "slowly [default %(default)g s]")
+    deploy.add_argument("--agent-timeout", type=float, default=30.0,
+                        help="how long an agent may take to settle [default %(default)g s]")
     deploy.add_argument("--ros-domain", type=int, help="the world publishes the run's ROS 2 "
-                                                       "topics on this domain, 0-232 (default: "
-                                                       "no ROS 2; the rules admit domain 0)")
+                                                       "topics on this domain, 0-232 [default "
+                                                       "no ROS 2; the rules admit domain 0]")
     deploy.add_argument("--force", action="store_true",
                         help="replace the passwords and keys already in OUT/secrets")
     deploy.set_defaults(func=cmd_deploy)
+    brief = sub.add_parser("agent-config", help="an agent's brief (what its process is "
+                                                 "given) from a run's configuration")
+    brief.add_argument("config", metavar="RUN.toml", help="the run's configuration (e.g. the "
+                                                          "config.toml of a run)")
+    which = brief.add_mutually_exclusive_group()
+    which.add_argument("--id", type=int, metavar="K", help="the agent (0 = the leader)")
+    which.add_argument("--all", action="store_true", help="every agent's brief, into --out DIR")
+    brief.add_argument("--out", metavar="PATH",
+                       help="the file to write, or the folder with --all [default stdout]")
+    brief.set_defaults(func=cmd_agent_config)
     export = sub.add_parser("export", help="a finished run as a rosbag2 bag (MCAP) for ROS 2 "
                                            "tools (needs the [ros] extra)")
     export.add_argument("run_dir", metavar="RUN_DIR", help="a complete results folder")
-    export.add_argument("--out", metavar="BAG_DIR", help="the bag folder (default RUN_DIR/bag)")
+    export.add_argument("--out", metavar="BAG_DIR", help="the bag folder [default RUN_DIR/bag]")
     export.add_argument("--force", action="store_true", help="replace an existing bag folder")
     export.set_defaults(func=cmd_export)
     watch = sub.add_parser("watch", help="live view of a running run, as a read-only observer")
@@ -678,22 +755,70 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def add_grid_flags(parser: argparse.ArgumentParser) -> None:
-    """``--workers`` and ``--scheduler``: where a grid of runs executes (swarm.grid.run_grid)."""
+def add_experiment_parsers(sub) -> None:
+    """``experiment paper``, ``experiment terrain`` and ``experiment drive``, each with its own
+    page and flags; the terrain study's defaults are :class:`swarm.terrain.TerrainSpec`'s."""
+    from swarm.terrain import TerrainSpec
+
+    experiment = sub.add_parser("experiment", help="the paper's experiments, the terrain study, "
+                                                   "the study of driving followers")
+    studies = experiment.add_subparsers(dest="name", required=True, metavar="NAME")
+    pages = {"paper": ("the paper's Section 4: 315 runs, tables, figures and report.md "
+                       "(docs/experiments.md)"),
+             "terrain": "the study on a real DEM (docs/experiments.md#the-terrain-study)",
+             "drive": ("driving followers: control steps × top speed × comm period "
+                       "(docs/drive.md)")}
+    parsers = {}
+    for name, what in pages.items():
+        parsers[name] = p = studies.add_parser(name, help=what, description=what)
+        p.add_argument("--out", default=None,
+                       help=f"output folder D: D/runs, D/tables, D/figures, D/report.md "
+                            f"[default runs/experiment-{name}]")
+        p.add_argument("--quick", action="store_true", help="a reduced grid to check the pipeline")
+        add_grid_flags(p, scheduler=name == "paper")
+        p.set_defaults(func=cmd_experiment)
+    terrain, spec = parsers["terrain"], TerrainSpec
+    terrain.add_argument("--dem", help="the DEM raster (GeoTIFF or ESRI ASCII grid); required")
+    terrain.add_argument("--leader-start", metavar="X,Y,VX,VY", action="append",
+                         help="a leader start on the DEM (m, m/s); required; repeat it to "
+                              "average over several starts")
+    for flag, kind, unit, name in (("--spacing", float, " m", "spacing"),
+                                   ("--followers", int, "", "followers"),
+                                   ("--ticks", int, "", "ticks"),
+                                   ("--smoothing", float, " m²", "smoothing")):
+        what = {"spacing": "rod length d", "followers": "column length",
+                "ticks": "ticks per run", "smoothing": "the DEM spline's smoothing s"}[name]
+        terrain.add_argument(flag, type=kind,
+                             help=f"{what} [default {getattr(spec, name):g}{unit}]")
+    terrain.add_argument("--estimators", metavar="NAMES",
+                         help=f"comma-separated [default {','.join(spec.estimators)}]")
+    terrain.add_argument("--comm-periods", metavar="TCS", help="comma-separated, in s [default "
+                         f"{','.join(f'{t:g}' for t in spec.comm_periods)}]")
+    drive = parsers["drive"]
+    drive.add_argument("--dem", help="the DEM raster of the study's terrain case, with "
+                                     "--leader-start [default the test DEM]")
+    drive.add_argument("--leader-start", metavar="X,Y,VX,VY",
+                       help="the leader start on --dem (m, m/s)")
+
+
+def add_grid_flags(parser: argparse.ArgumentParser, scheduler: bool = True) -> None:
+    """``--workers`` and (where the command can use one) ``--scheduler``: where a grid of runs
+    executes (swarm.grid.run_grid)."""
     parser.add_argument("--workers", type=int, default=None,
-                        help="runs in parallel (default min(2, CPU count))")
-    parser.add_argument("--scheduler", metavar="ADDRESS", default=None,
-                        help="address of a dask scheduler (tcp://host:8786): each run is one "
-                             "task on its workers (default: a local process pool); finished "
-                             "runs in --out are not run again")
+                        help="runs in parallel [default min(2, CPU count)]")
+    if scheduler:
+        parser.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                            help="address of a dask scheduler (tcp://host:8786): each run is "
+                                 "one task on its workers; finished runs in --out are not run "
+                                 "again [default a local process pool]")
 
 
 def add_live_port(parser: argparse.ArgumentParser) -> None:
     from swarm.live import DEFAULT_PORT
 
     parser.add_argument("--live-port", type=int, default=DEFAULT_PORT,
-                        help=f"port of the page on 127.0.0.1 (default {DEFAULT_PORT}, "
-                             "0 = any free)")
+                        help=f"port of the page on 127.0.0.1, 0 = any free [default "
+                             f"{DEFAULT_PORT}]")
 
 
 def main(argv: list[str] | None = None) -> int:

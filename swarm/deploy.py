@@ -8,8 +8,10 @@ One run id and a number of followers determine everything but the secrets:
 - :func:`router_config`: the router's whole configuration (listen endpoints, user/password
   authentication, mutual TLS, ``max_message_size``, access control). ``swarm run``'s embedded
   router uses it too.
-- :func:`write_deployment`: a folder with ``run.toml``, ``zenoh/router.json5``,
-  ``docker-compose.yml`` and ``.gitignore`` (deterministic), ``.env`` (the uid and gid the
+- :func:`write_deployment`: a folder with ``run.toml`` (the world's alone), ``agents/<user>.toml``
+  (each agent's brief, :class:`protocol.config.AgentBrief`: what that robot is told and
+  nothing of the world), ``zenoh/router.json5``, ``docker-compose.yml`` and ``.gitignore``
+  (deterministic), ``.env`` (the uid and gid the
   Python services run as: those of whoever ran the command, who owns the secrets), and
   ``secrets/`` (random: a
   password per user, a CA, the router's and each user's certificate and key; the CA's private
@@ -29,7 +31,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from protocol import keys, ros2
-from protocol.config import RunConfig
+from protocol.config import BRIEF_COMMAND, AgentBrief, RunConfig
 from protocol.session import MAX_MESSAGE_SIZE, scouting_settings, tls_settings
 
 if TYPE_CHECKING:  # swarm.certificates needs the [deploy] extra; swarm run imports this module
@@ -50,7 +52,9 @@ PRIVATE_DIR_MODE = 0o700
 SECRET_FILE_MODE = 0o600
 
 # Paths inside the containers.
-RUN_TOML_IN_CONTAINER = "/etc/swarm/run.toml"
+RUN_TOML_IN_CONTAINER = "/etc/swarm/run.toml"  # the world's only
+BRIEF_IN_CONTAINER = "/etc/swarm/agent.toml"  # an agent's own brief
+BRIEFS = "agents"  # the deployment's folder of briefs
 SECRETS_IN_CONTAINER = "/run/secrets/swarm"
 ROUTER_DIR_IN_CONTAINER = "/etc/zenoh"
 RESULTS_IN_CONTAINER = "/results"
@@ -309,9 +313,11 @@ def _yaml(value, indent: int = 0) -> list[str]:
 def _run_toml(config: RunConfig) -> str:
     return (
         "# Run configuration of the deployment (written by `python -m swarm deploy`; mounted\n"
-        f"# read-only at {RUN_TOML_IN_CONTAINER}). Any option of `python -m swarm run` "
-        "(design §9)\n"
-        "# may be added; run_id and followers must stay as generated: the router's rules are\n"
+        f"# read-only at {RUN_TOML_IN_CONTAINER} in the world's container only: agents get their\n"
+        f"# brief, {BRIEFS}/<user>.toml). Any option of `python -m swarm run` (design §9) may be\n"
+        "# added; then write the briefs anew, as what agents are told may have changed:\n"
+        f"#   {BRIEF_COMMAND} run.toml --all --out {BRIEFS}\n"
+        "# run_id and followers must stay as generated: the router's rules are\n"
         "# written for exactly this run id and these agents.\n"
         f"run_id = {json.dumps(config.run_id)}\n"
         f"followers = {config.followers}\n"
@@ -336,19 +342,22 @@ def _client_flags(user: str) -> list[str]:
 def compose(config: RunConfig, build: str | None = None) -> dict:
     """The docker-compose services: the router, the world, the leader and each follower.
 
-    Each Python service mounts only its own secrets; the world alone mounts the results
-    volume; each follower has its own state volume. The Python services run as
+    Each Python service mounts only its own secrets; the world alone mounts the run's
+    configuration and the results volume; each agent mounts its own brief; each follower has
+    its own state volume. The Python services run as
     :data:`SERVICE_USER`; with ``build`` (the Dockerfile's folder, relative to the compose
     file) compose builds their image.
     """
     def service(user: str, command: list[str], volumes: list[str]) -> dict:
+        told = (f"./run.toml:{RUN_TOML_IN_CONTAINER}:ro" if user == "world"
+                else f"./{BRIEFS}/{user}.toml:{BRIEF_IN_CONTAINER}:ro")
         return {"image": SWARM_IMAGE, **({"build": build} if build else {}),
                 "user": SERVICE_USER, "depends_on": ["zenoh"], "restart": "no",
                 "command": command,
-                "volumes": [f"./run.toml:{RUN_TOML_IN_CONTAINER}:ro",
-                            f"./{SECRETS}/{user}:{SECRETS_IN_CONTAINER}:ro", *volumes]}
+                "volumes": [told, f"./{SECRETS}/{user}:{SECRETS_IN_CONTAINER}:ro", *volumes]}
 
     base = ["--config", RUN_TOML_IN_CONTAINER]
+    brief = ["--config", BRIEF_IN_CONTAINER]
     services = {
         "zenoh": {"image": ZENOH_IMAGE, "restart": "no",
                   "command": ["-c", f"{ROUTER_DIR_IN_CONTAINER}/router.json5"],
@@ -358,14 +367,14 @@ def compose(config: RunConfig, build: str | None = None) -> dict:
                                    f"{RESULTS_IN_CONTAINER}/{config.run_id}",
                                    *_client_flags("world")],
                          [f"results:{RESULTS_IN_CONTAINER}"]),
-        "leader": service("leader", ["python", "-m", "agents.leader", *base,
+        "leader": service("leader", ["python", "-m", "agents.leader", *brief,
                                      "--session-mode", "client", *_client_flags("leader")], []),
     }
     volumes = {"results": {}}
     for k in range(1, config.followers + 1):
         user = agent_user(k)
         services[user] = service(user, [
-            "python", "-m", "agents.follower", "--id", str(k), *base, "--session-mode", "client",
+            "python", "-m", "agents.follower", "--id", str(k), *brief, "--session-mode", "client",
             "--state-dir", STATE_IN_CONTAINER, *_client_flags(user)],
             [f"state-{k}:{STATE_IN_CONTAINER}"])
         volumes[f"state-{k}"] = {}
@@ -378,8 +387,9 @@ COMPOSE_HEADER = """\
 # The repository's docker-compose.yml includes the one in deploy/: `docker compose up` there.
 #
 # Every service mounts only its own secrets (secrets/<user>/); the world alone mounts the
-# results volume; each follower keeps its checkpoint in its own volume state-K. The Python
-# services run as the owner of the secrets (SWARM_UID, SWARM_GID in .env).
+# run's configuration (run.toml: seed, surface) and the results volume; each agent mounts only
+# its own brief (agents/<user>.toml); each follower keeps its checkpoint in its own volume
+# state-K. The Python services run as the owner of the secrets (SWARM_UID, SWARM_GID in .env).
 """
 
 
@@ -409,6 +419,8 @@ def generated_files(config: RunConfig, build: str | None = None) -> dict[str, st
         ".gitignore": (f"# Random passwords and private keys: never commit them; .env names the\n"
                        f"# user who owns them.\n{SECRETS}/\n.env\n"),
         "run.toml": _run_toml(config),
+        **{f"{BRIEFS}/{agent_user(k)}.toml": AgentBrief.of(config, k).text()
+           for k in range(config.followers + 1)},
         "zenoh/router.json5": _json5(header, router),
         "docker-compose.yml": COMPOSE_HEADER + "\n".join(_yaml(compose(config, build))) + "\n",
     }

@@ -25,7 +25,7 @@ from agents.follower import run_follower
 from agents.leader import run_leader
 from agents.link import AgentAbort, RunFinished
 from protocol.cli import describe
-from protocol.config import AgentSettings, RunConfig
+from protocol.config import AgentBrief, AgentSettings, RunConfig
 from protocol.folder import FolderLock, open_file
 from protocol.messages import safe_text
 from protocol.session import free_tcp_endpoint, zenoh_config
@@ -41,18 +41,33 @@ from swarm.deploy import (
 from swarm.ros2_join import announce, check_ros2_listen
 from world.main import run_world
 from world.service import WorldService
+from world.surfaces import Surface
 
 log = logging.getLogger(__name__)
 
 POLL_S = 0.2
 
 
-def agent_commands(config_path: Path, endpoint: str, n_followers: int,
+def write_briefs(config: RunConfig, folder: Path) -> Path:
+    """Write every agent's brief (:class:`protocol.config.AgentBrief`) of the run ``config``
+    into ``folder`` (made if need be) as ``<user>.toml`` (``leader.toml``,
+    ``follower-K.toml``); return ``folder``. What :func:`agent_commands` gives the agents."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for agent in range(config.followers + 1):
+        AgentBrief.of(config, agent).write(folder / f"{agent_user(agent)}.toml")
+    return folder
+
+
+def agent_commands(briefs: Path, endpoint: str, n_followers: int,
                    credentials: RunCredentials | None = None) -> list[list[str]]:
-    """The command lines of the leader and every follower for a hand-assembled run (each
-    with its own user and password file when ``credentials`` are given)."""
+    """The command lines of the leader and every follower for a hand-assembled run, each
+    given its own brief in the folder ``briefs`` (:func:`write_briefs`) and, when
+    ``credentials`` are given, its own user and password file. No argument holds anything
+    but the brief's path and how to connect: never the run's configuration."""
     def base(agent: int) -> list[str]:
-        flags = ["--config", str(config_path), "--connect", endpoint]
+        flags = ["--config", str(Path(briefs) / f"{agent_user(agent)}.toml"),
+                 "--connect", endpoint]
         if credentials is not None:
             flags += ["--user", agent_user(agent),
                       "--password-file", str(credentials.password_file(agent_user(agent)))]
@@ -135,14 +150,19 @@ class _ProcessAgents:
         self._stop = threading.Event()
 
     def start(self, service: WorldService) -> None:
-        cmds = agent_commands(self.out_dir / "config.toml", self.endpoint, self.config.followers,
-                              self.credentials)
+        # each agent reads its brief from the run's private folder, never the config.toml of
+        # the results folder (the world's secrets); a follower keeps its state there too
+        briefs = write_briefs(service.config, self.credentials.folder)
+        cmds = agent_commands(briefs, self.endpoint, self.config.followers, self.credentials)
         for k, cmd in enumerate(cmds):
             log_fd = open_file(self.out_dir / "logs" / f"agent-{k}.log",
                                os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
             with os.fdopen(log_fd, "wb") as log_file:
+                # a session of its own: a terminal's Ctrl-C reaches the launcher only, which
+                # ends the run and then its agents in order (no agent vanishes mid-tick)
                 self.procs.append(subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT,
-                                                   stdin=subprocess.DEVNULL))
+                                                   stdin=subprocess.DEVNULL,
+                                                   start_new_session=True))
         threading.Thread(target=self._watch, args=(service,), daemon=True).start()
 
     def _watch(self, service: WorldService) -> None:
@@ -198,7 +218,7 @@ class _ThreadAgents:
 
     def start(self, service: WorldService) -> None:
         # what the world resolved (e.g. a drive run's default top speed), as the processes
-        # read it from the config.toml the world wrote
+        # read it from the briefs written from it (one interpreter: plug-ins are trusted code)
         self.settings = AgentSettings.from_config(service.config)
         bodies: list[Callable[[zenoh.Session], None]] = [
             lambda s: run_leader(s, self.settings)]
@@ -259,7 +279,7 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
            credentials: RunCredentials | None = None,
            before_agents: Callable[[RunCredentials], None] | None = None,
            force: bool = False, lock: FolderLock | None = None,
-           ros2_listen: str | None = None) -> dict:
+           surface: Surface | None = None, ros2_listen: str | None = None) -> dict:
     """Run ``config`` end to end; return the summary (also in ``out_dir/summary.json``).
 
     The world listens on ``endpoint`` (default: a free loopback port) as a router that admits
@@ -270,7 +290,8 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
     ``before_agents`` is called with them once the world is up, before the agents start
     (the live view connects there, as the ``observer`` user). A folder that holds results
     is refused unless ``force`` (which replaces them). ``lock``: the folder's one-writer lock,
-    when the caller holds it already (see :func:`world.main.run_world`).
+    when the caller holds it already, and ``surface``, when the caller built it (see
+    :func:`world.main.run_world`).
 
     Raises RuntimeError if the agents do not come up. Ctrl-C stops every agent and leaves a
     partial result marked incomplete.
@@ -290,7 +311,7 @@ def launch(config: RunConfig, out_dir: str | Path, *, in_process: bool = False,
             ) / "run"
             credentials = RunCredentials.create(folder, config.followers)
         return _launch(config, out_dir, in_process, on_tick, endpoint, credentials,
-                       before_agents, force, lock, ros2_listen)
+                       before_agents, force, lock, surface, ros2_listen)
 
 
 def _launch(config: RunConfig, out_dir: Path, in_process: bool,
@@ -298,7 +319,7 @@ def _launch(config: RunConfig, out_dir: Path, in_process: bool,
             credentials: RunCredentials,
             before_agents: Callable[[RunCredentials], None] | None = None,
             force: bool = False, lock: FolderLock | None = None,
-            ros2_listen: str | None = None) -> dict:
+            surface: Surface | None = None, ros2_listen: str | None = None) -> dict:
     agents = (_ThreadAgents(endpoint, credentials) if in_process
               else _ProcessAgents(config, out_dir, endpoint, credentials))
     log.info("run %s: credentials in %s (observer: %s)", config.run_id, credentials.folder,
@@ -316,7 +337,7 @@ def _launch(config: RunConfig, out_dir: Path, in_process: bool,
         summary = run_world(config, embedded_router_config(config, endpoint, credentials,
                                                            ros2_listen),
                             out_dir, on_tick=on_tick, on_ready=ready, force=force,
-                            lock=lock)
+                            lock=lock, surface=surface)
     except BaseException:  # Ctrl-C or a failure: end every agent now
         agents.stop(timeout=1.0)
         raise

@@ -54,6 +54,15 @@ class Deployment:
         self.compose = yaml.safe_load((folder / "docker-compose.yml").read_text())
         self.services = self.compose["services"]
 
+    def configure(self, text: str) -> None:
+        """Make ``text`` the deployment's ``run.toml`` and write the agents' briefs anew from
+        it, as deploy/README.md tells an operator who adds options."""
+        (self.folder / "run.toml").write_text(text)
+        code = swarm_main(["agent-config", str(self.folder / "run.toml"), "--all", "--out",
+                           str(self.folder / "agents")])
+        if code != 0:
+            raise RuntimeError(f"python -m swarm agent-config exited with {code}")
+
     def mounts(self, service: str, volumes_dir: Path) -> dict[str, Path]:
         """Container path -> local path of ``service``'s volumes; named ones in ``volumes_dir``."""
         mounts = {}

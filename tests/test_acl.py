@@ -402,7 +402,8 @@ def test_a_whole_run_over_the_generated_configuration(deployment, tmp_path):
     out = tmp_path / "results"
 
     def command(user: str, program: list[str]) -> list[str]:
-        return [sys.executable, "-m", *program, "--config", str(deployment.folder / "run.toml"),
+        told = "run.toml" if user == "world" else f"agents/{user}.toml"  # an agent: its brief
+        return [sys.executable, "-m", *program, "--config", str(deployment.folder / told),
                 "--connect", connect, "--user", user,
                 "--password-file", str(deployment.secret(user, "password")),
                 "--tls-ca", str(deployment.secret(user, "ca.pem")),

@@ -22,7 +22,7 @@ from protocol.config import RunConfig, dump_config
 from protocol.messages import Observation, Rod, encode
 from protocol.record import read_observations, read_ticks
 from protocol.session import free_tcp_endpoint, zenoh_config
-from swarm.launch import RunCredentials, agent_commands, launch
+from swarm.launch import RunCredentials, agent_commands, launch, write_briefs
 from tests.attacking import run_under_attack, same_results, wait_for_world
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -127,7 +127,7 @@ def test_a_dead_follower_never_makes_its_successors_miss(tmp_path):
                                "--out", str(out)],
                               cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)]
     procs += [subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-              for cmd in agent_commands(folder / "config.toml", endpoint, 3)]
+              for cmd in agent_commands(write_briefs(cfg, folder), endpoint, 3)]
     try:
         deadline = time.monotonic() + 60
         while not (out / "summary.json").exists() or \

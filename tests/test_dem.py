@@ -334,14 +334,12 @@ def test_bad_dem_references_are_refused(name, params, message):
 
 def test_a_dem_needs_a_leader_start_on_its_grid():
     from world.main import resolve_with_surface
-    from world.sim import WorldSim
 
     config = RunConfig(surface=f"dem:{HILLS}")
     with pytest.raises(ValueError, match="no default leader start"):
         resolve_with_surface(config)
-    config, surface = resolve_with_surface(config.replace(leader_start=(80.0, 8.0, 1.0, 0.0)))
     with pytest.raises(ValueError, match=r"\(80, 8\) lies outside the DEM grid x ∈ \[0, 50\]"):
-        WorldSim(config, surface)
+        resolve_with_surface(config.replace(leader_start=(80.0, 8.0, 1.0, 0.0)))
 
 
 def test_cli_smoothing_flag_sets_the_surface_parameter():

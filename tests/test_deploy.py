@@ -210,7 +210,8 @@ def test_compose_matches_router_and_credentials(deployment):
                               "--tls-key")}
         assert deployment.option(service, "--connect") == ROUTER_IN_COMPOSE
         assert deployment.option(service, "--user") == service
-        assert local == {"--config": str(deployment.folder / "run.toml"),
+        told = "run.toml" if service == "world" else f"agents/{service}.toml"
+        assert local == {"--config": str(deployment.folder / told),
                          **{flag: str(deployment.secret(service, name)) for flag, name in (
                              ("--password-file", "password"), ("--tls-ca", "ca.pem"),
                              ("--tls-cert", "cert.pem"), ("--tls-key", "key.pem"))}}

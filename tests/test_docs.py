@@ -160,3 +160,33 @@ def test_ci_lints_before_the_tests():
     assert ".venv/bin/ruff check ." in ci_lines
     assert ci_lines.index(".venv/bin/ruff check .") < ci_lines.index(".venv/bin/python -m pytest")
     assert "[tool.ruff" in (ROOT / "pyproject.toml").read_text(encoding="utf-8")
+
+
+def test_ci_installs_system_packages_only_as_root(tmp_path):
+    """``.ci/run`` calls apt-get only as root; anyone else is told what to install and the
+    browser tests skip with that reason. Its browser block runs here with a PATH of stubs:
+    ``chromium`` missing, ``id -u`` a user's, ``apt-get`` recording any call."""
+    import subprocess
+
+    text = CI.read_text(encoding="utf-8")
+    start, end = text.index("if ! command -v chromium"), text.index("rm -rf .venv")
+    block = text[start:end]
+    stubs = tmp_path / "bin"
+    stubs.mkdir()
+    fakes = {"id": 'echo "${FAKE_UID}"', "apt-get": 'echo apt-get "$@" >> "$CALLS"'}
+    for name, body in fakes.items():
+        (stubs / name).write_text(f"#!/bin/sh\n{body}\n")
+        (stubs / name).chmod(0o755)
+    calls = tmp_path / "calls"
+    script = block + 'echo "skip reason: ${SWARM_NO_BROWSER:-}"\n'
+    env = {"PATH": str(stubs), "CALLS": str(calls)}
+    user = subprocess.run(["/bin/bash", "-c", script], env={**env, "FAKE_UID": "1000"},
+                          capture_output=True, text=True, timeout=30)
+    assert user.returncode == 0, user.stderr
+    assert not calls.exists()
+    assert "sudo apt-get install chromium" in user.stderr
+    assert "skip reason: chromium is not installed and .ci/run is not root" in user.stdout
+    root = subprocess.run(["/bin/bash", "-c", script], env={**env, "FAKE_UID": "0"},
+                          capture_output=True, text=True, timeout=30)
+    assert root.returncode == 0, root.stderr
+    assert "install -y -qq chromium" in calls.read_text()

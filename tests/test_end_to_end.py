@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol.config import RunConfig, load_config
+from protocol.config import AgentBrief, RunConfig, load_config
 from protocol.record import TICK_COLUMNS, read_ticks
 from protocol.session import free_tcp_endpoint
-from swarm.launch import agent_commands, launch
+from swarm.launch import agent_commands, launch, write_briefs
 from tests.boundaries import check_imports
 from world import ideal_formation
 from world.surfaces import make_surface
@@ -101,14 +101,16 @@ def test_in_memory_layout_matches(tmp_path, in_process_run, chain_config):
 
 
 def test_hand_assembled_run_matches(tmp_path, in_process_run):
-    """``python -m world`` + ``python -m agents.*`` from the written config.toml: same numbers."""
+    """``python -m world`` from the written config.toml + ``python -m agents.*`` from their
+    briefs: same numbers."""
     out, _ = in_process_run
     endpoint = free_tcp_endpoint()
     config = out / "config.toml"
     procs = [subprocess.Popen([sys.executable, "-m", "world", "--config", str(config),
                                "--listen", endpoint, "--out", str(tmp_path / "hand")], cwd=ROOT)]
     try:
-        procs += [subprocess.Popen(cmd, cwd=ROOT) for cmd in agent_commands(config, endpoint, 2)]
+        briefs = write_briefs(load_config(config), tmp_path / "agents")
+        procs += [subprocess.Popen(cmd, cwd=ROOT) for cmd in agent_commands(briefs, endpoint, 2)]
         codes = [p.wait(timeout=90) for p in procs]
     finally:
         for p in procs:
@@ -124,11 +126,16 @@ def test_world_start_timeout(tmp_path):
     from protocol.config import dump_config
 
     dump_config(RunConfig(run_id="lonely", start_timeout=1.0), tmp_path / "c.toml")
+    endpoint = free_tcp_endpoint()
     proc = subprocess.run([sys.executable, "-m", "world", "--config", str(tmp_path / "c.toml"),
-                           "--listen", free_tcp_endpoint(), "--out", str(tmp_path / "o")],
+                           "--listen", endpoint, "--out", str(tmp_path / "o")],
                           cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1
     assert "agents 0, 1 (2 of 2) did not come up within 1 s" in proc.stderr
+    # a hand-started world says where it listens and whom it waits for, once
+    assert proc.stdout.splitlines() == [
+        f"world: run lonely listening on {endpoint}; waiting up to 1 s for the leader and 1 "
+        f"follower; results into {tmp_path / 'o'}"]
 
 
 def test_an_in_process_agent_whose_session_fails_is_named(tmp_path):
@@ -149,11 +156,9 @@ def test_an_in_process_agent_whose_session_fails_is_named(tmp_path):
 
 
 def test_agent_without_world_exits(tmp_path):
-    from protocol.config import dump_config
-
-    dump_config(RunConfig(run_id="orphan", start_timeout=1.0), tmp_path / "c.toml")
+    brief = AgentBrief.of(RunConfig(run_id="orphan", start_timeout=1.0), 0)
     proc = subprocess.run([sys.executable, "-m", "agents.leader", "--config",
-                           str(tmp_path / "c.toml"), "--session-mode", "peer"],
+                           str(brief.write(tmp_path / "leader.toml")), "--session-mode", "peer"],
                           cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1
     assert "is the world running?" in proc.stderr
@@ -197,5 +202,5 @@ def test_cli_rejects_bad_flags(capsys):
     assert "followers must be an integer" in capsys.readouterr().err
     assert main(["run", "--leader-start", "1,2,x,4"]) == 2
     assert "--leader-start must be X,Y,VX,VY" in capsys.readouterr().err
-    assert main(["run", "--surface", "nope"]) == 1
+    assert main(["run", "--surface", "nope"]) == 2
     assert "nope" in capsys.readouterr().err

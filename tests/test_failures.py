@@ -22,6 +22,7 @@ from protocol.cli import add_log_level_flag
 from protocol.config import (
     MAX_CONFIG_BYTES,
     OPTIONS,
+    AgentBrief,
     RunConfig,
     dump_config,
     load_config,
@@ -183,7 +184,8 @@ def test_world_reports_a_broken_surface_module(tmp_path, monkeypatch, capsys, ki
     fragment = _broken_surface_module(tmp_path, monkeypatch, module, kind)
     path = tmp_path / "run.toml"
     dump_config(RunConfig(run_id="fail", surface=f"{module}:surface"), path)
-    assert _world(path, "--out", str(tmp_path / "out")) == 1
+    assert _world(path, "--out", str(tmp_path / "out")) == 2  # refused before anything ran
+    assert not (tmp_path / "out").exists()
     line = one_error_line(capsys)
     assert f"surface '{module}:surface'" in line and fragment in line
 
@@ -269,8 +271,8 @@ def test_world_reports_a_failing_results_disk(tmp_path, monkeypatch, capsys, cod
 
 
 def test_agent_without_a_world_says_so_in_one_line(tmp_path, capsys):
-    path = tmp_path / "run.toml"
-    dump_config(RunConfig(run_id="alone", start_timeout=1.0), path)
+    path = AgentBrief.of(RunConfig(run_id="alone", start_timeout=1.0), 0).write(
+        tmp_path / "leader.toml")
     endpoint = free_tcp_endpoint()
     assert leader.main(["--config", str(path), "--connect", endpoint]) == 1
     line = one_error_line(capsys)
@@ -297,7 +299,7 @@ def _swarm(*args: str) -> int:
     (["--followers", "0"], 2, "followers must be an integer in [1, 1000], got 0"),
     (["--ticks", "3"], 2, "init_ticks (4) must be at most ticks (3): raise ticks or lower"),
     (["--init-ticks", "1"], 2, "init_ticks must be an integer in [2, 1000000], got 1"),
-    (["--surface", "no_such_module_here:surface"], 1, "cannot import module 'no_such_module_here'"),
+    (["--surface", "no_such_module_here:surface"], 2, "cannot import module 'no_such_module_here'"),
 ], ids=["out-proc", "timeout", "followers", "few-ticks", "init-ticks", "no-module"])
 def test_swarm_run_refusals_are_one_line(tmp_path, monkeypatch, capsys, args, status, fragment):
     monkeypatch.chdir(tmp_path)
@@ -337,8 +339,9 @@ def test_grid_commands_refuse_an_unusable_out_before_running(tmp_path, monkeypat
 def test_swarm_run_reports_a_broken_surface_module(tmp_path, monkeypatch, capsys, kind):
     module = f"broken_swarm_surface_{kind}"
     fragment = _broken_surface_module(tmp_path, monkeypatch, module, kind)
-    assert _swarm("--surface", f"{module}:surface", "--out", str(tmp_path / "out")) == 1
+    assert _swarm("--surface", f"{module}:surface", "--out", str(tmp_path / "out")) == 2
     assert fragment in one_error_line(capsys)
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.parametrize("code", [errno.ENOSPC, pytest.param(errno.EROFS, marks=pytest.mark.slow)])

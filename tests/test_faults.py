@@ -16,7 +16,7 @@ from protocol import keys
 from protocol.config import RunConfig, dump_config
 from protocol.record import read_ticks
 from protocol.session import free_tcp_endpoint, zenoh_config
-from swarm.launch import agent_commands, launch
+from swarm.launch import agent_commands, launch, write_briefs
 from swarm.local import run_local
 from tests.waiting import Procs, children, running, signalled, wait_for
 
@@ -72,14 +72,15 @@ def test_second_process_with_a_live_id_refuses(tmp_path, procs):
     out.mkdir()
     dump_config(cfg, out / "config.toml")
     world = procs.start(_world_cmd(out / "config.toml", endpoint, out))
-    first = procs.start(agent_commands(out / "config.toml", endpoint, 1)[1])
+    briefs = write_briefs(cfg, out)
+    first = procs.start(agent_commands(briefs, endpoint, 1)[1])
     with zenoh.open(zenoh_config("client", connect=[endpoint])) as session:
         def first_is_live() -> bool:
             replies = session.liveliness().get(keys.alive("dup", 1), timeout=1.0)
             return any(r.ok is not None for r in replies)
 
         wait_for(first_is_live, 60, "the first follower's liveliness token")
-    second = subprocess.run(agent_commands(out / "config.toml", endpoint, 1)[1], cwd=ROOT,
+    second = subprocess.run(agent_commands(briefs, endpoint, 1)[1], cwd=ROOT,
                             capture_output=True, text=True, timeout=30)
     assert second.returncode == 1
     assert "agent id 1 is already live" in second.stderr
@@ -103,7 +104,8 @@ def test_agents_exit_when_the_world_vanishes_and_resume_continues(tmp_path, proc
     out.mkdir()
     dump_config(cfg, out / "config.toml")
     world = procs.start(_world_cmd(out / "config.toml", endpoint, out))
-    agents = [procs.start(cmd) for cmd in agent_commands(out / "config.toml", endpoint, 2)]
+    briefs = write_briefs(cfg, out)  # and the followers' state beside them, in out/state
+    agents = [procs.start(cmd) for cmd in agent_commands(briefs, endpoint, 2)]
     wait_for(lambda: _ticks_done(out) >= 10, 60, "tick 10")
     world.send_signal(signal.SIGKILL)
     assert world.wait(timeout=10) == -signal.SIGKILL
@@ -115,7 +117,7 @@ def test_agents_exit_when_the_world_vanishes_and_resume_continues(tmp_path, proc
         "agent-1.state", "agent-2.state"]  # kept: the run is not complete
     endpoint = free_tcp_endpoint()
     world = procs.start([sys.executable, "-m", "world", "--resume", str(out), "--listen", endpoint])
-    agents = [procs.start(cmd) for cmd in agent_commands(out / "config.toml", endpoint, 2)]
+    agents = [procs.start(cmd) for cmd in agent_commands(briefs, endpoint, 2)]
     assert world.wait(timeout=60) == 0, world.stderr.read()
     for proc in agents:
         assert proc.wait(timeout=30) == 0

@@ -191,8 +191,7 @@ def deployment(tmp_path_factory) -> Deployment:
     if problem:
         pytest.skip(f"no run across network namespaces here: {problem}")
     deployment = generate(tmp_path_factory.mktemp("hosts") / "deploy", "hosts", FOLLOWERS)
-    with (deployment.folder / "run.toml").open("a") as fh:
-        fh.write(NOISE)
+    deployment.configure((deployment.folder / "run.toml").read_text() + NOISE)
     return deployment
 
 
@@ -366,7 +365,7 @@ def test_realtime_misses_match_the_injected_delay(realtime_deployment, tmp_path,
           f"periods {tight * 1000:.0f} and {loose * 1000:.0f} ms")
 
     def configure(period_s: float) -> None:
-        (deployment.folder / "run.toml").write_text(base_toml + REALTIME.format(
+        deployment.configure(base_toml + REALTIME.format(
             ticks=RT_TICKS, init=RT_INIT_TICKS, scale=period_s / comm_period))
 
     runs: dict[str, Path] = {}

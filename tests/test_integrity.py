@@ -37,7 +37,7 @@ from protocol.folder import (
 )
 from protocol.record import DamagedRecord, read_controls, read_observations, read_ticks
 from protocol.session import free_tcp_endpoint
-from swarm.launch import agent_commands, launch
+from swarm.launch import agent_commands, launch, write_briefs
 from swarm.local import run_local
 from tests.waiting import Procs, wait_for
 from world import checkpoint
@@ -182,7 +182,7 @@ def test_two_resumes_or_a_run_and_a_resume_one_is_refused(tmp_path, procs, n):
             worlds[winner].kill()
             continue
         agents = [procs.python(*cmd[1:]) for cmd in agent_commands(
-            folder / "config.toml", endpoints[winner], config.followers)]
+            write_briefs(config, folder), endpoints[winner], config.followers)]
         code, err = _outcomes(worlds[winner])[0]
         assert code == 0, err
         for agent in agents:

@@ -19,6 +19,7 @@ import pytest
 from protocol.config import (
     DEFAULTS,
     OPTIONS,
+    AgentBrief,
     AgentSettings,
     Option,
     RunConfig,
@@ -33,7 +34,7 @@ from swarm.grid import estimator_axis, expand
 
 ROOT = Path(__file__).resolve().parents[1]
 WORLD_ONLY = ("surface", "surface_params", "leader_start", "seed", "sensing_range",
-              "noise_gps", "pipelined")
+              "pipelined", "ros2", "ros_domain")
 
 
 def one_error_line(capsys) -> str:
@@ -100,6 +101,8 @@ def test_run_help_shows_every_default_and_unit(capsys):
         default = CLI_DEFAULTS.get(declared.name) or declared.show(declared.default)
         assert f"[default {default}" in shown, (flag, shown)
         unit = {"1": "dimensionless"}.get(declared.unit, declared.unit)
+        if default == "1" and unit.isalpha():  # a counted unit, in the singular for one
+            unit = unit.removesuffix("s")
         assert unit in shown, (flag, shown)
         checked += 1
     assert checked >= 30
@@ -226,7 +229,7 @@ def test_compare_gives_each_estimator_the_options_it_uses(capsys):
 def test_the_session_mode_flag_has_one_name(capsys):
     from agents.cli import parser
 
-    p = parser("test")
+    p = parser("test", "an agent")
     assert p.parse_args(["--config", "c.toml", "--session-mode", "peer"]).session_mode == "peer"
     with pytest.raises(SystemExit) as exit_:
         p.parse_args(["--config", "c.toml", "--mode", "peer"])
@@ -306,7 +309,9 @@ def test_stopping_a_process_that_waits_for_its_router_is_prompt_and_quiet(tmp_pa
     it is inside that wait."""
     from tests.waiting import signalled
 
-    dump_config(RunConfig(run_id="stop", start_timeout=60.0), tmp_path / "c.toml")
+    config = RunConfig(run_id="stop", start_timeout=60.0)
+    dump_config(config, tmp_path / "c.toml")
+    AgentBrief.of(config, 0).write(tmp_path / "leader.toml")
     module, *extra = command
     extra = [str(tmp_path / x) if x == "run" else x for x in extra]
     with socket.socket() as fake_router:
@@ -314,8 +319,9 @@ def test_stopping_a_process_that_waits_for_its_router_is_prompt_and_quiet(tmp_pa
         fake_router.listen()
         fake_router.settimeout(30.0)
         endpoint = f"tcp/127.0.0.1:{fake_router.getsockname()[1]}"
+        given = "c.toml" if module == "world" else "leader.toml"
         proc = subprocess.Popen([sys.executable, "-m", module, "--config",
-                                 str(tmp_path / "c.toml"), "--connect", endpoint, *extra],
+                                 str(tmp_path / given), "--connect", endpoint, *extra],
                                 cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 text=True)
         try:

@@ -73,19 +73,22 @@ def test_plugin_errors_name_the_problem():
     assert policy.name == "mean-step"
 
 
-def test_an_unimportable_plugin_is_reported_by_swarm_run_in_one_line(tmp_path, capsys,
-                                                                      monkeypatch):
-    """Only the follower process imports the estimator; `swarm run` still says why it
-    stopped (the follower's own error line), not just its exit status."""
+def test_a_plugin_that_fails_in_its_follower_is_reported_by_swarm_run_in_one_line(
+        tmp_path, capsys, monkeypatch):
+    """Only the follower process imports the estimator (`swarm run` checks only that its
+    module is there, running none of it); `swarm run` still says why it stopped (the
+    follower's own error line), not just its exit status."""
     from swarm.cli import main
 
     monkeypatch.chdir(tmp_path)
-    assert main(["run", "--estimator", "tests.nowhere:X", "--ticks", "6",
+    (tmp_path / "empty_plugin.py").write_text("")
+    assert main(["run", "--estimator", "empty_plugin:X", "--ticks", "6",
                  "--out", str(tmp_path / "o")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1, err
     assert err[0].startswith("error: run aborted before it started: agent 1 exited with status 2: "
-                             "estimator 'tests.nowhere:X': cannot import 'tests.nowhere'")
+                             "estimator 'empty_plugin:X': empty_plugin has no class or factory "
+                             "'X'")
     assert err[0].endswith(f"(see {tmp_path / 'o' / 'logs' / 'agent-1.log'}) (agent 1 had not "
                            "come up)")
 
@@ -106,3 +109,32 @@ def test_a_plugin_is_not_told_the_top_speed_of_a_drive_run():
     seen = example_estimator.SETTINGS_SEEN
     assert len(seen) == 3 and all(s.motion == "drive" for s in seen)
     assert [s.max_speed for s in seen] == [None, None, None]
+
+
+@pytest.mark.parametrize("command, layout", [
+    (["{python}", "-m", "swarm"], "--in-process"),
+    (["{bin}/swarm"], "--in-process"),
+    (["{python}", "-m", "swarm"], "--processes"),
+    (["{bin}/swarm"], "--processes"),
+], ids=["python-m-in-process", "console-in-process", "python-m-processes", "console-processes"])
+def test_a_plugin_in_the_current_folder_resolves_in_every_entry_point_and_layout(
+        tmp_path, command, layout):
+    """docs/estimators.md: a plug-in resolves from the current folder, whichever way the tool
+    was started (the console script puts no folder on sys.path of its own) and wherever the
+    followers run. The module exists only in the current folder."""
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    bin_dir = Path(sys.executable).parent
+    if not (bin_dir / "swarm").exists():
+        pytest.skip("the swarm console script is not installed beside this interpreter")
+    source = Path(__file__).with_name("example_estimator.py")
+    shutil.copy(source, tmp_path / "my_plugin.py")
+    argv = [part.format(python=sys.executable, bin=bin_dir) for part in command]
+    proc = subprocess.run([*argv, "run", layout, "--ticks", "8", "--estimator",
+                           "my_plugin:MeanStep", "--out", "run"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    with open(tmp_path / "run" / "observations.csv", newline="") as fh:
+        assert {r["estimator"] for r in csv.DictReader(fh) if r["agent"] == "1"} == {"mean-step"}

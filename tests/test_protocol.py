@@ -8,10 +8,10 @@ import pytest
 
 from protocol import keys
 from protocol.config import (
+    AgentBrief,
     RunConfig,
     config_from_dict,
     dump_config,
-    load_agent_settings,
     load_config,
 )
 from protocol.messages import (
@@ -191,7 +191,7 @@ def test_config_round_trip_and_errors(tmp_path):
                     leader_start=(1.0, 2.0, 1.0, 0.0), surface_params={"a": 0.5})
     dump_config(cfg, tmp_path / "c.toml")
     assert load_config(tmp_path / "c.toml") == cfg
-    settings = load_agent_settings(tmp_path / "c.toml")
+    settings = AgentBrief.load(AgentBrief.of(cfg, 2).write(tmp_path / "a.toml")).settings
     assert not hasattr(settings, "surface") and settings.followers == 3
     with pytest.raises(ValueError, match="unknown configuration option"):
         config_from_dict({"surfaec": "wavy"})

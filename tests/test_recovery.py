@@ -25,9 +25,9 @@ from pathlib import Path
 
 import pytest
 
-from protocol.config import RunConfig, dump_config
+from protocol.config import RunConfig, dump_config, load_config
 from protocol.session import free_tcp_endpoint
-from swarm.launch import agent_commands
+from swarm.launch import agent_commands, write_briefs
 from swarm.local import run_local
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,6 +60,7 @@ class Run:
 
     def __init__(self, out: Path, config: Path) -> None:
         self.out, self.config = out, config
+        self.briefs = write_briefs(load_config(config), config.parent)  # state/ beside them
         self.endpoint = free_tcp_endpoint()
         self.world: subprocess.Popen | None = None
         self.agents: list[subprocess.Popen | None] = [None, None, None]
@@ -81,7 +82,7 @@ class Run:
     def start_agent(self, agent: int) -> None:
         """Start agent ``agent``; if the router still holds the killed one's token, the new
         process refuses to start ("already live"): start it again shortly."""
-        cmd = agent_commands(self.config, self.endpoint, 2)[agent]
+        cmd = agent_commands(self.briefs, self.endpoint, 2)[agent]
         deadline = time.monotonic() + WAIT_S
         while True:
             proc = self._start(cmd)

@@ -18,6 +18,7 @@ from protocol.config import AgentSettings, RunConfig, dump_config
 from protocol.messages import Sensing
 from protocol.record import RESULT_FILES
 from protocol.session import free_tcp_endpoint
+from swarm.launch import write_briefs
 from world import checkpoint as world_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -133,7 +134,7 @@ def test_a_planted_pickle_is_refused_and_never_runs(tmp_path):
     try:
         follower = subprocess.run(
             [sys.executable, "-m", "agents.follower", "--id", "1", "--config",
-             str(folder / "config.toml"), "--connect", endpoint],
+             str(write_briefs(config, folder) / "follower-1.toml"), "--connect", endpoint],
             cwd=ROOT, capture_output=True, text=True, timeout=60)
     finally:
         world.kill()

@@ -14,11 +14,15 @@ import zenoh
 from protocol.cli import (
     DONE,
     REFUSED,
+    NewFolder,
+    Parser,
     add_log_level_flag,
     add_results_flags,
     default_out,
     ends_with,
     fail,
+    program,
+    quantity,
     run_command,
     run_failures,
     setup_logging,
@@ -26,23 +30,31 @@ from protocol.cli import (
 from protocol.config import RunConfig, config_from_file, dump_config, file_options, with_env_domain
 from protocol.distribution import require
 from protocol.folder import FolderLock, check_out_dir
-from protocol.session import add_connection_flags, connection_config, open_session
-from world import checkpoint
+from protocol.session import LOCAL_ROUTER, add_connection_flags, connection_config, open_session
+from world import checkpoint, geometry
 from world.service import WorldService
 from world.sim import default_max_speed, resolve_leader_start
 from world.surfaces import Surface, make_surface, require_surface_extra
 
-DEFAULT_LISTEN = ("tcp/127.0.0.1:7447",)
+DEFAULT_LISTEN = (LOCAL_ROUTER,)
 """Where the world listens as embedded router when given no ``--listen``."""
 
 
-def resolve_with_surface(config: RunConfig) -> tuple[RunConfig, Surface]:
-    """Build the run's surface and fill in what the config leaves to it (the leader start,
-    and with ``motion = "drive"`` the default top speed)."""
-    surface = make_surface(config.surface, config.surface_params)
+def resolve_with_surface(config: RunConfig,
+                         surface: Surface | None = None) -> tuple[RunConfig, Surface]:
+    """Build the run's surface (unless given, already built from ``config``) and fill in what
+    the config leaves to it (the leader start, and with ``motion = "drive"`` the default top
+    speed); the column at the start must lie on the surface. Everything a run can be refused
+    for in its surface, raster or start is refused here (ValueError), before a run writes
+    anything."""
+    if surface is None:
+        surface = make_surface(config.surface, config.surface_params)
     config = config.replace(leader_start=resolve_leader_start(config, surface))
     if config.drives and config.max_speed is None:
         config = config.replace(max_speed=default_max_speed(config, surface))
+    start = config.leader_start
+    geometry.column(surface, start[:2], start[2:], config.followers, config.spacing,
+                    config.side_sign)  # ValueError where it leaves the surface's domain
     return config, surface
 
 
@@ -55,7 +67,7 @@ def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
               on_tick: Callable[[int], None] | None = None,
               on_ready: Callable[[WorldService], None] | None = None,
               resume: bool = False, force: bool = False,
-              lock: FolderLock | None = None) -> dict:
+              lock: FolderLock | None = None, surface: Surface | None = None) -> dict:
     """Run one world on a new session built from ``conf``; return the summary.
 
     Holds ``out_dir``'s one-writer lock (:class:`protocol.folder.FolderLock`) from before it
@@ -66,12 +78,14 @@ def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
     in ``out_dir`` from its last complete tick. A fresh run refuses a folder that holds results
     already, unless ``force`` (which replaces them).
 
+    ``surface``: the run's surface when the caller built it already (:func:`resolve_with_surface`).
+
     Raises FolderBusy if another process writes into ``out_dir``, FolderRefused if it holds a
     symbolic link.
     """
     out_dir = Path(out_dir)
     with contextlib.nullcontext() if lock is not None else FolderLock(out_dir, config.run_id):
-        config, surface = resolve_with_surface(config)
+        config, surface = resolve_with_surface(config, surface)
         if not resume:
             checkpoint.claim(out_dir, force)
             dump_config(config, out_dir / "config.toml")
@@ -87,7 +101,8 @@ def run_world(config: RunConfig, conf: zenoh.Config, out_dir: str | Path,
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(
+    p = Parser(
+        prog=program("world", "swarm-world"),
         description="The world process: hidden surface, sensing, motion, results.")
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--config", help="run configuration TOML")
@@ -99,8 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     add_log_level_flag(p)
     p.add_argument("--ros2", action="store_true", default=None,
                    help="also publish the run's ROS 2 topics (rmw_zenoh layout; [ros] extra)")
-    p.add_argument("--ros-domain", type=int, help="ROS 2 domain id, 0-232 (default: the "
-                                                  "config's, else ROS_DOMAIN_ID, else 0)")
+    p.add_argument("--ros-domain", type=int, help="ROS 2 domain id, 0-232 [default the "
+                                                  "config's, else ROS_DOMAIN_ID, else 0]")
     args = p.parse_args(argv)
     setup_logging(args.log_level)
     return run_command(lambda: _serve(args))
@@ -136,6 +151,17 @@ def ros_options(config: RunConfig, args: argparse.Namespace,
     return config.replace(**{k: given[k] for k in ("ros2", "ros_domain") if k in given})
 
 
+def waiting_line(config: RunConfig, args: argparse.Namespace, out: str | Path) -> str:
+    """What a hand-started world says once it serves the run: where agents reach it, whom it
+    waits for and where the results go."""
+    if args.connect and not args.listen:
+        where = "joined the router at " + ", ".join(args.connect)
+    else:
+        where = "listening on " + ", ".join(args.listen or DEFAULT_LISTEN)
+    return (f"world: run {config.run_id} {where}; waiting up to {config.start_timeout:g} s for "
+            f"the leader and {quantity(config.followers, 'followers')}; results into {out}")
+
+
 def _serve(args: argparse.Namespace) -> int:
     """The world process's run, from parsed arguments; its exit status. As embedded router
     (the default) it listens on ``DEFAULT_LISTEN`` unless given ``--listen``; given only
@@ -145,14 +171,20 @@ def _serve(args: argparse.Namespace) -> int:
         file = file_options(path)
         config = ros_options(config_from_file(file, path), args, file)
         require_extras(config)
+        surface = resolve_with_surface(config)[1]  # a surface, raster or start refused here
         client = bool(args.connect) and not args.listen
         conf = connection_config(args, "client" if client else "router",
                                  default_listen=() if client else DEFAULT_LISTEN)
-        out = check_out_dir(args.resume or args.out or default_out(config.run_id),
-                            "--resume" if args.resume else "--out")
-    with run_failures(out):  # a folder in use or holding results, nothing to resume: refused
+        out = args.resume or args.out or default_out(config.run_id)
+    folder = NewFolder(out, config.run_id)
+    with folder.undone_if_refused(), run_failures(out):  # a folder in use or holding results,
+        # nothing to resume: refused
+        with ends_with(REFUSED, ValueError):
+            check_out_dir(out, "--resume" if args.resume else "--out")
         try:
-            summary = run_world(config, conf, out, resume=bool(args.resume), force=args.force)
+            summary = run_world(config, conf, out, resume=bool(args.resume), force=args.force,
+                                surface=surface, on_ready=lambda service: print(
+                                    waiting_line(config, args, out), flush=True))
         except checkpoint.AlreadyComplete as exc:
             print(str(exc), file=sys.stderr)
             return DONE

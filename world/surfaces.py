@@ -26,7 +26,6 @@ Real terrain: ``dem:PATH`` loads a digital elevation model (:mod:`world.dem`; pa
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import math
 import numbers
 from collections.abc import Mapping
@@ -39,6 +38,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from protocol.distribution import require
+from protocol.imports import import_user_module
 
 LeaderStart = tuple[float, float, float, float]
 DEM_PREFIX = "dem:"  # a surface name "dem:PATH" is a digital elevation model (world.dem)
@@ -418,7 +418,7 @@ def _import_surface(reference: str) -> Surface:
     if not module_name or not attr:
         raise ValueError(f"name {reference!r} must look like 'package.module:attr'")
     try:
-        target: Any = importlib.import_module(module_name)
+        target: Any = import_user_module(module_name)
     except Exception as exc:  # the user's module may fail in any way: a syntax error, a raise
         raise ValueError(f"cannot import module {module_name!r} of surface {reference!r}: "
                          f"{type(exc).__name__}: {exc}") from exc

@@ -13,13 +13,13 @@ the tick (the follower stops; the run ends with that one line), never as a trace
 """
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 from typing import Any
 
 from agents.policies.base import NotReady, Policy
 from protocol.cli import describe
 from protocol.config import PLUGIN_ESTIMATOR, AgentSettings
+from protocol.imports import import_user_module
 from protocol.limits import MAX_NAME, NAME_PATTERN, NAME_RULE
 
 
@@ -36,7 +36,7 @@ def load_estimator(spec: str, settings: AgentSettings) -> Policy:
                          f"got {spec!r}")
     module_name, attr = spec.split(":")
     try:
-        module = importlib.import_module(module_name)
+        module = import_user_module(module_name)  # the current folder too, as documented
     except ImportError as exc:
         raise ValueError(f"estimator {spec!r}: cannot import {module_name!r} ({exc})") from None
     factory = getattr(module, attr, None)
