@@ -29,8 +29,8 @@ def add_ros2_listen_flag(parser: argparse.ArgumentParser) -> None:
     """``--ros2-listen ENDPOINT`` of ``swarm run``."""
     parser.add_argument("--ros2-listen", metavar="ENDPOINT", default=None,
                         help="with --ros2: the run's router also listens on this fixed "
-                             "endpoint for ROS 2 machines, e.g. tcp/0.0.0.0:7447 (default: "
-                             "only its loopback port); the join recipe is printed at start")
+                             "endpoint for ROS 2 machines, e.g. tcp/0.0.0.0:7447; the join recipe "
+                             "is printed at start [default only its loopback port]")
 
 
 def check_ros2_listen(endpoint: str | None, ros2_on: bool) -> str | None:
