@@ -42,7 +42,7 @@ values = st.recursive(scalars, lambda inner: st.one_of(
 
 FUZZ_EXAMPLES = [100, pytest.param(1000, marks=pytest.mark.slow)]
 """Examples per fuzz test: a hundred in the fast tier, a thousand in the slow one."""
-MAPS = st.dictionaries(st.sampled_from(["v", "type", "tick", "r", "theta", "rod", "phase",
+MAPS = st.dictionaries(st.sampled_from(["v", "type", "tick", "r", "theta", "rod", "look",
                                         "action", "offset", "t", "length", "side", "error",
                                         "code", "agent", "x"]), values, max_size=8)
 
@@ -117,7 +117,7 @@ def _raw(**body):
     return msgpack.packb(body, use_bin_type=True)
 
 
-GOOD_SENSE = {"v": 1, "type": "sense", "tick": 0, "phase": "pre"}
+GOOD_SENSE = {"v": 1, "type": "sense", "tick": 0, "look": False}
 GOOD_MOVE = {"v": 1, "type": "move", "tick": 0, "offset": [0.1, 0.0]}
 GOOD_DRIVE = {"v": 1, "type": "drive", "tick": 0, "t": 0.0}
 
@@ -127,7 +127,8 @@ GOOD_DRIVE = {"v": 1, "type": "drive", "tick": 0, "t": 0.0}
     (1, msgpack.packb([1, 2]), "must be a msgpack map"),
     (1, _raw(**{**GOOD_SENSE, "v": 7}), "unsupported schema version 7"),
     (1, _raw(**{**GOOD_SENSE, "type": "act"}), "message type 'act' not accepted"),
-    (1, _raw(**{**GOOD_SENSE, "phase": "never"}), "'phase' must be one of"),
+    (1, _raw(**{**GOOD_SENSE, "look": "never"}), "'look' must be a boolean"),
+    (1, _raw(**{**GOOD_SENSE, "phase": "settled"}), "unknown field"),
     (1, _raw(**{**GOOD_SENSE, "tick": 5}), "request for tick 5, but the world is at tick 0"),
     (1, _raw(**{**GOOD_SENSE, "tick": -3}), "'tick' must be in"),
     (99, _raw(**GOOD_SENSE), "unknown agent id 99"),
@@ -222,7 +223,7 @@ def _attack(endpoint: str, run_id: str, stop: threading.Event, counts: dict,
         (keys.act(run_id, 1), _raw(**{**GOOD_MOVE, "offset": [math.inf, 1.0]})),
         (keys.act(run_id, 1), _raw(**{**GOOD_MOVE, "v": 99})),
         (keys.act(run_id, 1), encode(Drive(tick=10**6, t=1.0))),
-        (keys.sense(run_id, 1), _raw(**{**GOOD_SENSE, "phase": 3})),
+        (keys.sense(run_id, 1), _raw(**{**GOOD_SENSE, "look": 3})),
     ]
     garbage = [(keys.rod(run_id, 1), b"\x00\x01"), (keys.obs(run_id, 2), _raw(v=1, type="obs")),
                (keys.rod(run_id, 9), _raw(v=1, type="rod", tick=0, length=-1.0, side=1))]
