@@ -23,6 +23,8 @@ from protocol.messages import (
     ProtocolError,
     Rod,
     SenseRequest,
+    Sensing,
+    Snap,
     decode,
     encode,
 )
@@ -139,6 +141,23 @@ def test_sense_errors_name_the_problem(world, key_agent, payload, fragment):
     before = service.rejected
     assert fragment in _ask(client, keys.sense("bad", key_agent), payload)
     assert service.rejected == before + 1
+
+
+def test_a_reading_asked_again_or_out_of_order_is_refused_over_zenoh(world):
+    """The world serves the pre-move sensing once per tick, and an initial tick's snap only
+    after a look (design §5): a client that re-asks, or acts out of order, is refused."""
+    service, client = world
+    assert "must look for its rod end" in _ask(client, keys.act("bad", 1),
+                                               encode(Snap(tick=0)))
+    replies = list(client.get(keys.sense("bad", 1), payload=encode(SenseRequest(tick=0)),
+                              timeout=5.0))
+    assert len(replies) == 1 and replies[0].ok is not None
+    assert decode(replies[0].ok.payload.to_bytes(), Sensing).rod is None  # did not look
+    before = service.rejected
+    for look in (False, True):
+        assert "each reading comes once" in _ask(client, keys.sense("bad", 1),
+                                                 encode(SenseRequest(tick=0, look=look)))
+    assert service.rejected == before + 2
 
 
 def test_a_follower_ahead_of_its_predecessor_is_told_to_wait(world):

@@ -533,13 +533,13 @@ class WorldSim:
         self._check_follower_turn(agent, tick)
         state, cfg = self.agents[agent], self.config
         sensed = state.sensed[tick]
-        if sensed.count:
-            raise RequestError(f"agent {agent} already read its pre-move sensing at tick {tick}:"
-                               " each reading comes once (the later ones are the replies to "
-                               "its actions)")
         if state.acted:
             raise RequestError(f"agent {agent} already acted at tick {tick}: the pre-move "
-                               "sensing comes before its move")
+                               "sensing comes before its move (the later readings are the "
+                               "replies to its actions)")
+        if sensed.count:
+            raise RequestError(f"agent {agent} already read its pre-move sensing at tick {tick}:"
+                               " each reading comes once")
         self._leader_rod(agent, tick)  # a rod that leaves the domain ends the run here
         reading = self._read(agent, tick, "pre", look)
         if cfg.drives or tick < cfg.init_ticks:  # the floor decides here (no teleport move)
