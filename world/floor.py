@@ -36,9 +36,12 @@ every σ = 0 each error is an exact zero and so is the floor.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from protocol.sensing import reading_covariance
 
 PRIOR_VARIANCE = 1e6
 """Variance (m², per coordinate) of the floor's prior on ``s``: nothing known before tick 0."""
@@ -77,6 +80,25 @@ class FloorEvent:
 def read(error: np.ndarray, covariance: np.ndarray) -> FloorEvent:
     """A reading of ``s`` with ``error`` (2,) and declared ``covariance`` (2, 2)."""
     return FloorEvent(READ, np.asarray(error, dtype=float), np.asarray(covariance, dtype=float))
+
+
+def range_bearing(error: np.ndarray, offset: np.ndarray, sigma_r: float,
+                  sigma_theta: float) -> FloorEvent:
+    """A range/bearing reading of ``s`` (the leader's, less its known offset, or the rod
+    end's) whose xy ``error`` was drawn at the true local ``offset`` (2,).
+
+    Its covariance is :func:`protocol.sensing.reading_covariance` at the true bearing and at
+    the range ``sqrt(r² + σ_r²)``: across the line of sight ``(r² + σ_r²) σ_θ²``, the first-order
+    term plus the product of the two errors, which dominates near the rod end (``r → 0``,
+    where the first order says a reading is exact across). Its known mean,
+    ``r (exp(−σ_θ²/2) − 1)`` along the line of sight (a bearing error shortens the reading's
+    projection), is taken off, as the minimum-mean-square estimator would."""
+    r = math.hypot(float(offset[0]), float(offset[1]))
+    theta = math.atan2(offset[1], offset[0])
+    bias = r * math.expm1(-0.5 * sigma_theta**2)
+    unbiased = np.asarray(error, dtype=float) - bias * np.array([math.cos(theta), math.sin(theta)])
+    covariance = reading_covariance(math.hypot(r, sigma_r), theta, sigma_r, sigma_theta)
+    return read(unbiased, covariance)
 
 
 def move(noise: np.ndarray, variance: float, odometered: bool) -> FloorEvent:

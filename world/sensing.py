@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol.config import RunConfig
-from protocol.sensing import reading_covariance
 from world import floor
 from world.noise import reading_noise, reading_scalar
 from world.surfaces import Surface
@@ -117,7 +116,8 @@ class Sensors:
             sensed.pre = _polar(r, theta)
         elif role == "settled":
             sensed.settled = _polar(r, theta)
-        sensed.events.append(floor.read(error, self._covariance(offset)))
+        sensed.events.append(floor.range_bearing(error, offset, cfg.noise_range,
+                                                 cfg.noise_bearing))
         rod = None
         if truth.rod_end is not None:
             offset = truth.rod_end - truth.own
@@ -127,7 +127,8 @@ class Sensors:
             sensed.rod_error = None
             if self.sees(tick, distance):
                 sensed.rod_error = self._rod_error(agent, tick, n, offset)
-                sensed.events.append(floor.read(sensed.rod_error, self._covariance(offset)))
+                sensed.events.append(floor.range_bearing(sensed.rod_error, offset,
+                                                         cfg.noise_range, cfg.noise_bearing))
                 rod = _tup(offset + sensed.rod_error)
         fields: dict = {"tick": tick, "r": r, "theta": theta, "rod": rod}
         if cfg.gps:
@@ -153,13 +154,6 @@ class Sensors:
         n_r = reading_scalar(cfg.seed, agent, tick, n, "rod-range", cfg.noise_range)
         n_theta = reading_scalar(cfg.seed, agent, tick, n, "rod-bearing", cfg.noise_bearing)
         return _error(offset, n_r, n_theta)
-
-    def _covariance(self, offset: np.ndarray) -> np.ndarray:
-        """The declared covariance of a range/bearing reading at the true ``offset``."""
-        cfg = self.config
-        return reading_covariance(math.hypot(float(offset[0]), float(offset[1])),
-                                  math.atan2(offset[1], offset[0]), cfg.noise_range,
-                                  cfg.noise_bearing)
 
     def _gps(self, agent: int, tick: int, n: int, channel: str,
              pos: np.ndarray) -> tuple[float, float, float]:
