@@ -23,6 +23,7 @@ from agents.policies.base import (
     Proposal,
     Stay,
     Unwrapper,
+    looks_before_moving,
     polar,
     reconstructed_pre,
     relative,
@@ -43,7 +44,8 @@ from protocol.sensing import reading_variance as sensor_variance
 __all__ = ["ARX", "Auto", "ConstantVelocity", "EDMDPolicy", "FallbackToPersist",
            "GaussianProcess", "Kalman", "MotionGP", "NotReady", "Persist", "Policy", "Proposal",
            "RatioGP", "Stay", "Unwrapper", "auto_candidates", "classical", "estimator_settings",
-           "load_estimator", "make_dictionary", "make_auto", "make_policy", "move_variance",
+           "load_estimator", "looks_before_moving", "make_dictionary", "make_auto", "make_policy",
+           "move_variance",
            "paper_edmd", "polar", "reading_variance", "reconstructed_pre", "relative"]
 
 

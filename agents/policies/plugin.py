@@ -16,7 +16,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from agents.policies.base import NotReady, Policy
+from agents.policies.base import NotReady, Policy, looks_before_moving
 from protocol.cli import describe
 from protocol.config import PLUGIN_ESTIMATOR, AgentSettings
 from protocol.imports import import_user_module
@@ -68,6 +68,7 @@ class Guarded(Policy):
 
     def __init__(self, spec: str, policy: Any) -> None:
         self.spec, self.policy, self.name = spec, policy, policy.name
+        self.looks_before_moving = looks_before_moving(policy)
         self._tick: int | None = None  # the tick of the last sensing seen (skip has none)
 
     def _call(self, method: str, tick: int | None, call: Callable[[], Any]) -> Any:
