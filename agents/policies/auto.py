@@ -11,7 +11,7 @@ from collections import deque
 import numpy as np
 
 from agents.estimators import NotFitted
-from agents.policies.base import Policy, Proposal, reconstructed_pre, relative
+from agents.policies.base import Before, Policy, Proposal, reconstructed_pre, relative
 from protocol.config import AUTO
 from protocol.messages import Sensing
 
@@ -75,6 +75,14 @@ class Auto(Policy):
     Systematic differences (noise-free, or one candidate clearly right) pass it; luck does
     not. ``None`` follows the lowest score as it is.
 
+    Why ``default`` (``"best"`` only; None: the blend): the candidate followed unless another
+    beats it significantly, in place of the blend. ``make_auto`` names the model-based filter
+    (``ekf``) when the run declares sensor noise: its errors follow from a model of the motion
+    and of the declared noise, not from a fit to the window, and its proposal already averages
+    every reading of the tick; blending it with the model-free candidates, whose errors all
+    carry the pre reading's noise unaveraged, adds back the noise it removed (inverse-MSE
+    weights assume independent errors, which they are not).
+
     Safeguard (``trust``): the first candidate is the anchor (``persist``). A proposal that
     differs from the anchor's by more than ``trust`` times the largest error the anchor made
     within the window (the largest recent change of relative position) is left out (of the
@@ -86,7 +94,7 @@ class Auto(Policy):
                  min_scores: int = 1, burn_in: int = 1, blend: bool = True,
                  combine: str = "best", sharpness: float = 1.0, memory: float = 0.6,
                  noise_floor: float = 0.0, significance: float | None = 2.0,
-                 name: str | None = None) -> None:
+                 default: str | None = None, name: str | None = None) -> None:
         if not candidates:
             raise ValueError("candidates must not be empty")
         if combine not in COMBINE.values():
@@ -111,6 +119,9 @@ class Auto(Policy):
         names = [c.name for c in candidates]
         if len(set(names)) != len(names):
             raise ValueError(f"candidate names must be unique, got {names}")
+        if default is not None and default not in names:
+            raise ValueError(f"default must name a candidate ({names}), got {default!r}")
+        self.default = None if default is None else names.index(default)
         self.candidates = candidates
         self.trust = trust
         self.min_scores = min_scores
@@ -266,8 +277,9 @@ class Auto(Policy):
             mse = self._mse(ready, now)
             top = min(ready, key=lambda i: (mse[i], i))
             blend = len(self.candidates)
-            if top != blend and blend in ready and not self._beats(top, blend, now):
-                top = blend
+            default = blend if self.default is None else self.default
+            if top != default and default in ready and not self._beats(top, default, now):
+                top = default
         else:
             weights = self.mixture(ready, now)
             top = min(weights, key=lambda i: (-weights[i], i))
@@ -276,6 +288,12 @@ class Auto(Policy):
         return dataclasses.replace(proposals[top], followed=self._name(top))
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        return self.learn(settled, target)
+
+    def learn(self, settled: Sensing, target: np.ndarray | None,
+              before: Before | None = None) -> tuple[float, ...]:
+        """Score every candidate on the tick (from :func:`reconstructed_pre`, see the class),
+        then let each learn from it, ``before`` included."""
         if target is not None:
             pre = reconstructed_pre(settled, target)
             now = self._leverages(pre)
@@ -290,7 +308,7 @@ class Auto(Policy):
                         last = self.loss[i]
                         self.loss[i] = error * error if last is None else (
                             self.memory * last + (1.0 - self.memory) * error * error)
-        measured = [cand.record(settled, target) for cand in self.candidates]
+        measured = [cand.learn(settled, target, before) for cand in self.candidates]
         return measured[0]
 
     def skip(self) -> None:
