@@ -8,13 +8,10 @@ the follower reads ``L`` (the ``pre`` reading), so what it must predict is ``rho
 every honest reading of the tick: the leader before the move, after the move and once settled,
 the rod end after the move and once settled, the moves the follower commanded, and its odometry.
 
-State (relative to where the follower stands now, xy, one tick the time unit), 14 numbers:
+State (relative to where the follower stands now, xy, one tick the time unit), 12 numbers:
 
-- ``S, V, A``: the leader's smooth track: position, displacement per tick and its change per
-  tick (constant acceleration; the unmodelled change of ``A`` is white *jerk*);
-- ``J``: the leader's *landing offset* this tick, off its smooth track: zero for a leader that
-  drives its path, the snap error of a leader that is itself a follower (white, one draw per
-  tick, shared by every reading of that tick);
+- ``S, V, A``: the leader's track: position, displacement per tick and its change per tick
+  (constant acceleration; the unmodelled change of ``A`` is white *jerk*);
 - ``rho``: the rod vector at this tick, and ``lam = (kappa, omega)``: its log-length and turn
   rates per tick. Seen as complex numbers, ``rho_{j+1} = rho_j exp(kappa + i omega)``: the rod
   turns with the leader's heading at a rate that changes slowly, and its xy length changes with
@@ -22,7 +19,7 @@ State (relative to where the follower stands now, xy, one tick the time unit), 1
 - ``D``: the actuation error of the follower's own moves since it last settled (teleport: the
   move's and the snap's noise), which the odometry of the interval reads.
 
-Readings are linear in the state (leader: ``S + J``; rod end: ``S + J + rho``) with the
+Readings are linear in the state (leader: ``S``; rod end: ``S + rho``) with the
 declared range/bearing covariance (:func:`protocol.sensing.reading_covariance`) at the reading;
 the only nonlinearity is the rod's turn, linearised at the estimate (an extended Kalman filter).
 A move by ``u`` shifts the positions by ``-u`` and adds the move's declared actuation variance
@@ -41,8 +38,8 @@ from agents.policies.base import Before, Policy, Proposal, relative
 from protocol.messages import Sensing
 from protocol.sensing import reading_covariance
 
-N = 14
-S, V, A, J, RHO, LAM, D = (slice(i, i + 2) for i in range(0, N, 2))
+N = 12
+S, V, A, RHO, LAM, D = (slice(i, i + 2) for i in range(0, N, 2))
 JITTER = 1e-12  # added to every reading's covariance: a noise-free reading stays invertible
 # The leader's displacement and its change per tick before any reading of them: unknown, so
 # a prior far wider than any rod (in units of the rod's length squared); its first readings
@@ -75,9 +72,6 @@ class RodTracker(Policy):
         ``T_c``: the odometry's velocity times it is a displacement.
     spacing : float
         The rod's length ``d``: the scale of the priors and of the process noise.
-    landing_variance : float
-        Variance per coordinate of the leader's landing off its smooth track (0: the leader
-        drives its path).
     jerk : float
         Variance per coordinate of the leader's unmodelled change of acceleration per tick, in
         units of ``d²`` (length² per tick⁶ divided by ``d²``).
@@ -89,12 +83,10 @@ class RodTracker(Policy):
 
     def __init__(self, sigma_r: float = 0.0, sigma_theta: float = 0.0,
                  move_variance: float = 0.0, odometry_variance: float | None = None,
-                 comm_period: float = 1.0, spacing: float = 1.0, landing_variance: float = 0.0,
-                 jerk: float = 1e-4, turn: float = 1e-4, name: str = "ekf") -> None:
+                 comm_period: float = 1.0, spacing: float = 1.0, jerk: float = 1e-4,
+                 turn: float = 1e-4, name: str = "ekf") -> None:
         for key, value in (("sigma_r", sigma_r), ("sigma_theta", sigma_theta),
-                           ("move_variance", move_variance),
-                           ("landing_variance", landing_variance), ("jerk", jerk),
-                           ("turn", turn)):
+                           ("move_variance", move_variance), ("jerk", jerk), ("turn", turn)):
             if not 0.0 <= value < math.inf:
                 raise ValueError(f"{key} must be finite and >= 0, got {value}")
         if odometry_variance is not None and not 0.0 <= odometry_variance < math.inf:
@@ -107,10 +99,16 @@ class RodTracker(Policy):
         self.sigma_r, self.sigma_theta = sigma_r, sigma_theta
         self.move_variance, self.odometry_variance = move_variance, odometry_variance
         self.comm_period, self.spacing = comm_period, spacing
-        self.landing_variance = landing_variance
         self.jerk, self.turn = jerk, turn
         self.mean: np.ndarray | None = None
         self.cov: np.ndarray | None = None
+        self._ahead: tuple[np.ndarray, np.ndarray] | None = None  # _advanced(), until learn
+        # the models' process noise per tick: the leader's jerk, the drift of the rod's rates
+        self._q = np.zeros((N, N))
+        for axis in range(2):
+            idx = [S.start + axis, V.start + axis, A.start + axis]
+            self._q[np.ix_(idx, idx)] = jerk * spacing**2 * JERK_DT
+        self._q[LAM, LAM] = turn * np.eye(2)
         self.evidence = 0.0  # log-likelihood of the last tick's readings under the model
         self._evidence: list[float] = []
 
@@ -119,7 +117,7 @@ class RodTracker(Policy):
     def _reading(self, mean, cov, z: np.ndarray, rod: bool):
         """Update with a leader (``rod`` False) or rod-end reading ``z`` (2,)."""
         h = np.zeros((2, N))
-        h[:, S] = h[:, J] = np.eye(2)
+        h[:, S] = np.eye(2)
         if rod:
             h[:, RHO] = np.eye(2)
         r = math.hypot(z[0], z[1])
@@ -137,8 +135,8 @@ class RodTracker(Policy):
         return mean, cov
 
     def _advance(self, mean, cov):
-        """One tick of the models: the leader's track and the rod's turn; a new landing
-        offset; the actuation error restarts."""
+        """One tick of the models: the leader's track and the rod's turn; the actuation error
+        restarts."""
         f = np.eye(N)
         f[S, V], f[S, A], f[V, A] = np.eye(2), 0.5 * np.eye(2), np.eye(2)
         rho, lam = mean[RHO], mean[LAM]
@@ -148,17 +146,9 @@ class RodTracker(Policy):
         f[RHO, LAM] = np.c_[turned, [-turned[1], turned[0]]]
         new = f @ mean
         new[RHO] = turned
-        f[J, J] = f[D, D] = 0.0
-        new[J] = new[D] = 0.0
-        cov = f @ cov @ f.T
-        q = np.zeros((N, N))
-        jerk = self.jerk * self.spacing**2
-        for axis in range(2):
-            idx = [S.start + axis, V.start + axis, A.start + axis]
-            q[np.ix_(idx, idx)] = jerk * JERK_DT
-        q[J, J] = self.landing_variance * np.eye(2)
-        q[LAM, LAM] = self.turn * np.eye(2)
-        return new, _symmetric(cov + q)
+        f[D, D] = 0.0
+        new[D] = 0.0
+        return new, _symmetric(f @ cov @ f.T + self._q)
 
     def _start(self):
         """The prior before the first tick: nothing known but the scales (the leader's place
@@ -166,12 +156,15 @@ class RodTracker(Policy):
         cov = np.zeros((N, N))
         cov[S, S] = cov[V, V] = cov[A, A] = cov[RHO, RHO] = DIFFUSE * self.spacing**2 * np.eye(2)
         cov[LAM, LAM] = np.eye(2)  # rates of the order of a radian per tick
-        cov[J, J] = self.landing_variance * np.eye(2)
         return np.zeros(N), cov
 
     def _advanced(self):
-        """The state at the start of the coming tick, before its readings (a copy)."""
-        return self._start() if self.mean is None else self._advance(self.mean, self.cov)
+        """The state at the start of the coming tick, before its readings (remembered until
+        the state changes: ``auto`` asks for two proposals a tick before the policy learns)."""
+        if self._ahead is None:
+            self._ahead = self._start() if self.mean is None else self._advance(self.mean,
+                                                                                  self.cov)
+        return self._ahead
 
     def _before_move(self, pre: Sensing):
         """The state at this tick after its ``pre`` reading (a copy)."""
@@ -185,7 +178,7 @@ class RodTracker(Policy):
             raise NotFitted("ekf needs one settled tick")
         self._evidence = []  # a pure read: its readings' evidence is not kept
         mean, _ = self._before_move(pre)
-        e = mean[S] + mean[J] + mean[RHO]
+        e = mean[S] + mean[RHO]
         return Proposal(e, (float(e[0]), float(e[1])))
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
@@ -216,9 +209,9 @@ class RodTracker(Policy):
             mean, cov = self._reading(mean, cov, np.asarray(settled.rod), rod=True)
         if before is not None and target is not None:
             mean, cov = self._odometry(mean, cov, settled, before, target)
-        self.mean, self.cov = mean, _symmetric(cov)
+        self.mean, self.cov, self._ahead = mean, _symmetric(cov), None
         self.evidence = math.fsum(self._evidence)
-        e = self.mean[S] + self.mean[J] + self.mean[RHO]
+        e = self.mean[S] + self.mean[RHO]
         return float(e[0]), float(e[1])
 
     @staticmethod
@@ -245,6 +238,7 @@ class RodTracker(Policy):
     def skip(self) -> None:
         if self.mean is not None:
             self.mean, self.cov = self._advance(self.mean, self.cov)
+            self._ahead = None
 
     def state(self) -> dict:
         """The filter's state as plain data (lists of floats; None before the first tick)."""
@@ -254,6 +248,7 @@ class RodTracker(Policy):
 
     def restore(self, state: dict) -> None:
         """Take the state :meth:`state` gave (ValueError naming ``state`` if malformed)."""
+        self._ahead = None
         if state.get("mean") is None:
             self.mean = self.cov = None
             return
@@ -271,13 +266,15 @@ def _symmetric(cov: np.ndarray) -> np.ndarray:
 def _update(mean, cov, h: np.ndarray, z: np.ndarray, noise: np.ndarray, evidence: list):
     """Kalman update with the linear reading ``z = h x + noise`` (Joseph form); appends the
     reading's log-likelihood under the prediction to ``evidence``."""
-    innovation = h @ cov @ h.T + noise
-    gain = np.linalg.solve(innovation, h @ cov).T
+    hc = h @ cov
+    (a, b), (c, d) = hc @ h.T + noise
+    det = a * d - b * c
+    inverse = np.array([[d, -b], [-c, a]]) / det  # of the innovation's covariance (2, 2)
+    gain = (inverse @ hc).T
     surprise = z - h @ mean
     mean = mean + gain @ surprise
     keep = np.eye(N) - gain @ h
-    _, logdet = np.linalg.slogdet(innovation)
-    evidence.append(-0.5 * (float(surprise @ np.linalg.solve(innovation, surprise)) + logdet
+    evidence.append(-0.5 * (float(surprise @ inverse @ surprise) + math.log(det)
                             + 2.0 * math.log(2.0 * math.pi)))
     return mean, _symmetric(keep @ cov @ keep.T + gain @ noise @ gain.T)
 
