@@ -1,10 +1,13 @@
 """A follower: estimates its leader's rod end, moves there, snaps on it
 (``python -m agents.follower``).
 
-One tick (design §4): sense the leader (``pre``) and ask the policy for its estimate; from tick
-``init_ticks`` on, move there (the reply carries the ``moved`` sensing); snap onto the rod end
-if it is in range, else count a lost tick (the reply carries the ``settled`` sensing); record
-the measurement; publish the observation and the rod. Three round trips to the world per tick.
+One tick (design §4): sense the leader (the pre-move sensing, once; it carries the rod end
+only if the follower looks for it: always in an initial tick, else if its policy
+``looks_before_moving``, and the look then counts in the tick's required range) and ask the
+policy for its estimate; from tick ``init_ticks`` on, move there (the reply is the sensing
+after the move, which looks for the rod end); snap onto the rod end if it is in range, else
+count a lost tick (the reply is the settled sensing); record the measurement; publish the
+observation and the rod. Three round trips to the world per tick.
 
 With ``--motion drive`` the move and the snap are control steps (:mod:`agents.drive`: one
 round trip each, to the estimate — in the initial ticks to the rod end sensed at ``pre`` —
@@ -31,6 +34,7 @@ from agents.policies import (
     Before,
     NotReady,
     Policy,
+    looks_before_moving,
     make_policy,
     move_variance,
     reading_variance,
@@ -81,7 +85,7 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
                   limits: Limits | None = None) -> TickOutcome:
     """Run one tick of the follower; a driving follower's ``limits`` (built once,
     :meth:`agents.drive.Limits.from_settings`) must be given."""
-    pre = link.sense(tick, "pre")
+    pre = link.sense(tick, look=tick < settings.init_ticks or looks_before_moving(policy))
     try:  # during the initial ticks the prediction is only scored, not followed
         proposal = policy.propose(pre)
         offset, prediction = proposal.offset, proposal.prediction

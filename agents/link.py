@@ -386,8 +386,11 @@ class AgentLink:
             self.advance(joined.until)
         return joined
 
-    def sense(self, tick: int, phase: str) -> Sensing:
-        return self._query(self._sense_key, SenseRequest(tick=tick, phase=phase), Sensing)
+    def sense(self, tick: int, look: bool = False) -> Sensing:
+        """The pre-move sensing of ``tick`` (once per tick, before any action); ``look``: it
+        carries the rod end, if in range, and the distance from which the follower looked
+        counts in the tick's required range (design §4, §5)."""
+        return self._query(self._sense_key, SenseRequest(tick=tick, look=look), Sensing)
 
     def act(self, request: Drive | Move | Snap | Control) -> ActResult | ActSensing:
         """Ask the world to act; a move, control step or snap is answered with the sensing

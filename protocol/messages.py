@@ -168,7 +168,6 @@ _KINDS = {
     "vec2?": _optional(_vector(2)),
     "vec3?": _optional(_vector(3)),
     "vec?": _optional(_vector(None)),
-    "phase": _choice("pre", "moved", "settled"),
     "error-code": _choice("bad-request", "missed", "ended", "wait"),
 }
 
@@ -205,14 +204,14 @@ class TickStart(Message):
 
 @dataclass(frozen=True)
 class SenseRequest(Message):
-    """Query to ``world/sense/<id>``: what the agent's sensors read now.
-
-    ``phase`` names the moment inside the tick (``pre`` before moving, ``moved`` after moving
-    to the estimate, ``settled`` after the snap); it keys the sensor-noise stream.
-    """
+    """Query to ``world/sense/<id>``: the follower's pre-move sensing at ``tick``, served once,
+    before any action (the readings after its move and after it settled are the replies to
+    those actions, :class:`ActSensing`; design §5). ``look``: it looks for its rod end from
+    where it stands (the reading then carries it, if in range, and the distance counts in the
+    tick's required range; always in an initial tick)."""
 
     TYPE: ClassVar[str] = "sense"
-    phase: str = _kind("phase", "pre")
+    look: bool = _kind("flag", False)
 
 
 @dataclass(frozen=True)
@@ -221,7 +220,8 @@ class Sensing(Message):
 
     ``r``/``theta``: Euclidean distance and bearing (rad, wrapped to (-pi, pi]) to the leader.
     ``rod``: offset to the leader's rod end, read by the same range/bearing sensor (its own
-    noise draws), or None beyond the sensing range.
+    noise draws) when the follower looks for it (after its move, when settled, before moving if
+    it asks), or None: it did not look, or the rod end is beyond the sensing range.
     ``velocity``: odometry of the last completed interval (None before one exists).
     ``oracle_velocity``: the velocity to the next ideal position, the paper's idealisation
     (only to dictionary c with ``velocity = "oracle"``; with velocity noise).
@@ -346,8 +346,8 @@ class ActResult(Message):
 @dataclass(frozen=True)
 class ActSensing(Sensing):
     """Reply of ``world/act/<id>`` to :class:`Move`, :class:`Control` and :class:`Snap`: the
-    sensing right after the action (phase ``moved`` after a move or a control step,
-    ``settled`` after a snap; design §8), so a follower tick needs at most three round trips
+    sensing right after the action (after a move or a control step, or settled after a snap:
+    each a reading of its own, design §5, §8), so a follower tick needs at most three round trips
     (with ``--motion drive``, two more than its control steps). ``moved`` is False when a
     snap found no visible rod end (a lost tick)."""
 
@@ -356,7 +356,7 @@ class ActSensing(Sensing):
 
     @property
     def sensing(self) -> Sensing:
-        """The sensing alone (what a ``world/sense`` query would have answered)."""
+        """The sensing fields alone, without ``moved``."""
         return Sensing(**{f.name: getattr(self, f.name) for f in fields(Sensing)})
 
 

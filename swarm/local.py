@@ -49,9 +49,9 @@ class LocalLink:
         """``msg`` encoded and decoded again (validated as the receiving side does)."""
         return decode(encode(msg), type(msg))
 
-    def sense(self, tick: int, phase: str) -> Sensing:
-        request = self.wire(SenseRequest(tick=tick, phase=phase))
-        return self.wire(self.sim.sense(self.agent, request.tick, request.phase))
+    def sense(self, tick: int, look: bool = False) -> Sensing:
+        request = self.wire(SenseRequest(tick=tick, look=look))
+        return self.wire(self.sim.sense(self.agent, request.tick, request.look))
 
     def act(self, request: Drive | Move | Snap | Control) -> ActResult | ActSensing:
         return self.wire(self.sim.act(self.agent, self.wire(request)))

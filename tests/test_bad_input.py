@@ -23,6 +23,8 @@ from protocol.messages import (
     ProtocolError,
     Rod,
     SenseRequest,
+    Sensing,
+    Snap,
     decode,
     encode,
 )
@@ -42,7 +44,7 @@ values = st.recursive(scalars, lambda inner: st.one_of(
 
 FUZZ_EXAMPLES = [100, pytest.param(1000, marks=pytest.mark.slow)]
 """Examples per fuzz test: a hundred in the fast tier, a thousand in the slow one."""
-MAPS = st.dictionaries(st.sampled_from(["v", "type", "tick", "r", "theta", "rod", "phase",
+MAPS = st.dictionaries(st.sampled_from(["v", "type", "tick", "r", "theta", "rod", "look",
                                         "action", "offset", "t", "length", "side", "error",
                                         "code", "agent", "x"]), values, max_size=8)
 
@@ -117,7 +119,7 @@ def _raw(**body):
     return msgpack.packb(body, use_bin_type=True)
 
 
-GOOD_SENSE = {"v": 1, "type": "sense", "tick": 0, "phase": "pre"}
+GOOD_SENSE = {"v": 1, "type": "sense", "tick": 0, "look": False}
 GOOD_MOVE = {"v": 1, "type": "move", "tick": 0, "offset": [0.1, 0.0]}
 GOOD_DRIVE = {"v": 1, "type": "drive", "tick": 0, "t": 0.0}
 
@@ -127,7 +129,8 @@ GOOD_DRIVE = {"v": 1, "type": "drive", "tick": 0, "t": 0.0}
     (1, msgpack.packb([1, 2]), "must be a msgpack map"),
     (1, _raw(**{**GOOD_SENSE, "v": 7}), "unsupported schema version 7"),
     (1, _raw(**{**GOOD_SENSE, "type": "act"}), "message type 'act' not accepted"),
-    (1, _raw(**{**GOOD_SENSE, "phase": "never"}), "'phase' must be one of"),
+    (1, _raw(**{**GOOD_SENSE, "look": "never"}), "'look' must be a boolean"),
+    (1, _raw(**{**GOOD_SENSE, "phase": "settled"}), "unknown field"),
     (1, _raw(**{**GOOD_SENSE, "tick": 5}), "request for tick 5, but the world is at tick 0"),
     (1, _raw(**{**GOOD_SENSE, "tick": -3}), "'tick' must be in"),
     (99, _raw(**GOOD_SENSE), "unknown agent id 99"),
@@ -138,6 +141,23 @@ def test_sense_errors_name_the_problem(world, key_agent, payload, fragment):
     before = service.rejected
     assert fragment in _ask(client, keys.sense("bad", key_agent), payload)
     assert service.rejected == before + 1
+
+
+def test_a_reading_asked_again_or_out_of_order_is_refused_over_zenoh(world):
+    """The world serves the pre-move sensing once per tick, and an initial tick's snap only
+    after a look (design §5): a client that re-asks, or acts out of order, is refused."""
+    service, client = world
+    assert "must look for its rod end" in _ask(client, keys.act("bad", 1),
+                                               encode(Snap(tick=0)))
+    replies = list(client.get(keys.sense("bad", 1), payload=encode(SenseRequest(tick=0)),
+                              timeout=5.0))
+    assert len(replies) == 1 and replies[0].ok is not None
+    assert decode(replies[0].ok.payload.to_bytes(), Sensing).rod is None  # did not look
+    before = service.rejected
+    for look in (False, True):
+        assert "each reading comes once" in _ask(client, keys.sense("bad", 1),
+                                                 encode(SenseRequest(tick=0, look=look)))
+    assert service.rejected == before + 2
 
 
 def test_a_follower_ahead_of_its_predecessor_is_told_to_wait(world):
@@ -222,7 +242,7 @@ def _attack(endpoint: str, run_id: str, stop: threading.Event, counts: dict,
         (keys.act(run_id, 1), _raw(**{**GOOD_MOVE, "offset": [math.inf, 1.0]})),
         (keys.act(run_id, 1), _raw(**{**GOOD_MOVE, "v": 99})),
         (keys.act(run_id, 1), encode(Drive(tick=10**6, t=1.0))),
-        (keys.sense(run_id, 1), _raw(**{**GOOD_SENSE, "phase": 3})),
+        (keys.sense(run_id, 1), _raw(**{**GOOD_SENSE, "look": 3})),
     ]
     garbage = [(keys.rod(run_id, 1), b"\x00\x01"), (keys.obs(run_id, 2), _raw(v=1, type="obs")),
                (keys.rod(run_id, 9), _raw(v=1, type="rod", tick=0, length=-1.0, side=1))]

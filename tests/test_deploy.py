@@ -249,15 +249,15 @@ def test_compose_services_complete_a_run(deployment, tmp_path):
 def _sensing_log(monkeypatch, config: RunConfig) -> list[tuple[int, Sensing, list[tuple]]]:
     """Run ``config`` locally; every sensing reply, with its agent and every agent's (x, y, z)."""
     log = []
-    original = WorldSim.sense
+    original = WorldSim._read  # every sensing but a control step's: pre, moved, settled
 
-    def sense(self: WorldSim, agent: int, tick: int, phase: str) -> Sensing:
-        reply = original(self, agent, tick, phase)
+    def read(self: WorldSim, agent: int, tick: int, role: str, look: bool) -> Sensing:
+        reply = original(self, agent, tick, role, look)
         poses = [(*map(float, s.pos), float(self.surface.height(s.pos))) for s in self.agents]
         log.append((agent, reply, poses))
         return reply
 
-    monkeypatch.setattr(WorldSim, "sense", sense)
+    monkeypatch.setattr(WorldSim, "_read", read)
     # one agent at a time, so every agent's current pose is the one its successor senses
     run_local(config.replace(pipelined=False))
     return log

@@ -215,10 +215,15 @@ class TruthLink(LocalLink):
                 "odometry": (reply.odometry, state.pos - before),
                 "compass": (reply.compass, math.atan2(state.heading[1], state.heading[0])),
                 "slope": (reply.slope, self.sim.surface.gradient(state.pos)),
-                "rod": (reply.rod, end - state.pos),
                 "r": (reply.r, math.hypot(*rel)),
                 "theta": (reply.theta, math.atan2(rel[1], rel[0])),
             })
+            # the rod end is looked for after the move phase's last step and in the
+            # correction window, never before (design §4)
+            looks = request.step >= self.sim.config.control_steps - 1
+            assert (reply.rod is not None) == looks, (request.tick, request.step)
+            if looks:
+                self.seen[-1]["rod"] = (reply.rod, end - state.pos)
         return reply
 
 
@@ -261,9 +266,9 @@ class OdometryLink(LocalLink):
         super().__init__(sim, agent)
         self.seen = seen
 
-    def sense(self, tick, phase):
-        reply = super().sense(tick, phase)
-        self.seen[self.agent, tick, phase] = reply.velocity
+    def sense(self, tick, look=False):
+        reply = super().sense(tick, look)
+        self.seen[self.agent, tick, "pre"] = reply.velocity
         return reply
 
     def act(self, request):

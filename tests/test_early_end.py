@@ -67,9 +67,9 @@ class NotesTheEnd(LocalLink):
 
     told: list[str] = []
 
-    def sense(self, tick, phase):
+    def sense(self, tick, look=False):
         try:
-            return super().sense(tick, phase)
+            return super().sense(tick, look)
         except RunEnded as exc:
             self.told.append(str(exc))
             raise

@@ -53,9 +53,12 @@ class TruthLink(LocalLink):
         truth["leader_gps"] = (*leader, sim.surface.height(leader))
         return truth
 
-    def sense(self, tick, phase):
-        reply = super().sense(tick, phase)
-        self.seen.append((reply, self._truth(tick)))
+    def sense(self, tick, look=False):
+        reply = super().sense(tick, look)
+        truth = self._truth(tick)
+        if not look:  # the rod end is read only by looking (design §4)
+            del truth["rod"]
+        self.seen.append((reply, truth))
         return reply
 
     def act(self, request):
@@ -96,7 +99,10 @@ def test_with_every_sigma_positive_no_sensed_quantity_is_exact(options):
             compared += 1
             assert np.all(np.asarray(value, dtype=float) != np.asarray(exact, dtype=float)), (
                 f"{name} at tick {sensing.tick} reached the agent exactly: {value}")
-        assert sensing.rod is not None, "the rod end is in range here (R_s = inf)"
+        if "rod" in truth:  # looked for
+            assert sensing.rod is not None, "the rod end is in range here (R_s = inf)"
+        else:
+            assert sensing.rod is None, "the pre-move sensing carries no rod end unless asked"
     assert compared >= 5 * len(seen)  # r, theta, rod, gps, leader_gps always; velocity mostly
 
 
@@ -158,7 +164,7 @@ def test_the_readings_of_one_interval_are_one_odometry_reading():
     for tick in range(config.ticks):
         sim.start_tick(tick)
         sim.drive(0, tick, sim.time_of(tick))
-        readings[tick, "pre"] = sim.sense(1, tick, "pre").velocity
+        readings[tick, "pre"] = sim.sense(1, tick, look=tick < config.init_ticks).velocity
         if tick >= config.init_ticks:
             readings[tick, "moved"] = sim.act(1, Move(tick=tick, offset=(0.01, 0.0))).velocity
         readings[tick, "settled"] = sim.act(1, Snap(tick=tick)).velocity
@@ -189,7 +195,7 @@ def test_a_drive_tick_missed_before_any_step_still_reads_a_noisy_velocity():
         sim.start_tick(tick)
         sim.drive(0, tick, sim.time_of(tick))
         if tick == 3:  # too late: missed before any step
-            sim.sense(1, tick, "pre")
+            sim.sense(1, tick)
             sim.mark_missed(1)
         else:
             follower_tick(link, policy, settings, tick, limits=limits)
@@ -198,7 +204,7 @@ def test_a_drive_tick_missed_before_any_step_still_reads_a_noisy_velocity():
     sim.drive(0, 4, sim.time_of(4))
     settled = sim.agents[1].settled
     exact = (settled[3] - settled[2]) / config.comm_period
-    assert np.all(np.asarray(sim.sense(1, 4, "pre").velocity) != exact)
+    assert np.all(np.asarray(sim.sense(1, 4).velocity) != exact)
 
 
 def test_every_sigma_zero_gives_the_noise_free_numbers_bit_for_bit():

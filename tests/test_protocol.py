@@ -42,7 +42,7 @@ from protocol.session import free_tcp_endpoint, zenoh_config
 
 SAMPLES = [
     TickStart(tick=3, t=3.84),
-    SenseRequest(tick=4, phase="moved"),
+    SenseRequest(tick=4, look=True),
     Sensing(tick=4, r=3.5, theta=-1.2, rod=(0.1, -0.2), velocity=None, oracle_velocity=(1.0, 0.0),
             gps=(1.0, 2.0, 3.0), leader_gps=(4.0, 5.0, 6.0)),
     Drive(tick=5, t=6.4),
@@ -133,9 +133,9 @@ def test_malformed_sensing_rejected(body, fragment):
 
 
 def test_bad_choice_and_tick_order():
-    req = {"v": 1, "type": "sense", "tick": 1, "phase": "later"}
-    with pytest.raises(ProtocolError, match="'phase' must be one of"):
-        decode(_raw(**req), SenseRequest)
+    req = {"v": 1, "type": "error", "tick": 1, "error": "x", "code": "later"}
+    with pytest.raises(ProtocolError, match="'code' must be one of"):
+        decode(_raw(**req), ErrorReply)
     with pytest.raises(ProtocolError, match="older than tick 5"):
         decode(encode(Rod(tick=4, length=1.0, side=1)), Rod, min_tick=5)
 

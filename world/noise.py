@@ -1,13 +1,24 @@
-"""Sensor and actuation noise streams keyed by (seed, agent, tick, channel, phase) (design §5).
+"""Sensor and actuation noise streams (design §5).
 
-Every draw of one agent in one tick comes from one block of standard normals drawn by a
-``numpy.random.Generator`` seeded with ``(seed, agent, tick)``; each control step of a driving
-follower has a block of its own, seeded with ``(seed, agent, tick, step + 1)`` (numpy seeds
-``[s, a, t, 0]`` exactly like ``[s, a, t]``: step 0 keyed by its index would share the tick's
-block). Each (channel, phase) pair owns a fixed slot of :data:`SLOT` values in a block. So a
-draw depends only on its key, never on the order in which processes ask (any process layout
-gives the same run), and a tick's many readings cost one generator (seeding one is most of a
-draw's cost) — the block is remembered for the few ticks that still ask for it.
+Two kinds of stream, both keyed by what the world counts, never by what an agent says:
+
+- **readings** (:func:`reading_noise`): the ``n``-th sensing the world served follower ``agent``
+  in ``tick`` (``n`` the world's own count, from 0, :mod:`world.sensing`) draws every channel
+  it carries — the leader's range and bearing, the rod end's, GPS, the oracle velocity, a
+  driving robot's compass and slope — from one block of its own, seeded with
+  ``(seed, agent, tick, 0, n + 1)``. Two readings never share a draw, however they are asked.
+- **the world's own** (:func:`gaussian`): actuation (a move, a snap, a control step's speed and
+  turn) and odometry, keyed by ``(seed, agent, tick, channel, phase)``; the tick's block is
+  seeded with ``(seed, agent, tick)``, control step ``s``'s with ``(seed, agent, tick, s + 1)``
+  (numpy seeds ``[s, a, t, 0]`` exactly like ``[s, a, t]``: step 0 keyed by its bare index
+  would share the tick's block; for the same reason a reading's key has a 0 before a count
+  that starts at 1). The world does each of these once per tick (or control step, in the
+  order it enforces), so their keys are its own counts too.
+
+Each (channel, phase) pair, or each channel of a reading, owns a fixed slot of :data:`SLOT`
+values in a block. So a draw depends only on its key, never on the order in which processes
+ask (any process layout gives the same run), and a block costs one generator (seeding one is
+most of a draw's cost) — blocks are remembered for the few ticks that still ask for them.
 """
 from __future__ import annotations
 
@@ -26,6 +37,7 @@ CHANNELS = {"range": 1, "bearing": 2, "velocity": 3, "move": 4, "rod-range": 5,
 PHASES = {"pre": 0, "moved": 1, "settled": 2, "act": 3}
 SLOT = 3  # values per (channel, phase): GPS draws (x, y, z)
 BLOCK = (max(CHANNELS.values()) + 1) * len(PHASES) * SLOT
+READING_BLOCK = (max(CHANNELS.values()) + 1) * SLOT
 
 
 def gaussian_scalar(seed: int, agent: int, tick: int, channel: str, phase: str,
@@ -40,39 +52,70 @@ def gaussian(
     seed: int, agent: int, tick: int, channel: str, phase: str, sigma: float, size: int = 1,
     step: int | None = None,
 ) -> np.ndarray:
-    """Draw ``size`` N(0, sigma²) values from the stream named by the key (``step``, a control
-    step's index, selects that step's block; None: the tick's block).
+    """Draw ``size`` N(0, sigma²) values from the world's own stream named by the key
+    (``step``, a control step's index, selects that step's block; None: the tick's block).
 
     Returns zeros (without touching a generator) when ``sigma`` is 0.
 
-    >>> a = gaussian(7, 1, 5, "range", "pre", 0.1)
-    >>> b = gaussian(7, 1, 5, "range", "pre", 0.1)
-    >>> bool(a[0] == b[0]) and bool(a[0] != gaussian(7, 2, 5, "range", "pre", 0.1)[0])
+    >>> a = gaussian(7, 1, 5, "move", "act", 0.1)
+    >>> b = gaussian(7, 1, 5, "move", "act", 0.1)
+    >>> bool(a[0] == b[0]) and bool(a[0] != gaussian(7, 2, 5, "move", "act", 0.1)[0])
     True
-    >>> bool(a[0] != gaussian(7, 1, 5, "range", "pre", 0.1, step=0)[0])
+    >>> bool(a[0] != gaussian(7, 1, 5, "move", "act", 0.1, step=0)[0])
     True
     """
-    if channel not in CHANNELS:
-        raise ValueError(f"channel must be one of {sorted(CHANNELS)}, got {channel!r}")
+    _check(channel, sigma, size)
     if phase not in PHASES:
         raise ValueError(f"phase must be one of {sorted(PHASES)}, got {phase!r}")
-    if sigma < 0:
-        raise ValueError(f"sigma must be non-negative, got {sigma}")
-    if not 1 <= size <= SLOT:
-        raise ValueError(f"size must be in [1, {SLOT}], got {size}")
     if sigma == 0:
         return np.zeros(size)
     if step is not None and step < 0:
         raise ValueError(f"step must be non-negative, got {step}")
     start = (CHANNELS[channel] * len(PHASES) + PHASES[phase]) * SLOT
     key = (seed, agent, tick) if step is None else (seed, agent, tick, step + 1)
-    return sigma * _block(key)[start:start + size]
+    return sigma * _block(key, BLOCK)[start:start + size]
+
+
+def reading_noise(seed: int, agent: int, tick: int, reading: int, channel: str, sigma: float,
+                  size: int = 1) -> np.ndarray:
+    """Draw ``size`` N(0, sigma²) values for ``channel`` of the ``reading``-th sensing (the
+    world's count, from 0) of ``agent`` in ``tick``; zeros (no generator) when ``sigma`` is 0.
+
+    >>> a = reading_noise(7, 1, 5, 0, "range", 0.1)
+    >>> bool(a[0] == reading_noise(7, 1, 5, 0, "range", 0.1)[0])
+    True
+    >>> bool(a[0] != reading_noise(7, 1, 5, 1, "range", 0.1)[0])
+    True
+    """
+    _check(channel, sigma, size)
+    if reading < 0:
+        raise ValueError(f"reading must be non-negative, got {reading}")
+    if sigma == 0:
+        return np.zeros(size)
+    start = CHANNELS[channel] * SLOT
+    return sigma * _block((seed, agent, tick, 0, reading + 1), READING_BLOCK)[start:start + size]
+
+
+def reading_scalar(seed: int, agent: int, tick: int, reading: int, channel: str,
+                   sigma: float) -> float:
+    """One draw of :func:`reading_noise` as a float (0.0 without a generator if sigma is 0)."""
+    if sigma == 0:
+        return 0.0
+    return float(reading_noise(seed, agent, tick, reading, channel, sigma)[0])
+
+
+def _check(channel: str, sigma: float, size: int) -> None:
+    if channel not in CHANNELS:
+        raise ValueError(f"channel must be one of {sorted(CHANNELS)}, got {channel!r}")
+    if sigma < 0:
+        raise ValueError(f"sigma must be non-negative, got {sigma}")
+    if not 1 <= size <= SLOT:
+        raise ValueError(f"size must be in [1, {SLOT}], got {size}")
 
 
 @functools.lru_cache(maxsize=8192)
-def _block(key: tuple[int, ...]) -> np.ndarray:
-    """The standard normals of one agent in one tick, or one control step of it (read-only;
-    remembered for a while)."""
-    block = np.random.default_rng(list(key)).standard_normal(BLOCK)
+def _block(key: tuple[int, ...], size: int) -> np.ndarray:
+    """``size`` standard normals of one key (read-only; remembered for a while)."""
+    block = np.random.default_rng(list(key)).standard_normal(size)
     block.flags.writeable = False
     return block

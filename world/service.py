@@ -226,7 +226,7 @@ class WorldService:
             with self._cond:
                 self._check_turn(agent, req.tick)
                 # the agent validates it on decode; its numbers are the world's own
-                return encode(self.sim.sense(agent, req.tick, req.phase), check=False)
+                return encode(self.sim.sense(agent, req.tick, req.look), check=False)
         self._answer(query, handle)
 
     def _joined(self, agent: int) -> Joined:

@@ -34,13 +34,12 @@ import numpy as np
 
 from protocol.config import RunConfig
 from protocol.messages import ActResult, ActSensing, Control, Drive, Message, Move, Sensing, Snap
-from protocol.sensing import reading_precision
-from world import geometry, motion
+from world import floor, geometry, motion
 from world.noise import gaussian, gaussian_scalar
+from world.sensing import Sensors, TickSensing, Truth
 from world.surfaces import Surface, surface_leader_start
 
 MAX_OFFSET = 1e6
-FLOOR_JITTER = 1e-18  # keeps a reading's covariance invertible when sigma_r or sigma_theta is 0
 
 
 class RequestError(ValueError):
@@ -124,6 +123,8 @@ class AgentState:
     records: dict[int, TickRecord] = field(default_factory=dict)
     # a driving follower's: its step odometry readings' errors summed over each settled tick
     odometry_errors: dict[int, np.ndarray] = field(default_factory=dict)
+    # what its sensors did in each tick it began (world.sensing), until the tick after is done
+    sensed: dict[int, TickSensing] = field(default_factory=dict)
     begun: tuple = ()  # (pos, heading[, leader velocity, leader time]) when ``tick`` began
     estimate: np.ndarray | None = None
     acted: str = ""
@@ -210,6 +211,10 @@ class WorldSim:
         self.end_reason = ""
         self.end_detail = ""
         self._rod_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self.sensors = Sensors(config, surface)
+        # each follower's sensing floor through the last complete tick (index 0: the leader's,
+        # unused)
+        self.floors = [floor.FloorFilter() for _ in self.agents]
 
     # --- ticks ---------------------------------------------------------------------------------
 
@@ -240,6 +245,7 @@ class WorldSim:
             raise RequestError(f"agent {agent} has not settled at tick {tick - 1}")
         state.tick = tick
         state.reset_tick()
+        state.sensed[tick] = TickSensing()
         state.begun = (state.pos.copy(), state.heading.copy())
         if agent == 0:
             state.begun += (self.leader_velocity.copy(), self.leader_time)
@@ -247,8 +253,8 @@ class WorldSim:
     def rollback(self, agent: int, tick: int) -> None:
         """Undo whatever ``agent`` did in tick ``tick`` (its process vanished before the world
         had it through): it will redo the tick from the pose it had when it began it, and draw
-        the same noise, so the tick's numbers are those of an uninterrupted run. Nothing to do
-        if the agent has not begun ``tick``."""
+        the same noise (its readings are counted again from the first), so the tick's numbers
+        are those of an uninterrupted run. Nothing to do if the agent has not begun ``tick``."""
         state = self.agents[agent]
         if state.tick != tick:
             return
@@ -256,7 +262,8 @@ class WorldSim:
         if agent == 0:
             self.leader_velocity, self.leader_time = state.begun[2].copy(), state.begun[3]
             self._leader_at.pop(tick, None)
-        for record in (state.settled, state.headings, state.records, state.odometry_errors):
+        for record in (state.settled, state.headings, state.records, state.odometry_errors,
+                       state.sensed):
             record.pop(tick, None)
         state.reset_tick()
         state.tick = tick - 1
@@ -274,6 +281,12 @@ class WorldSim:
             # a tick missed before its first control step drove nothing: its interval's
             # reading is then a teleport follower's (:meth:`_odometry`), never the exact truth
             state.odometry_errors[tick] = state.drive.odometry_error.copy()
+        if agent > 0 and not self.config.drives:  # the interval's odometry, for the floor
+            cfg = self.config
+            error = (cfg.comm_period * self._velocity_noise(agent, tick)
+                     if tick - 1 in state.settled else None)
+            state.sensed[tick].events.append(
+                floor.interval(error, (cfg.noise_velocity * cfg.comm_period) ** 2))
         if self.config.drives and agent > 0 and not state.missed:
             d = state.drive
             snap_error = None if state.lost else _dist(state.pos, self._leader_rod(agent, tick)[0])
@@ -310,19 +323,20 @@ class WorldSim:
                 lead_now = self.agents[k - 1].settled[j]
                 lead_prev = self.agents[k - 1].settled.get(j - 1, lead_now)
                 persist_noise_free = prev + (lead_now - lead_prev)
-                persist, floor = self._counterfactuals(k, j)
+                persist = self._persist(k, j, persist_noise_free)
                 row.update(
                     estimator=cfg.estimator, ideal_x=ideal[0], ideal_y=ideal[1],
                     stay_range=_dist(prev, ideal),
                     persist_range=_dist(persist, ideal),
                     persist_range_noise_free=_dist(persist_noise_free, ideal),
-                    floor_range=_dist(floor, ideal),
+                    floor_range=self.floors[k].tick(state.sensed[j].events),
                     lost=int(record.lost),
                     formation_error=_finite_or_none(_dist(pos, self.ideal[k, j])),
                 )
                 if record.estimate is not None:
-                    row.update(est_x=record.estimate[0], est_y=record.estimate[1],
-                               required_range=_dist(record.estimate, ideal))
+                    row.update(est_x=record.estimate[0], est_y=record.estimate[1])
+                if state.sensed[j].looked is not None:  # design §4: the longest look
+                    row["required_range"] = state.sensed[j].looked
                 if record.drive is not None:
                     row.update(reach_error=record.drive.reach_error,
                                snap_error=record.drive.snap_error,
@@ -335,6 +349,7 @@ class WorldSim:
             _drop_ticks_before(state.headings, j - 1)
             _drop_ticks_before(state.odometry_errors, j - 1)
             _drop_ticks_before(state.records, j)  # j's: control_rows
+            _drop_ticks_before(state.sensed, j)  # j's settled reading: the next persist
         _drop_ticks_before(self._leader_at, j)
         for key in [key for key in self._rod_cache if key[1] < j]:  # the next floor reads j's
             del self._rod_cache[key]
@@ -377,9 +392,11 @@ class WorldSim:
             "tick": j,
             "leader_velocity": velocity.tolist(),
             "leader_time": time,
+            "floors": [f.state() for f in self.floors],
             "agents": [
                 {"pos": pos.tolist(), "heading": heading.tolist(),
                  "settled": {str(t): p.tolist() for t, p in a.settled.items() if t <= j},
+                 "settled_reading": _settled_reading(a, j),
                  "odometry_errors": {str(t): e.tolist() for t, e in a.odometry_errors.items()
                                      if t <= j}}
                 for a, (pos, heading) in zip(self.agents, poses)
@@ -395,6 +412,9 @@ class WorldSim:
         self.leader_velocity = np.array(state["leader_velocity"], dtype=float)
         self.leader_time = float(state["leader_time"])
         self._leader_at = {self.tick: (self.leader_velocity.copy(), self.leader_time)}
+        self.floors = [floor.FloorFilter.from_state(f) for f in state["floors"]]
+        if len(self.floors) != self.n_agents:
+            raise ValueError(f"checkpoint has {len(self.floors)} floors, config {self.n_agents}")
         for agent, saved in zip(self.agents, state["agents"]):
             agent.pos = np.array(saved["pos"], dtype=float)
             agent.heading = np.array(saved["heading"], dtype=float)
@@ -402,6 +422,9 @@ class WorldSim:
             agent.settled = {int(t): np.array(p, dtype=float) for t, p in saved["settled"].items()}
             agent.headings = {self.tick: agent.heading.copy()}
             agent.records = {}
+            reading = saved["settled_reading"]
+            agent.sensed = {self.tick: TickSensing(
+                settled=None if reading is None else np.array(reading, dtype=float))}
             agent.odometry_errors = {int(t): np.array(e, dtype=float)
                                      for t, e in saved["odometry_errors"].items()}
 
@@ -454,145 +477,74 @@ class WorldSim:
             self.leader_time = target
         self._settle(0, tick)
 
-    def _relative_reading(self, agent: int, tick: int, phase: str, leader_pos: np.ndarray,
-                          own_pos: np.ndarray, step: int | None = None) -> tuple[float, float]:
-        """The noisy (range, bearing) reading ``agent`` gets of a leader at ``leader_pos``
-        from ``own_pos`` in ``phase`` of ``tick`` (after control step ``step`` if given; noise
-        keyed, so it can be re-derived)."""
-        cfg = self.config
-        (lx, ly), (fx, fy) = leader_pos.tolist(), own_pos.tolist()
-        r = math.hypot(lx - fx, ly - fy) + gaussian_scalar(
-            cfg.seed, agent, tick, "range", phase, cfg.noise_range, step)
-        theta = math.atan2(ly - fy, lx - fx) + gaussian_scalar(
-            cfg.seed, agent, tick, "bearing", phase, cfg.noise_bearing, step)
-        return r, math.atan2(math.sin(theta), math.cos(theta))
-
-    def _reading_error(self, agent: int, tick: int, phase: str, offset: np.ndarray,
-                       channels: tuple[str, str] = ("range", "bearing"),
-                       step: int | None = None) -> np.ndarray:
-        """The error (xy, local frame) of the range/bearing reading ``agent`` gets in ``phase``
-        of ``tick`` (after control step ``step`` if given) of a point at the true local
-        ``offset``, on the noise ``channels`` (range, bearing):
-        ``polar(r + n_r, theta + n_theta) - polar(r, theta)``, an exact zero when both draws
-        are."""
-        cfg = self.config
-        r, theta = math.hypot(float(offset[0]), float(offset[1])), math.atan2(offset[1], offset[0])
-        n_r = gaussian_scalar(cfg.seed, agent, tick, channels[0], phase, cfg.noise_range, step)
-        n_theta = gaussian_scalar(cfg.seed, agent, tick, channels[1], phase, cfg.noise_bearing,
-                                  step)
-        return _polar(r + n_r, theta + n_theta) - _polar(r, theta)
-
-    def _rod_error(self, agent: int, tick: int, phase: str, offset: np.ndarray,
-                   step: int | None = None) -> np.ndarray:
-        """The error of ``agent``'s reading of its leader's rod end at the true local
-        ``offset``: the same range/bearing sensor as the leader reading, channels of its own."""
-        return self._reading_error(agent, tick, phase, offset, ("rod-range", "rod-bearing"),
-                                   step)
+    def _persist(self, agent: int, tick: int, noise_free: np.ndarray) -> np.ndarray:
+        """Where ``persist`` would have put follower ``agent`` at ``tick`` from the same noisy
+        readings and actuation the follower had (design §6): from where it settled at
+        ``tick - 1``, by its pre-move leader reading minus its settled one of ``tick - 1``, with
+        its move's actuation noise (none in a drive run, where ``noise_move`` is refused).
+        Without both readings (a tick it missed) the noise-free counterfactual stands in."""
+        own, sensed = self.agents[agent].settled, self.agents[agent].sensed
+        before, now = sensed.get(tick - 1), sensed.get(tick)
+        if (tick - 1 not in own or before is None or before.settled is None or now is None
+                or now.pre is None):
+            return noise_free
+        noise = self._move_noise(agent, tick) if tick >= self.config.init_ticks else np.zeros(2)
+        return own[tick - 1] + now.pre - before.settled + noise
 
     def _move_noise(self, agent: int, tick: int) -> np.ndarray:
         """The actuation noise of ``agent``'s move to its estimate at ``tick``."""
         return gaussian(self.config.seed, agent, tick, "move", "act", self.config.noise_move, 2)
 
-    def _counterfactuals(self, agent: int, tick: int) -> tuple[np.ndarray, np.ndarray]:
-        """Where ``persist`` and the *sensing floor* would have put follower ``agent`` at
-        ``tick`` (``j``), from the same noisy readings and actuation the follower had (design §6,
-        §7). Both start where the follower settled at ``j - 1`` (``prev``) and suffer its
-        actuation noise of the move. A drive run has no such noise (``noise_move`` is refused
-        with ``motion = "drive"``): there both are placed without any movement error, while the
-        follower's own position carries its driving's (reach and snap shortfalls, odometry).
-
-        ``persist`` moves by ``rel_pre - rel(settled_{j-1})``. The floor knows the formation's
-        true motion — the leader as seen from the ideal position (``x = l - ideal``) and the
-        ideal position's displacement — and locates its next ideal position with the three
-        readings of the tick that can: the ``pre`` leader reading (``rel_pre - x_j``), the
-        settled leader reading of ``j - 1`` and the settled rod-end reading of ``j - 1`` (each
-        plus the ideal position's displacement), combined with minimum variance by their
-        declared covariances (:func:`protocol.sensing.reading_covariance`). So its only errors
-        are those of the readings and of the move: how far each estimator is from it is what
-        its own knowledge of the motion costs."""
-        own, lead = self.agents[agent].settled, self.agents[agent - 1].settled
-        if tick - 1 not in own or tick - 1 not in lead:
-            return own[tick], own[tick]
-        prev = own[tick - 1]
-        pre = prev + _polar(*self._relative_reading(agent, tick, "pre", lead[tick], prev))
-        before = _polar(*self._relative_reading(agent, tick - 1, "settled", lead[tick - 1], prev))
-        noise = self._move_noise(agent, tick) if tick >= self.config.init_ticks else np.zeros(2)
-        ideal = self._leader_rod(agent, tick)[0]
-        return pre - before + noise, ideal + self._floor_error(agent, tick) + noise
-
-    def _floor_error(self, agent: int, tick: int) -> np.ndarray:
-        """The sensing floor's error at ``tick`` (see :meth:`_counterfactuals`): the
-        minimum-variance combination of the errors of the readings that locate the follower's
-        next ideal position, each reading's covariance taken at its true range and bearing."""
+    def _velocity_noise(self, agent: int, tick: int) -> np.ndarray:
+        """The noise of a teleport follower's odometry over the interval ending at ``tick``."""
         cfg = self.config
-        own, lead = self.agents[agent].settled, self.agents[agent - 1].settled
-        prev, earlier = own[tick - 1], self._leader_rod(agent, tick - 1)[0]
-        sightings = [(lead[tick] - prev, "pre", tick), (lead[tick - 1] - prev, "settled", tick - 1)]
-        errors = [self._reading_error(agent, t, phase, offset) for offset, phase, t in sightings]
-        offsets = [offset for offset, _, _ in sightings]
-        rod = earlier - prev
-        if self._sees_rod(tick - 1, _norm(rod)):
-            errors.append(self._rod_error(agent, tick - 1, "settled", rod))
-            offsets.append(rod)
-        if not any(error.any() for error in errors):
-            return np.zeros(2)
-        precisions = [reading_precision(_norm(o), math.atan2(o[1], o[0]), cfg.noise_range,
-                                        cfg.noise_bearing, FLOOR_JITTER) for o in offsets]
-        return np.linalg.solve(sum(precisions), sum(p @ e for p, e in zip(precisions, errors)))
+        return gaussian(cfg.seed, agent, tick, "velocity", "act", cfg.noise_velocity, 2)
 
-    def _readings(self, agent: int, tick: int, phase: str, step: int | None = None) -> dict:
-        """The readings every sensing of follower ``agent`` carries (in ``phase`` of ``tick``,
-        after control step ``step`` if given), as :class:`Sensing` fields: the leader's range
-        and bearing, the rod end's offset when it is in range, and a driving robot's compass
-        and slope."""
-        state = self.agents[agent]
-        leader_pos = self.agents[agent - 1].settled[tick]
-        r, theta = self._relative_reading(agent, tick, phase, leader_pos, state.pos, step)
-        offset = self._leader_rod(agent, tick)[0] - state.pos
-        rod = None
-        if self._sees_rod(tick, _norm(offset)):
-            rod = _tup(offset + self._rod_error(agent, tick, phase, offset, step))
-        compass = slope = None
-        if self.config.drives:
-            compass, slope = self._attitude(agent, tick, phase, step)
-        return {"tick": tick, "r": r, "theta": theta, "rod": rod, "compass": compass,
-                "slope": slope}
-
-    def sense(self, agent: int, tick: int, phase: str) -> Sensing:
-        """What follower ``agent``'s sensors read now, in its local frame (design §5)."""
-        self._check_request(agent, tick)
-        self._check_follower_turn(agent, tick, settled_ok=phase == "settled")
+    def _read(self, agent: int, tick: int, role: str, look: bool) -> Sensing:
+        """Follower ``agent``'s next reading in ``tick`` (:mod:`world.sensing`; counted, its
+        noise keyed by the count): ``role`` is ``pre``, ``moved`` or ``settled``; ``look``:
+        whether it looks for its rod end (counted in the required range unless settled). With
+        the interval's odometry, and the oracle velocity in the settled reading when sent."""
         cfg, state = self.config, self.agents[agent]
-        readings = self._readings(agent, tick, phase)
-        velocity = self._odometry(agent, tick)
         oracle = None
-        if self._sends_oracle() and self.is_settled(agent, tick):
+        if role == "settled" and self._sends_oracle():
             oracle = (self.ideal[agent, tick + 1] - state.pos) / cfg.comm_period
             oracle = oracle if np.all(np.isfinite(oracle)) else None
-            if oracle is not None:
-                oracle = oracle + gaussian(cfg.seed, agent, tick, "oracle-velocity", phase,
-                                           cfg.noise_velocity, 2)
-        gps = leader_gps = None
-        if cfg.gps:
-            gps = self._gps(agent, tick, phase, "gps", state.pos)
-            leader_gps = self._gps(agent, tick, phase, "leader-gps",
-                                   self.agents[agent - 1].settled[tick])
-        return Sensing(**readings, velocity=velocity, oracle_velocity=_tup(oracle), gps=gps,
-                       leader_gps=leader_gps)
+        fields = self.sensors.read(agent, tick, state.sensed[tick], self._truth(
+            agent, tick, look, counted=role != "settled", oracle=oracle), role)
+        return Sensing(**fields, velocity=self._odometry(agent, tick))
 
-    def _attitude(self, agent: int, tick: int, phase: str,
-                  step: int | None = None) -> tuple[float, tuple[float, float]]:
-        """A driving robot's compass and tilt readings: the angle of its heading in the local
-        frame, and the slope ``(∂F/∂x, ∂F/∂y)`` under it read as two tilt angles
-        (``atan ∂F/∂x``, ``atan ∂F/∂y``); each angle with the bearing sensor's σ (the compass
-        is what bearings are referenced to)."""
-        cfg, state = self.config, self.agents[agent]
-        sigma = cfg.noise_bearing
-        angle = math.atan2(state.heading[1], state.heading[0]) + gaussian_scalar(
-            cfg.seed, agent, tick, "compass", phase, sigma, step)
-        tilt = np.arctan(np.asarray(self.surface.gradient(state.pos), dtype=float))
-        tilt = tilt + gaussian(cfg.seed, agent, tick, "slope", phase, sigma, 2, step=step)
-        return math.atan2(math.sin(angle), math.cos(angle)), _tup(np.tan(tilt))
+    def _truth(self, agent: int, tick: int, look: bool, counted: bool = True,
+               oracle: np.ndarray | None = None) -> Truth:
+        """Where things are as follower ``agent`` reads in ``tick`` (:class:`Truth`)."""
+        state = self.agents[agent]
+        return Truth(own=state.pos, leader=self.agents[agent - 1].settled[tick],
+                     rod_end=self._leader_rod(agent, tick)[0] if look else None,
+                     counted=counted, heading=state.heading if self.config.drives else None,
+                     oracle=oracle)
+
+    def sense(self, agent: int, tick: int, look: bool = False) -> Sensing:
+        """Follower ``agent``'s pre-move sensing at ``tick``, in its local frame (design §5):
+        served once, before any action (the later readings are the replies to its actions,
+        :meth:`act`). It carries the rod end only if the follower ``look``s for it (then the
+        distance counts in the tick's required range, from tick ``init_ticks`` on); a
+        follower always looks in an initial tick, where it is placed by that reading."""
+        self._check_request(agent, tick)
+        self._check_follower_turn(agent, tick)
+        state, cfg = self.agents[agent], self.config
+        sensed = state.sensed[tick]
+        if state.acted:
+            raise RequestError(f"agent {agent} already acted at tick {tick}: the pre-move "
+                               "sensing comes before its move (the later readings are the "
+                               "replies to its actions)")
+        if sensed.count:
+            raise RequestError(f"agent {agent} already read its pre-move sensing at tick {tick}:"
+                               " each reading comes once")
+        self._leader_rod(agent, tick)  # a rod that leaves the domain ends the run here
+        reading = self._read(agent, tick, "pre", look)
+        if cfg.drives or tick < cfg.init_ticks:  # the floor decides here (no teleport move)
+            sensed.events.append(floor.DECISION)
+        return reading
 
     def _sends_oracle(self) -> bool:
         """The oracle velocity is sent only to dictionary c's ``oracle`` variant (design §5)."""
@@ -614,14 +566,17 @@ class WorldSim:
             raise RequestError(f"tick {tick} is an initial tick: followers only snap")
         if state.acted:
             raise RequestError(f"agent {agent} already moved at tick {tick}")
-        self._relocate(agent, state.pos + step + self._move_noise(agent, tick))
+        noise = self._move_noise(agent, tick)
+        self._relocate(agent, state.pos + step + noise)
         state.estimate = state.pos.copy()
         state.acted = "move"
+        events = state.sensed[tick].events
+        events += [floor.move(noise, cfg.noise_move ** 2, odometered=True), floor.DECISION]
 
     def snap(self, agent: int, tick: int) -> bool:
-        """Follower moves by the rod-end offset it sensed last (after its move, or before it
-        in an initial tick), with actuation noise, if it sees the rod end, and takes the
-        heading of design §3 at the true rod end; returns False (lost) if it does not see it.
+        """Follower moves by the rod-end offset it read last (after its move, or before it
+        in an initial tick), with actuation noise, if that look found the rod end, and takes
+        the heading of design §3 at the true rod end; returns False (lost) if it did not.
 
         The landing point is ``end + reading error + actuation noise``: the same point as
         ``pos + sensed offset + actuation noise``, written so that with no noise it is the
@@ -633,14 +588,17 @@ class WorldSim:
             return self._settle_driven(agent, tick)
         if tick >= cfg.init_ticks and state.acted != "move":
             raise RequestError(f"agent {agent} must move to its estimate before snapping")
+        sensed = state.sensed[tick]
+        if tick < cfg.init_ticks and sensed.rod_error is None:
+            raise RequestError(f"agent {agent} must look for its rod end (its pre-move sensing, "
+                               f"look) before it snaps at initial tick {tick}")
         end, u = self._leader_rod(agent, tick)
-        offset = end - state.pos
-        seen = self._sees_rod(tick, _norm(offset))
+        seen = sensed.rod_error is not None
         if seen:
-            error = self._rod_error(agent, tick, "moved" if state.acted else "pre", offset)
             noise = gaussian(cfg.seed, agent, tick, "snap", "act", cfg.noise_move, 2)
-            self._relocate(agent, end + error + noise)
+            self._relocate(agent, end + sensed.rod_error + noise)
             state.heading = geometry.heading_at_rod_end(self.surface, end, u, self.side)
+            sensed.events.append(floor.move(noise, cfg.noise_move ** 2, odometered=True))
         state.lost = not seen
         self._settle(agent, tick)
         return seen
@@ -715,14 +673,19 @@ class WorldSim:
                             or abs(request.turn) >= cfg.max_turn)
         drive.controls.append(ControlStep(step, float(request.speed), float(request.turn),
                                           float(v), float(omega)))
-        readings = self._readings(agent, tick, "moved", step)
+        sigma = cfg.noise_velocity * math.sqrt(duration * cfg.comm_period)
+        error = gaussian(cfg.seed, agent, tick, "odometry", "moved", sigma, 2, step=step)
+        drive.odometry_error = drive.odometry_error + error
+        # the floor moves by the step's odometry reading (world.floor); the reply looks for the
+        # rod end after the move phase's last step and at each correction step (design §4)
+        sensed = state.sensed[tick]
+        sensed.events.append(floor.move(-error, sigma ** 2, odometered=False))
+        readings = self.sensors.read(agent, tick, sensed,
+                                     self._truth(agent, tick, look=step >= cfg.control_steps - 1))
         if drive.step == cfg.control_steps:
             if tick >= cfg.init_ticks:
                 drive.reach_error = _dist(pos, drive.goal)
             drive.sees_rod = readings["rod"] is not None
-        sigma = cfg.noise_velocity * math.sqrt(duration * cfg.comm_period)
-        error = gaussian(cfg.seed, agent, tick, "odometry", "moved", sigma, 2, step=step)
-        drive.odometry_error = drive.odometry_error + error
         return Sensing(**readings, odometry=_tup(pos - start + error))
 
     def _settle_driven(self, agent: int, tick: int) -> bool:
@@ -740,8 +703,8 @@ class WorldSim:
     def act(self, agent: int, request: Message) -> ActResult | ActSensing:
         """Carry out one typed action of ``agent`` and say how it went (design §8): a
         :class:`Drive` is answered with :class:`ActResult`; a :class:`Move` or a
-        :class:`Control` step with the ``moved`` sensing and a :class:`Snap` with the
-        ``settled`` sensing, all as :class:`ActSensing`.
+        :class:`Control` step with the sensing after it and a :class:`Snap` with the
+        settled sensing, all as :class:`ActSensing`: each a reading of its own (design §5).
         The one dispatch of the Zenoh service and of the in-memory layout."""
         if isinstance(request, Drive):
             self.drive(agent, request.tick, request.t)
@@ -751,12 +714,13 @@ class WorldSim:
             return ActSensing(**{**sensing.__dict__, "moved": True})
         if isinstance(request, Move):
             self.move(agent, request.tick, request.offset)
-            moved, phase = True, "moved"
+            sensing = self._read(agent, request.tick, "moved", look=True)
+            moved = True
         elif isinstance(request, Snap):
-            moved, phase = self.snap(agent, request.tick), "settled"
+            moved = self.snap(agent, request.tick)
+            sensing = self._read(agent, request.tick, "settled", look=True)
         else:
             raise RequestError(f"{type(request).__name__} is not an action")
-        sensing = self.sense(agent, request.tick, phase)
         return ActSensing(**{**sensing.__dict__, "moved": moved})
 
     # --- helpers -------------------------------------------------------------------------------
@@ -776,10 +740,6 @@ class WorldSim:
                 raise self._end(tick, f"agent {agent - 1}'s rod leaves the surface's domain",
                                 exc) from None
         return self._rod_cache[key]
-
-    def _sees_rod(self, tick: int, distance: float) -> bool:
-        """Whether a rod end ``distance`` away is in sensing range (always, in initial ticks)."""
-        return tick < self.config.init_ticks or distance <= self.config.sensing_range
 
     def _relocate(self, agent: int, pos: np.ndarray) -> None:
         contains = getattr(self.surface, "contains", None)
@@ -836,17 +796,14 @@ class WorldSim:
         if last in state.odometry_errors:  # driven (noise-free: exact zeros)
             v = v + state.odometry_errors[last] / cfg.comm_period
         elif cfg.noise_velocity != 0:
-            v = v + gaussian(cfg.seed, agent, last, "velocity", "settled",
-                             cfg.noise_velocity, 2)
+            v = v + self._velocity_noise(agent, last)
         return _tup(v)
 
-    def _gps(self, agent: int, tick: int, phase: str, channel: str,
-             pos: np.ndarray) -> tuple[float, float, float]:
-        """A GPS reading ``(x, y, z)`` of ``pos`` on ``channel`` (``--noise-gps`` σ each)."""
-        cfg = self.config
-        exact = np.array([pos[0], pos[1], self.surface.height(pos)], dtype=float)
-        reading = exact + gaussian(cfg.seed, agent, tick, channel, phase, cfg.noise_gps, 3)
-        return float(reading[0]), float(reading[1]), float(reading[2])
+
+def _settled_reading(state: AgentState, tick: int) -> list[float] | None:
+    """The leader reading (xy) of ``state``'s settled sensing at ``tick``, for a checkpoint."""
+    sensed = state.sensed.get(tick)
+    return None if sensed is None or sensed.settled is None else sensed.settled.tolist()
 
 
 def _drop_ticks_before(by_tick: dict, first: int) -> None:

@@ -25,6 +25,7 @@ from agents.policies.base import (
     Proposal,
     Stay,
     Unwrapper,
+    looks_before_moving,
     polar,
     reconstructed_pre,
     relative,
@@ -46,9 +47,9 @@ from protocol.sensing import reading_variance as sensor_variance
 __all__ = ["ARX", "Auto", "Before", "ConstantVelocity", "EDMDPolicy", "FallbackToPersist",
            "GaussianProcess", "Kalman", "MotionGP", "NotReady", "Persist", "Policy", "Proposal",
            "RatioGP", "RodTracker", "Stay", "TrackerBank", "Unwrapper", "auto_candidates",
-           "classical", "estimator_settings", "load_estimator", "make_auto", "make_dictionary",
-           "make_policy", "model_based", "move_variance", "paper_edmd", "polar",
-           "reading_variance", "reconstructed_pre", "relative"]
+           "classical", "estimator_settings", "load_estimator", "looks_before_moving",
+           "make_auto", "make_dictionary", "make_policy", "model_based", "move_variance",
+           "paper_edmd", "polar", "reading_variance", "reconstructed_pre", "relative"]
 
 
 def reading_variance(settings: AgentSettings) -> float:

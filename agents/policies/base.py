@@ -5,7 +5,9 @@ the follower loop calls
 
 1. :meth:`Policy.propose` with the pre-move sensing: returns a :class:`Proposal`, the xy offset
    (local frame) to the estimated ideal position plus what was predicted. It is a pure read of
-   the policy's state: calling it twice, or not at all, changes nothing;
+   the policy's state: calling it twice, or not at all, changes nothing. The pre-move sensing
+   carries the rod end only if the policy looks for it before moving
+   (:attr:`Policy.looks_before_moving`), and a look costs its distance (design §4);
 2. :meth:`Policy.learn` with the settled sensing, ``target``, the ideal position relative
    to where the follower stood before moving (None when it lost the rod), and ``before``, what
    the follower sensed and did earlier in the tick (:class:`Before`): the policy learns. Its
@@ -112,6 +114,12 @@ def reconstructed_pre(settled: Sensing, target: np.ndarray) -> Sensing:
                    velocity=settled.velocity)
 
 
+def looks_before_moving(policy: object) -> bool:
+    """Whether ``policy`` (a :class:`Policy`, or a plug-in that need not subclass it) looks
+    for its rod end before moving (:attr:`Policy.looks_before_moving`; default False)."""
+    return bool(getattr(policy, "looks_before_moving", False))
+
+
 class Unwrapper:
     """Keeps a bearing sequence continuous: each new angle within pi of the previous one."""
 
@@ -130,9 +138,16 @@ class Unwrapper:
 
 
 class Policy:
-    """Base class; subclasses implement :meth:`propose` and :meth:`record`."""
+    """Base class; subclasses implement :meth:`propose` and :meth:`record`.
+
+    ``looks_before_moving``: the follower looks for its rod end before it moves, so the
+    pre-move sensing carries it (when in range); the tick's required range is then at least
+    the distance it looked from (design §4). False for every built-in policy (the paper's
+    metric: the rod end is looked for after the move); a plug-in may set it.
+    """
 
     name = "policy"
+    looks_before_moving = False
 
     def propose(self, pre: Sensing) -> Proposal:
         """The move for this tick from the pre-move sensing (no side effects).
@@ -213,6 +228,7 @@ class FallbackToPersist(Policy):
         self.policy = policy
         self.persist = Persist()
         self.name = policy.name
+        self.looks_before_moving = looks_before_moving(policy)
 
     def propose(self, pre: Sensing) -> Proposal:
         try:

@@ -17,7 +17,7 @@ import importlib
 from collections.abc import Callable
 from typing import Any
 
-from agents.policies.base import NotReady, Policy
+from agents.policies.base import NotReady, Policy, looks_before_moving
 from protocol.cli import describe
 from protocol.config import PLUGIN_ESTIMATOR, AgentSettings
 from protocol.limits import MAX_NAME, NAME_PATTERN, NAME_RULE
@@ -68,6 +68,7 @@ class Guarded(Policy):
 
     def __init__(self, spec: str, policy: Any) -> None:
         self.spec, self.policy, self.name = spec, policy, policy.name
+        self.looks_before_moving = looks_before_moving(policy)
         self._tick: int | None = None  # the tick of the last sensing seen (skip has none)
 
     def _call(self, method: str, tick: int | None, call: Callable[[], Any]) -> Any:

@@ -1,0 +1,183 @@
+"""The sensing floor (design §6): a bound no estimator beats in expectation.
+
+The floor is the error of the minimum-mean-square estimator of a follower's ideal position that
+**knows the formation's true motion** — its leader's and its ideal position's true
+displacements, hence the leader as seen from the ideal position — and has **every reading the
+follower has had up to its decision**, in every tick so far: the leader's range and bearing in
+every sensing (before the move, after it, settled, after each control step), every rod-end
+reading it looked for, GPS of its own position and the oracle velocity when the run sends them,
+the odometry of every interval, its own commanded moves (a teleport move or snap is known up to
+its actuation noise) and so the snap's relation (a snap moves by the rod-end reading, so where
+the follower settles minus the ideal position is that reading's error plus the snap's
+actuation). The leader's GPS says nothing the floor does not know; a driving robot's compass and
+slope readings say nothing about where it is relative to the formation without the surface,
+which the floor is not given, and are not used.
+
+With the formation's motion known, the one unknown is ``s = ideal − own position`` (xy, 2-D):
+every reading of the leader is ``s`` plus the known leader-from-ideal offset plus its noise, a
+rod-end reading is ``s`` plus its noise, a move by a known command ``u`` makes ``s ← s − u − η``
+with actuation noise ``η``, the ideal position's own motion is a known input, and the odometry
+reads the sum of an interval's moves, so it measures the sum of their actuation noises ``w``.
+That is a linear-Gaussian problem once each range/bearing reading's covariance is taken at its
+true range and bearing (:func:`protocol.sensing.reading_covariance`), and its minimum-mean-square
+estimator is a Kalman filter. It runs here in **error space**: its state is the estimator's
+error ``[ŝ − s, ŵ − w]`` (4,), which depends only on the noise draws, never on the known inputs,
+so the world feeds it the errors of what it drew and never the positions.
+
+It starts knowing nothing of ``s`` (a flat prior, :data:`PRIOR_VARIANCE`) and with ``w = 0``;
+each tick's events are applied in the order they happened (:class:`FloorEvent`), and the floor
+of the tick is the norm of ``ŝ − s`` at its decision: after the pre-move sensing and, in a
+teleport run, the move's actuation noise (the floor moves as the follower did). A driving
+follower's moves are not additive noise on a known command (the unicycle's speed and turn noise
+act through its dynamics): there each control step moves the floor by the step's odometry
+reading, whose error is then the step's process noise, so the drive floor is the bound of
+estimators that dead-reckon by odometry (the commands' own information is not used). With
+every σ = 0 each error is an exact zero and so is the floor.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from protocol.sensing import reading_covariance
+
+PRIOR_VARIANCE = 1e6
+"""Variance (m², per coordinate) of the floor's prior on ``s``: nothing known before tick 0."""
+JITTER = 1e-18
+"""Added to a reading's covariance so that a σ = 0 channel keeps it invertible."""
+
+READ = "read"  # a reading of s: error (2,), covariance (2, 2)
+MOVE = "move"  # s moved by a known command: noise (2,) added to the error, its variance
+INTERVAL = "interval"  # the interval's odometry read w (error, or None: no reading); w restarts
+DECIDE = "decide"  # the follower's decision (after its move's actuation, in a teleport run)
+
+
+@dataclass(frozen=True)
+class FloorEvent:
+    """One thing the floor learns of, or suffers, in a tick.
+
+    Attributes
+    ----------
+    kind : str
+        :data:`READ`, :data:`MOVE`, :data:`INTERVAL` or :data:`DECIDE`.
+    error : ndarray, shape (2,), optional
+        The reading's error (what it read minus the truth, as a reading of ``s`` or ``w``),
+        or a move's noise (added to ``ŝ − s``).
+    covariance : ndarray, shape (2, 2), optional
+        The reading's covariance, or a move's noise covariance.
+    odometered : bool
+        For a move: whether its noise is part of the interval the odometry reads.
+    """
+
+    kind: str
+    error: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    odometered: bool = False
+
+
+def read(error: np.ndarray, covariance: np.ndarray) -> FloorEvent:
+    """A reading of ``s`` with ``error`` (2,) and declared ``covariance`` (2, 2)."""
+    return FloorEvent(READ, np.asarray(error, dtype=float), np.asarray(covariance, dtype=float))
+
+
+def range_bearing(error: np.ndarray, offset: np.ndarray, sigma_r: float,
+                  sigma_theta: float) -> FloorEvent:
+    """A range/bearing reading of ``s`` (the leader's, less its known offset, or the rod
+    end's) whose xy ``error`` was drawn at the true local ``offset`` (2,).
+
+    Its covariance is :func:`protocol.sensing.reading_covariance` at the true bearing and at
+    the range ``sqrt(r² + σ_r²)``: across the line of sight ``(r² + σ_r²) σ_θ²``, the first-order
+    term plus the product of the two errors, which dominates near the rod end (``r → 0``,
+    where the first order says a reading is exact across). Its known mean,
+    ``r (exp(−σ_θ²/2) − 1)`` along the line of sight (a bearing error shortens the reading's
+    projection), is taken off, as the minimum-mean-square estimator would."""
+    r = math.hypot(float(offset[0]), float(offset[1]))
+    theta = math.atan2(offset[1], offset[0])
+    bias = r * math.expm1(-0.5 * sigma_theta**2)
+    unbiased = np.asarray(error, dtype=float) - bias * np.array([math.cos(theta), math.sin(theta)])
+    covariance = reading_covariance(math.hypot(r, sigma_r), theta, sigma_r, sigma_theta)
+    return read(unbiased, covariance)
+
+
+def move(noise: np.ndarray, variance: float, odometered: bool) -> FloorEvent:
+    """A move by a known command with ``noise`` (2,) of ``variance`` per coordinate."""
+    return FloorEvent(MOVE, np.asarray(noise, dtype=float), variance * np.eye(2), odometered)
+
+
+def interval(error: np.ndarray | None, variance: float) -> FloorEvent:
+    """The end of an odometry interval: its reading's ``error`` (None: no reading) of
+    ``variance`` per coordinate; ``w`` restarts from zero."""
+    return FloorEvent(INTERVAL, None if error is None else np.asarray(error, dtype=float),
+                      variance * np.eye(2))
+
+
+DECISION = FloorEvent(DECIDE)
+
+
+class FloorFilter:
+    """The floor's Kalman filter for one follower, in error space (see the module's text).
+
+    ``error`` (4,) is ``[ŝ − s, ŵ − w]`` and ``covariance`` (4, 4) its covariance.
+    """
+
+    def __init__(self) -> None:
+        self.error = np.zeros(4)
+        self.covariance = np.diag([PRIOR_VARIANCE, PRIOR_VARIANCE, 0.0, 0.0])
+
+    def tick(self, events: list[FloorEvent]) -> float:
+        """Apply one tick's ``events`` in order; return the floor of the tick: ``|ŝ − s|`` at
+        its :data:`DECISION` (at the tick's start if it has none: it missed before it)."""
+        decided = None
+        for event in events:
+            if event.kind == READ:
+                self._update(slice(0, 2), event.error, event.covariance)
+            elif event.kind == MOVE:
+                self._move(event.error, event.covariance, event.odometered)
+            elif event.kind == INTERVAL:
+                if event.error is not None:
+                    self._update(slice(2, 4), event.error, event.covariance)
+                self.error[2:] = 0.0
+                self.covariance[2:, :] = 0.0
+                self.covariance[:, 2:] = 0.0
+            elif event.kind == DECIDE:
+                decided = self.error[:2].copy()
+            else:
+                raise ValueError(f"unknown floor event kind {event.kind!r}")
+        if decided is None:
+            decided = self.error[:2]
+        return float(np.hypot(decided[0], decided[1]))
+
+    def _move(self, noise: np.ndarray, covariance: np.ndarray, odometered: bool) -> None:
+        # s ← s − u − η and w ← w + η (if odometered); the estimate moves by u only
+        self.error[:2] += noise
+        self.covariance[:2, :2] += covariance
+        if odometered:
+            self.error[2:] -= noise
+            self.covariance[2:, 2:] += covariance
+            self.covariance[:2, 2:] -= covariance
+            self.covariance[2:, :2] -= covariance
+
+    def _update(self, part: slice, error: np.ndarray, covariance: np.ndarray) -> None:
+        """A reading of the ``part`` of the state (s or w) with ``error`` and ``covariance``
+        (Joseph form: the covariance stays symmetric and positive)."""
+        h = np.zeros((2, 4))
+        h[:, part] = np.eye(2)
+        noise = covariance + JITTER * np.eye(2)
+        innovation = self.covariance[part, part] + noise
+        gain = np.linalg.solve(innovation, self.covariance[part, :]).T  # (4, 2)
+        self.error = self.error + gain @ (error - self.error[part])
+        keep = np.eye(4) - gain @ h
+        self.covariance = keep @ self.covariance @ keep.T + gain @ noise @ gain.T
+
+    def state(self) -> dict:
+        """JSON-ready state (floats round-trip exactly)."""
+        return {"error": self.error.tolist(), "covariance": self.covariance.tolist()}
+
+    @classmethod
+    def from_state(cls, state: dict) -> FloorFilter:
+        floor = cls()
+        floor.error = np.array(state["error"], dtype=float).reshape(4)
+        floor.covariance = np.array(state["covariance"], dtype=float).reshape(4, 4)
+        return floor
