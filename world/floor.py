@@ -41,8 +41,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.sensing import reading_covariance
-
 PRIOR_VARIANCE = 1e6
 """Variance (m², per coordinate) of the floor's prior on ``s``: nothing known before tick 0."""
 JITTER = 1e-18
@@ -93,12 +91,15 @@ def range_bearing(error: np.ndarray, offset: np.ndarray, sigma_r: float,
     where the first order says a reading is exact across). Its known mean,
     ``r (exp(−σ_θ²/2) − 1)`` along the line of sight (a bearing error shortens the reading's
     projection), is taken off, as the minimum-mean-square estimator would."""
-    r = math.hypot(float(offset[0]), float(offset[1]))
-    theta = math.atan2(offset[1], offset[0])
+    x, y = float(offset[0]), float(offset[1])
+    r = math.hypot(x, y)
+    c, s = (x / r, y / r) if r > 0 else (1.0, 0.0)
     bias = r * math.expm1(-0.5 * sigma_theta**2)
-    unbiased = np.asarray(error, dtype=float) - bias * np.array([math.cos(theta), math.sin(theta)])
-    covariance = reading_covariance(math.hypot(r, sigma_r), theta, sigma_r, sigma_theta)
-    return read(unbiased, covariance)
+    along, across = sigma_r**2, (r * r + sigma_r**2) * sigma_theta**2  # reading_covariance's
+    unbiased = np.array([error[0] - bias * c, error[1] - bias * s], dtype=float)
+    covariance = np.array([[along * c * c + across * s * s, (along - across) * c * s],
+                           [(along - across) * c * s, along * s * s + across * c * c]])
+    return FloorEvent(READ, unbiased, covariance)
 
 
 def move(noise: np.ndarray, variance: float, odometered: bool) -> FloorEvent:
@@ -114,6 +115,9 @@ def interval(error: np.ndarray | None, variance: float) -> FloorEvent:
 
 
 DECISION = FloorEvent(DECIDE)
+_IDENTITY = np.eye(4)
+_JITTERED = JITTER * np.eye(2)
+_PICK = {0: np.eye(4)[:2], 2: np.eye(4)[2:]}  # the rows that read s, or w
 
 
 class FloorFilter:
@@ -162,14 +166,14 @@ class FloorFilter:
     def _update(self, part: slice, error: np.ndarray, covariance: np.ndarray) -> None:
         """A reading of the ``part`` of the state (s or w) with ``error`` and ``covariance``
         (Joseph form: the covariance stays symmetric and positive)."""
-        h = np.zeros((2, 4))
-        h[:, part] = np.eye(2)
-        noise = covariance + JITTER * np.eye(2)
-        innovation = self.covariance[part, part] + noise
-        gain = np.linalg.solve(innovation, self.covariance[part, :]).T  # (4, 2)
+        (a, b), (_, d) = self.covariance[part, part] + covariance
+        a, d = a + JITTER, d + JITTER
+        det = a * d - b * b
+        inverse = np.array([[d / det, -b / det], [-b / det, a / det]])
+        gain = self.covariance[:, part] @ inverse  # (4, 2)
         self.error = self.error + gain @ (error - self.error[part])
-        keep = np.eye(4) - gain @ h
-        self.covariance = keep @ self.covariance @ keep.T + gain @ noise @ gain.T
+        keep = _IDENTITY - gain @ _PICK[part.start]
+        self.covariance = keep @ self.covariance @ keep.T + gain @ (covariance + _JITTERED) @ gain.T
 
     def state(self) -> dict:
         """JSON-ready state (floats round-trip exactly)."""

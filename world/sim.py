@@ -496,9 +496,10 @@ class WorldSim:
         return gaussian(self.config.seed, agent, tick, "move", "act", self.config.noise_move, 2)
 
     def _velocity_noise(self, agent: int, tick: int) -> np.ndarray:
-        """The noise of a teleport follower's odometry over the interval ending at ``tick``."""
+        """The noise of a teleport follower's odometry over the interval ending at ``tick``
+        (one reading, revealed when it settles there: the interval's, not a sensing's)."""
         cfg = self.config
-        return gaussian(cfg.seed, agent, tick, "velocity", "act", cfg.noise_velocity, 2)
+        return gaussian(cfg.seed, agent, tick, "velocity", "settled", cfg.noise_velocity, 2)
 
     def _read(self, agent: int, tick: int, role: str, look: bool) -> Sensing:
         """Follower ``agent``'s next reading in ``tick`` (:mod:`world.sensing`; counted, its
