@@ -10,7 +10,7 @@ import pytest
 from agents.checkpoint import Entry, StateLog
 from agents.policies import Before, make_auto, model_based
 from agents.policies.auto import family_threshold, student_within
-from agents.policies.tracker import RodTracker, TrackerBank
+from agents.policies.tracker import RodTracker
 from protocol.config import AgentSettings, RunConfig
 from protocol.messages import Sensing
 from swarm.local import run_local
@@ -77,14 +77,14 @@ def test_ekf_does_not_read_the_pre_move_rod_end():
 def test_ekf_state_is_data():
     """RodTracker.state() is plain data; restoring it into a fresh filter proposes the same."""
     settings = _settings(noise_range=0.02, noise_bearing=0.01)
-    first = RodTracker(0.02, 0.01, spacing=settings.spacing)
+    first = model_based("ekf", settings)
     _drive(first, ticks=6)
-    copy = RodTracker(0.02, 0.01, spacing=settings.spacing)
+    copy = model_based("ekf", settings)
     copy.restore(first.state())
     pre = _reading(6, _formation(6)[0] - _formation(5)[1])
     assert np.array_equal(first.propose(pre).offset, copy.propose(pre).offset)
     with pytest.raises(ValueError, match="state"):
-        copy.restore({"mean": [0.0] * 3, "cov": [[0.0]]})
+        copy.restore({"mean": [0.0] * 3, "cov": [[0.0]], "scores": [0.0]})
 
 
 def test_ekf_refuses_bad_parameters():
@@ -92,8 +92,10 @@ def test_ekf_refuses_bad_parameters():
         RodTracker(sigma_r=-1.0)
     with pytest.raises(ValueError, match="spacing"):
         RodTracker(spacing=0.0)
-    with pytest.raises(ValueError, match="members"):
-        TrackerBank([])
+    with pytest.raises(ValueError, match="jerks"):
+        RodTracker(jerks=())
+    with pytest.raises(ValueError, match="memory"):
+        RodTracker(memory=1.5)
     with pytest.raises(ValueError, match="model-based"):
         model_based("nope", _settings())
 

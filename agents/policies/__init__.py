@@ -40,13 +40,13 @@ from agents.policies.dictionaries import (
 )
 from agents.policies.motion import MotionGP, RatioGP
 from agents.policies.plugin import load_estimator
-from agents.policies.tracker import RodTracker, TrackerBank
+from agents.policies.tracker import RodTracker
 from protocol.config import AUTO, CLASSICAL, FILTERS, OWN_MOTION, AgentSettings
 from protocol.sensing import reading_variance as sensor_variance
 
 __all__ = ["ARX", "Auto", "Before", "ConstantVelocity", "EDMDPolicy", "FallbackToPersist",
            "GaussianProcess", "Kalman", "MotionGP", "NotReady", "Persist", "Policy", "Proposal",
-           "RatioGP", "RodTracker", "Stay", "TrackerBank", "Unwrapper", "auto_candidates",
+           "RatioGP", "RodTracker", "Stay", "Unwrapper", "auto_candidates",
            "classical", "estimator_settings", "load_estimator", "looks_before_moving",
            "make_auto", "make_dictionary", "make_policy", "model_based", "move_variance",
            "paper_edmd", "polar", "reading_variance", "reconstructed_pre", "relative"]
@@ -89,20 +89,24 @@ def classical(name: str, settings: AgentSettings) -> Policy:
 EKF_JERKS = (1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)  # the leader's jerk levels ekf weighs, in d²
 EKF_TURN = 1e-4  # drift of the rod's rates per tick (rad²/tick²): ~0.01 rad/tick per tick
 EKF_MEMORY = 0.8  # per tick: a tick's evidence counts ~5 ticks (ekf follows a changing surface)
+# the leader's landing off its track, in units of the declared range variance: none (it drives
+# its path), or one follower's snap error ... a few followers' accumulated (a column)
+EKF_LANDINGS = (0.0, 1.0, 4.0)
 
 
 def model_based(name: str, settings: AgentSettings) -> Policy:
-    """``ekf`` (:class:`TrackerBank` of :class:`RodTracker`) with the run's declared noise:
+    """``ekf`` (:class:`RodTracker`) with the run's declared noise:
     the range and bearing σ (mapped at each reading), the moves' actuation variance
     (:func:`move_variance`) and, for a teleport follower, the odometry's over one interval
     (a driving follower reckons its moves with the odometry: it tells nothing more)."""
     if name != "ekf":
         raise ValueError(f"unknown model-based estimator {name!r}")
     odometry = None if settings.drives else (settings.noise_velocity * settings.comm_period) ** 2
-    return TrackerBank([RodTracker(settings.noise_range, settings.noise_bearing,
-                                   move_variance(settings), odometry, settings.comm_period,
-                                   settings.spacing, jerk=jerk, turn=EKF_TURN)
-                        for jerk in EKF_JERKS], memory=EKF_MEMORY, name=name)
+    landing = settings.noise_range**2 + move_variance(settings)
+    return RodTracker(settings.noise_range, settings.noise_bearing, move_variance(settings),
+                      odometry, settings.comm_period, settings.spacing, jerks=EKF_JERKS,
+                      landings=tuple(share * landing for share in EKF_LANDINGS), turn=EKF_TURN,
+                      memory=EKF_MEMORY, name=name)
 
 
 def own_motion(name: str, settings: AgentSettings) -> Policy:
