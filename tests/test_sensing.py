@@ -205,3 +205,21 @@ def test_reading_keys_are_the_worlds_count():
     # nor any block of the world's own streams (actuation, odometry), tick's or step's
     own = [gaussian(3, 1, 5, "range", "act", 1.0, 2, step=step) for step in (None, 0, 1, 2)]
     assert not set(np.concatenate(own).tolist()) & set(flat.tolist())
+
+
+def test_a_tick_rolled_back_and_redone_reads_the_same_noise():
+    """A follower's process vanished mid-tick (lockstep): the world rolls its tick back, its
+    pose and its count of readings with it, and the redone tick draws exactly what an
+    uninterrupted one does."""
+    def tick_replies(interrupted: bool) -> list:
+        sim = _world(noise_move=0.01, **NOISY)
+        j = _through_initial_ticks(sim)
+        if interrupted:
+            sim.sense(1, j, look=True)
+            sim.act(1, Move(tick=j, offset=(0.2, 0.1)))
+            sim.rollback(1, j)
+        replies = [sim.sense(1, j), sim.act(1, Move(tick=j, offset=(0.1, 0.0))),
+                   sim.act(1, Snap(tick=j))]
+        return replies + [sim.finish_tick(j)[1]]
+
+    assert tick_replies(True) == tick_replies(False)

@@ -134,17 +134,25 @@ class FloorFilter:
         """Apply one tick's ``events`` in order; return the floor of the tick: ``|ŝ − s|`` at
         its :data:`DECISION` (at the tick's start if it has none: it missed before it)."""
         decided = None
+        # while w is known to be 0 (no odometered actuation noise since the interval began:
+        # exact moves) a reading of s is a 2-D update, done in floats
+        idle = not self.covariance[2:, :].any()
         for event in events:
             if event.kind == READ:
-                self._update(slice(0, 2), event.error, event.covariance)
+                if idle:
+                    self._read_s(event.error, event.covariance)
+                else:
+                    self._update(slice(0, 2), event.error, event.covariance)
             elif event.kind == MOVE:
                 self._move(event.error, event.covariance, event.odometered)
+                idle = idle and not (event.odometered and event.covariance.any())
             elif event.kind == INTERVAL:
-                if event.error is not None:
+                if event.error is not None and not idle:
                     self._update(slice(2, 4), event.error, event.covariance)
                 self.error[2:] = 0.0
                 self.covariance[2:, :] = 0.0
                 self.covariance[:, 2:] = 0.0
+                idle = True
             elif event.kind == DECIDE:
                 decided = self.error[:2].copy()
             else:
@@ -174,6 +182,31 @@ class FloorFilter:
         self.error = self.error + gain @ (error - self.error[part])
         keep = _IDENTITY - gain @ _PICK[part.start]
         self.covariance = keep @ self.covariance @ keep.T + gain @ (covariance + _JITTERED) @ gain.T
+
+    def _read_s(self, error: np.ndarray, covariance: np.ndarray) -> None:
+        """:meth:`_update` of ``s`` while ``w``'s rows and columns are zero, in floats (the
+        same gain and Joseph form on the 2 x 2 block: most of a noisy run's floor cost)."""
+        p = self.covariance
+        p00, p01, p11 = float(p[0, 0]), float(p[0, 1]), float(p[1, 1])
+        r00, r01, r11 = (float(covariance[0, 0]) + JITTER, float(covariance[0, 1]),
+                         float(covariance[1, 1]) + JITTER)
+        a, b, d = p00 + r00, p01 + r01, p11 + r11
+        det = a * d - b * b
+        i00, i01, i11 = d / det, -b / det, a / det
+        k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
+        k10, k11 = p01 * i00 + p11 * i01, p01 * i01 + p11 * i11
+        v0, v1 = float(error[0]) - self.error[0], float(error[1]) - self.error[1]
+        self.error[0] += k00 * v0 + k01 * v1
+        self.error[1] += k10 * v0 + k11 * v1
+        m00, m01, m10, m11 = 1.0 - k00, -k01, -k10, 1.0 - k11  # keep = I − K
+        a00, a01 = m00 * p00 + m01 * p01, m00 * p01 + m01 * p11
+        a10, a11 = m10 * p00 + m11 * p01, m10 * p01 + m11 * p11
+        b00, b01 = k00 * r00 + k01 * r01, k00 * r01 + k01 * r11
+        b10, b11 = k10 * r00 + k11 * r01, k10 * r01 + k11 * r11
+        q00 = a00 * m00 + a01 * m01 + b00 * k00 + b01 * k01
+        q01 = a00 * m10 + a01 * m11 + b00 * k10 + b01 * k11
+        q11 = a10 * m10 + a11 * m11 + b10 * k10 + b11 * k11
+        p[0, 0], p[0, 1], p[1, 0], p[1, 1] = q00, q01, q01, q11
 
     def state(self) -> dict:
         """JSON-ready state (floats round-trip exactly)."""
