@@ -1,9 +1,10 @@
 """A follower's own state as data: a replay log of what its policy learnt from, tick by tick.
 
-Policies change state only in ``record(settled, target)`` and ``skip()`` and are deterministic
-functions of that call sequence (``propose`` is a pure read). So instead of saving estimator
-internals, a follower appends one line per tick to ``<state_dir>/agent-<id>.state`` — the
-settled sensing it recorded, the target, and how many ticks it skipped before — and a
+Policies change state only in ``learn(settled, target, before)`` and ``skip()`` and are
+deterministic functions of that call sequence (``propose`` is a pure read). So instead of saving
+estimator internals, a follower appends one line per tick to ``<state_dir>/agent-<id>.state`` —
+the settled sensing it recorded, the target, what it sensed and did before settling, and how
+many ticks it skipped before — and a
 restarted follower rebuilds its policy by replaying the lines. Nothing in the file is code:
 it is JSON, every sensing map is validated by the protocol codec, and nothing is ever
 unpickled. Replaying also lets the follower roll back to any earlier tick, which is what
@@ -28,12 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
+from agents.policies.base import Before
 from protocol.config import checked_json, json_checksum
 from protocol.folder import AppendFile, write_atomic
 from protocol.messages import ProtocolError, Sensing, from_body, to_body
 
-SCHEMA = 1
-MAX_LINE = 8192  # bytes; a real line is a few hundred
+SCHEMA = 2  # 2: each tick also holds what came before the settled sensing
+MAX_LINE = 16384  # bytes; a real line is a few hundred
 
 
 class StateLogError(RuntimeError):
@@ -43,17 +45,24 @@ class StateLogError(RuntimeError):
 @dataclass(frozen=True)
 class Entry:
     """One tick of a follower's history: ``skips`` ticks passed without it before ``tick``;
-    at ``tick`` it recorded ``settled`` with ``target`` (both None: it missed the tick)."""
+    at ``tick`` it recorded ``settled`` with ``target`` and ``before`` (:class:`Before`; all
+    None: it missed the tick)."""
 
     tick: int
     skips: int
     settled: Sensing | None
     target: tuple[float, float] | None
+    before: Before | None = None
 
     def body(self) -> dict:
+        before = self.before
         return {"tick": self.tick, "skips": self.skips,
                 "settled": None if self.settled is None else to_body(self.settled),
-                "target": None if self.target is None else [float(x) for x in self.target]}
+                "target": None if self.target is None else [float(x) for x in self.target],
+                "before": None if before is None else {
+                    "pre": to_body(before.pre),
+                    "moved": None if before.moved is None else to_body(before.moved),
+                    "offset": [float(x) for x in before.offset]}}
 
 
 def state_path(state_dir: str | os.PathLike[str], agent: int) -> Path:
@@ -148,23 +157,36 @@ class StateLog:
             self.path.parent.rmdir()
 
 
+def _pair(value, name: str) -> tuple[float, float]:
+    if (not isinstance(value, list) or len(value) != 2
+            or not all(type(x) is float and math.isfinite(x) for x in value)):
+        raise ValueError(f"{name} must be two finite floats, got {value!r}")
+    return value[0], value[1]
+
+
+def _before(body) -> Before | None:
+    if body is None:
+        return None
+    if not isinstance(body, dict) or set(body) != {"pre", "moved", "offset"}:
+        raise ValueError("before must be a map of pre, moved, offset")
+    moved = None if body["moved"] is None else from_body(body["moved"], Sensing)
+    return Before(pre=from_body(body["pre"], Sensing), moved=moved,
+                  offset=_pair(body["offset"], "offset"))
+
+
 def _entry(body: dict) -> Entry:
-    if set(body) != {"tick", "skips", "settled", "target"}:
-        raise ValueError(f"fields {sorted(body)} are not tick, skips, settled, target")
+    if set(body) != {"tick", "skips", "settled", "target", "before"}:
+        raise ValueError(f"fields {sorted(body)} are not tick, skips, settled, target, before")
     tick, skips = body["tick"], body["skips"]
     for name, value in (("tick", tick), ("skips", skips)):
         if type(value) is not int or not 0 <= value <= 10_000_000:
             raise ValueError(f"{name} must be an integer in 0..1e7, got {value!r}")
     settled = None if body["settled"] is None else from_body(body["settled"], Sensing)
-    target = body["target"]
-    if target is not None:
-        if (not isinstance(target, list) or len(target) != 2
-                or not all(type(x) is float and math.isfinite(x) for x in target)):
-            raise ValueError(f"target must be two finite floats, got {target!r}")
-        target = (target[0], target[1])
-    if settled is None and target is not None:
-        raise ValueError("a target without a settled sensing")
-    return Entry(tick=tick, skips=skips, settled=settled, target=target)
+    target = None if body["target"] is None else _pair(body["target"], "target")
+    before = _before(body["before"])
+    if settled is None and (target is not None or before is not None):
+        raise ValueError("a target or earlier readings without a settled sensing")
+    return Entry(tick=tick, skips=skips, settled=settled, target=target, before=before)
 
 
 def replay(policy, entries: list[Entry]) -> None:
@@ -174,4 +196,4 @@ def replay(policy, entries: list[Entry]) -> None:
             policy.skip()
         if entry.settled is not None:
             target = None if entry.target is None else np.asarray(entry.target, dtype=float)
-            policy.record(entry.settled, target)
+            policy.learn(entry.settled, target, entry.before)

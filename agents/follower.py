@@ -31,6 +31,7 @@ from agents.cli import parser, run_cli
 from agents.drive import Limits, drive_tick
 from agents.link import AgentAbort, AgentLink, MarkedMissed, Rejoin, RunFinished
 from agents.policies import (
+    Before,
     NotReady,
     Policy,
     looks_before_moving,
@@ -49,11 +50,13 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class TickOutcome:
     """What one follower tick produced: the observation it publishes, and what its policy
-    learnt from (the settled sensing and the target), which the replay log keeps."""
+    learnt from (the settled sensing, the target and what came before in the tick), which the
+    replay log keeps."""
 
     observation: Observation
     settled: Sensing
     target: np.ndarray | None
+    before: Before
 
 
 def displacement(offset: np.ndarray, pre: Sensing, moved: Sensing,
@@ -103,11 +106,13 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
     snapped = link.act(Snap(tick=tick))
     lost, settled = not snapped.moved, snapped.sensing
     target = None if lost or moved.rod is None else displacement(offset, pre, moved, settings)
-    measurement = policy.record(settled, target)
+    before = Before(pre=pre, moved=None if moved is pre else moved,
+                    offset=(float(offset[0]), float(offset[1])))
+    measurement = policy.learn(settled, target, before)
     observation = Observation(tick=tick, estimator=policy.name, measurement=measurement,
                               prediction=prediction, lost=lost, followed=followed,
                               fallback=fallback)
-    return TickOutcome(observation, settled, target)
+    return TickOutcome(observation, settled, target, before)
 
 
 def _join(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Policy, last: int,
@@ -198,7 +203,8 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
                         target = outcome.target
                         entry = Entry(tick=tick, skips=skips, settled=outcome.settled,
                                       target=None if target is None else (float(target[0]),
-                                                                          float(target[1])))
+                                                                          float(target[1])),
+                                      before=outcome.before)
                     last = tick
                     if state is not None:
                         try:

@@ -35,9 +35,10 @@ from protocol.limits import MAX_RUN_ID
 from protocol.ros2 import DOMAIN_RANGE, domain_from_env
 
 CLASSICAL = ("cv", "kalman", "arx", "gp")  # the classical tracking baselines (design §6)
+FILTERS = ("ekf",)  # model-based trackers of the leader and its rod (auto's with noise only)
 OWN_MOTION = ("gp-motion", "gp-ratio")  # extrapolations of the follower's own displacement
 AUTO = ("auto", "auto-mix")  # candidates side by side: the lowest score, or their mixture
-ESTIMATORS = ("edmd", "stay", "persist", *AUTO, *CLASSICAL, *OWN_MOTION)
+ESTIMATORS = ("edmd", "stay", "persist", *AUTO, *CLASSICAL, *FILTERS, *OWN_MOTION)
 # Your own estimator (design §6): imported by the follower process only, never checked here
 # beyond its shape.
 PLUGIN_ESTIMATOR = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$")

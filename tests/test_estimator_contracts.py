@@ -28,6 +28,8 @@ CONFIGS = {
     "gp": dict(estimator="gp"),
     "gp-motion": dict(estimator="gp-motion", noise_move=0.02),
     "gp-ratio": dict(estimator="gp-ratio"),
+    "ekf": dict(estimator="ekf"),
+    "ekf-actuation": dict(estimator="ekf", noise_move=0.02, noise_velocity=0.01),
     "auto": dict(estimator="auto"),
     "auto-mix": dict(estimator="auto-mix"),
 }
@@ -35,7 +37,7 @@ CONFIGS = {
 
 class ReplayChecker(Policy):
     """Wraps a policy; at every tick checks that ``propose`` is a pure read (same answer
-    twice) and that a fresh policy fed the logged ``record``/``skip`` calls proposes the same
+    twice) and that a fresh policy fed the logged ``learn``/``skip`` calls proposes the same
     (the follower's state is that log)."""
 
     def __init__(self, settings: AgentSettings) -> None:
@@ -57,9 +59,10 @@ class ReplayChecker(Policy):
             raise first
         return first
 
-    def record(self, settled, target):
-        self.log.append(("record", settled, None if target is None else np.array(target)))
-        return self.policy.record(settled, target)
+    def learn(self, settled, target, before=None):
+        self.log.append(("learn", settled, None if target is None else np.array(target),
+                         before))
+        return self.policy.learn(settled, target, before)
 
     def skip(self):
         self.log.append(("skip",))
@@ -95,7 +98,8 @@ def test_propose_is_pure_and_state_is_the_call_log(name):
     _, plain_rows = run_local(cfg)
     assert rows == plain_rows  # the checks themselves change nothing
     assert checkers[0].checked == cfg.ticks
-    assert any(call[0] == "record" and call[2] is None for call in checkers[0].log), "no lost tick"
+    assert any(call[0] == "learn" and call[2] is None for call in checkers[0].log), "no lost tick"
+    assert all(call[3] is not None for call in checkers[0].log if call[0] == "learn")
 
 
 def test_not_ready_policy_falls_back_to_persist_and_is_counted(tmp_path):

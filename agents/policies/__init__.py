@@ -4,6 +4,7 @@
   ``stay``, ``persist`` and the fallback to ``persist``;
 - :mod:`agents.policies.dictionaries`: the paper's dictionaries a–g composed with EDMD;
 - :mod:`agents.policies.classical`: ``cv``, ``kalman``, ``arx``, ``gp``;
+- :mod:`agents.policies.tracker`: ``ekf`` (the leader and its rod, every reading of a tick);
 - :mod:`agents.policies.motion`: ``gp-motion``, ``gp-ratio`` (the follower's own displacement);
 - :mod:`agents.policies.auto`: ``auto``, ``auto-mix`` and their candidates;
 - :mod:`agents.policies.plugin`: ``--estimator package.module:Name``.
@@ -16,6 +17,7 @@ import dataclasses
 
 from agents.policies.auto import COMBINE, Auto
 from agents.policies.base import (
+    Before,
     FallbackToPersist,
     NotReady,
     Persist,
@@ -38,14 +40,15 @@ from agents.policies.dictionaries import (
 )
 from agents.policies.motion import MotionGP, RatioGP
 from agents.policies.plugin import load_estimator
-from protocol.config import AUTO, CLASSICAL, OWN_MOTION, AgentSettings
+from agents.policies.tracker import RodTracker
+from protocol.config import AUTO, CLASSICAL, FILTERS, OWN_MOTION, AgentSettings
 from protocol.sensing import reading_variance as sensor_variance
 
-__all__ = ["ARX", "Auto", "ConstantVelocity", "EDMDPolicy", "FallbackToPersist",
+__all__ = ["ARX", "Auto", "Before", "ConstantVelocity", "EDMDPolicy", "FallbackToPersist",
            "GaussianProcess", "Kalman", "MotionGP", "NotReady", "Persist", "Policy", "Proposal",
-           "RatioGP", "Stay", "Unwrapper", "auto_candidates", "classical", "estimator_settings",
-           "load_estimator", "looks_before_moving", "make_dictionary", "make_auto", "make_policy",
-           "move_variance",
+           "RatioGP", "RodTracker", "Stay", "Unwrapper", "auto_candidates",
+           "classical", "estimator_settings", "load_estimator", "looks_before_moving",
+           "make_auto", "make_dictionary", "make_policy", "model_based", "move_variance",
            "paper_edmd", "polar", "reading_variance", "reconstructed_pre", "relative"]
 
 
@@ -83,6 +86,29 @@ def classical(name: str, settings: AgentSettings) -> Policy:
     raise ValueError(f"unknown classical estimator {name!r}")
 
 
+EKF_JERKS = (1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)  # the leader's jerk levels ekf weighs, in d²
+EKF_TURN = 1e-4  # drift of the rod's rates per tick (rad²/tick²): ~0.01 rad/tick per tick
+EKF_MEMORY = 0.8  # per tick: a tick's evidence counts ~5 ticks (ekf follows a changing surface)
+# the leader's landing off its track, in units of the declared range variance: none (it drives
+# its path), or one follower's snap error ... a few followers' accumulated (a column)
+EKF_LANDINGS = (0.0, 1.0, 4.0)
+
+
+def model_based(name: str, settings: AgentSettings) -> Policy:
+    """``ekf`` (:class:`RodTracker`) with the run's declared noise:
+    the range and bearing σ (mapped at each reading), the moves' actuation variance
+    (:func:`move_variance`) and, for a teleport follower, the odometry's over one interval
+    (a driving follower reckons its moves with the odometry: it tells nothing more)."""
+    if name != "ekf":
+        raise ValueError(f"unknown model-based estimator {name!r}")
+    odometry = None if settings.drives else (settings.noise_velocity * settings.comm_period) ** 2
+    landing = settings.noise_range**2 + move_variance(settings)
+    return RodTracker(settings.noise_range, settings.noise_bearing, move_variance(settings),
+                      odometry, settings.comm_period, settings.spacing, jerks=EKF_JERKS,
+                      landings=tuple(share * landing for share in EKF_LANDINGS), turn=EKF_TURN,
+                      memory=EKF_MEMORY, name=name)
+
+
 def own_motion(name: str, settings: AgentSettings) -> Policy:
     """``gp-motion`` or ``gp-ratio`` with the run's declared noise: the actuation noise enters
     as the variance of a snapped displacement, the sensor noise as :func:`reading_variance`."""
@@ -103,6 +129,11 @@ def auto_candidates(settings: AgentSettings) -> list[Policy]:
     The EDMD, leader-input and classical candidates were chosen on the paper's type I-III
     surfaces only; the own-motion ones were screened on those and on the benchmark's first
     held-out surfaces, so their check is on surfaces made after that (see the README).
+
+    The model-based filters (``ekf``) enter only when the run declares sensor noise: they
+    exist to average the readings' noise with a motion model, and with exact readings the
+    model-free candidates already fit the last readings exactly (noise-free runs keep their
+    candidates, and so their numbers).
     """
     tc = settings.comm_period
     return [
@@ -116,6 +147,7 @@ def auto_candidates(settings: AgentSettings) -> list[Policy]:
         EDMDPolicy(RelativeCartesian(), delays=1, affine=True, window=8),
         *(classical(name, settings) for name in CLASSICAL),
         *(own_motion(name, settings) for name in OWN_MOTION),
+        *(model_based(name, settings) for name in FILTERS if reading_variance(settings) > 0),
     ]
 
 
@@ -123,9 +155,13 @@ def make_auto(settings: AgentSettings, candidates: list[Policy] | None = None,
               **options) -> Auto:
     """``auto`` (``options``: :class:`Auto`'s, e.g. ``combine="weights"`` for ``auto-mix``)
     over ``candidates`` (default :func:`auto_candidates`), with the run's noise floor: a
-    score's expected share from the readings' noise, the pre reading's in 2 coordinates."""
+    score's expected share from the readings' noise, the pre reading's in 2 coordinates; its
+    ``default`` is the model-based filter among the candidates, if any (see :class:`Auto`)."""
     options.setdefault("noise_floor", 2.0 * reading_variance(settings))
-    return Auto(auto_candidates(settings) if candidates is None else candidates, **options)
+    candidates = auto_candidates(settings) if candidates is None else candidates
+    if options.get("combine", "best") == "best" and "default" not in options:
+        options["default"] = next((c.name for c in candidates if c.name in FILTERS), None)
+    return Auto(candidates, **options)
 
 
 def estimator_settings(settings: AgentSettings) -> AgentSettings:
@@ -154,6 +190,8 @@ def make_policy(settings: AgentSettings) -> Policy:
         policy = classical(name, settings)
     elif name in OWN_MOTION:
         policy = own_motion(name, settings)
+    elif name in FILTERS:
+        policy = model_based(name, settings)
     elif name == "edmd":
         policy = paper_edmd(
             settings.dictionary, settings.comm_period, settings.velocity,

@@ -7,16 +7,57 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections import deque
+from statistics import NormalDist
 
 import numpy as np
 
 from agents.estimators import NotFitted
-from agents.policies.base import Policy, Proposal, reconstructed_pre, relative
+from agents.policies.base import Before, Policy, Proposal, reconstructed_pre, relative
 from protocol.config import AUTO
 from protocol.messages import Sensing
 
 BLEND = "blend"
 COMBINE = dict(zip(AUTO, ("best", "weights")))  # estimator name -> how it follows
+
+
+def student_within(t: float, dof: int) -> float:
+    """``P(|T| <= t)`` for Student's t with ``dof`` >= 1 degrees of freedom (``t`` >= 0), in
+    closed form (Abramowitz and Stegun 26.7.3-4).
+
+    >>> round(student_within(1.0, 1), 12), round(student_within(2.919986, 2), 6)
+    (0.5, 0.9)
+    """
+    theta = math.atan(t / math.sqrt(dof))
+    c2, sine = math.cos(theta) ** 2, math.sin(theta)
+    if dof % 2:  # odd: 2/pi (theta + sin cos (1 + 2/3 cos^2 + 2*4/(3*5) cos^4 + ...))
+        term, total = 1.0, 1.0 if dof > 1 else 0.0
+        for k in range(1, (dof - 1) // 2):
+            term *= 2 * k / (2 * k + 1) * c2
+            total += term
+        return 2.0 / math.pi * (theta + sine * math.cos(theta) * total)
+    term, total = 1.0, 1.0  # even: sin (1 + 1/2 cos^2 + 1*3/(2*4) cos^4 + ...)
+    for k in range(1, dof // 2):
+        term *= (2 * k - 1) / (2 * k) * c2
+        total += term
+    return sine * total
+
+
+def family_threshold(z: float, tests: int, dof: int) -> float:
+    """The one-sided threshold of a paired t-test with ``dof`` degrees of freedom that keeps
+    the chance of any of ``tests`` false alarms at that of one normal test at ``z`` standard
+    errors (Bonferroni).
+
+    >>> round(family_threshold(2.0, 1, 10**4), 2), round(family_threshold(2.0, 15, 3), 2)
+    (2.0, 8.86)
+    """
+    tail = (1.0 - NormalDist().cdf(z)) / max(tests, 1)  # each test's false-alarm chance
+    low, high = 0.0, 1.0
+    while (1.0 - student_within(high, dof)) / 2.0 > tail:
+        high *= 2.0
+    for _ in range(60):
+        mid = 0.5 * (low + high)
+        low, high = (mid, high) if (1.0 - student_within(mid, dof)) / 2.0 > tail else (low, mid)
+    return high
 
 
 def _weighted(pre: Sensing, proposals: list[Proposal | None], weights: dict[int, float],
@@ -75,6 +116,18 @@ class Auto(Policy):
     Systematic differences (noise-free, or one candidate clearly right) pass it; luck does
     not. ``None`` follows the lowest score as it is.
 
+    Why ``default`` (``"best"`` only; None: the blend): the candidate followed unless another
+    beats it significantly, in place of the blend; all the other candidates challenge it, so
+    the best of them must pass the family-wise threshold of that many one-sided paired
+    t-tests on the window's few ticks (:func:`family_threshold`): otherwise one of 15
+    candidates passes by luck most ticks. (The blend's one challenger keeps the normal
+    threshold the noise-free rules were chosen with.) ``make_auto`` names the model-based filter
+    (``ekf``) when the run declares sensor noise: its errors follow from a model of the motion
+    and of the declared noise, not from a fit to the window, and its proposal already averages
+    every reading of the tick; blending it with the model-free candidates, whose errors all
+    carry the pre reading's noise unaveraged, adds back the noise it removed (inverse-MSE
+    weights assume independent errors, which they are not).
+
     Safeguard (``trust``): the first candidate is the anchor (``persist``). A proposal that
     differs from the anchor's by more than ``trust`` times the largest error the anchor made
     within the window (the largest recent change of relative position) is left out (of the
@@ -86,7 +139,7 @@ class Auto(Policy):
                  min_scores: int = 1, burn_in: int = 1, blend: bool = True,
                  combine: str = "best", sharpness: float = 1.0, memory: float = 0.6,
                  noise_floor: float = 0.0, significance: float | None = 2.0,
-                 name: str | None = None) -> None:
+                 default: str | None = None, name: str | None = None) -> None:
         if not candidates:
             raise ValueError("candidates must not be empty")
         if combine not in COMBINE.values():
@@ -111,6 +164,9 @@ class Auto(Policy):
         names = [c.name for c in candidates]
         if len(set(names)) != len(names):
             raise ValueError(f"candidate names must be unique, got {names}")
+        if default is not None and default not in names:
+            raise ValueError(f"default must name a candidate ({names}), got {default!r}")
+        self.default = None if default is None else names.index(default)
         self.candidates = candidates
         self.trust = trust
         self.min_scores = min_scores
@@ -172,20 +228,25 @@ class Auto(Policy):
         return {i: math.fsum(e * e for e in self._adjusted(i, now)[-common:]) / common
                 for i in ready}
 
-    def _beats(self, i: int, j: int, now: list[float | None] | None) -> bool:
+    def _beats(self, i: int, j: int, now: list[float | None] | None,
+               challengers: int = 1) -> bool:
         """Candidate ``i``'s squared errors were lower than ``j``'s over their common window
         by more than ``significance`` standard errors of the paired differences (always,
-        with ``significance`` None)."""
+        with ``significance`` None); with several ``challengers`` of ``j`` (``i`` the best of
+        them), by the family-wise threshold of a paired t-test on the window
+        (:func:`family_threshold`)."""
         if self.significance is None:
             return True
         common = min(len(self.errors[i]), len(self.errors[j]))
         if common < 2:
             return False
+        level = self.significance if challengers == 1 else family_threshold(
+            self.significance, challengers, common - 1)
         mine, theirs = self._adjusted(i, now)[-common:], self._adjusted(j, now)[-common:]
         diffs = [a * a - b * b for a, b in zip(mine, theirs)]
         mean = math.fsum(diffs) / common
         spread = math.sqrt(math.fsum((d - mean) ** 2 for d in diffs) / (common - 1))
-        return mean < -self.significance * spread / math.sqrt(common)
+        return mean < -level * spread / math.sqrt(common)
 
     def weights(self, proposals: list[Proposal | None],
                 now: list[float | None] | None = None) -> dict[int, float]:
@@ -266,8 +327,13 @@ class Auto(Policy):
             mse = self._mse(ready, now)
             top = min(ready, key=lambda i: (mse[i], i))
             blend = len(self.candidates)
-            if top != blend and blend in ready and not self._beats(top, blend, now):
-                top = blend
+            if self.default is None:  # the blend, challenged by the best candidate
+                default, challengers = blend, 1
+            else:  # a named candidate, challenged by all the others
+                default, challengers = self.default, len(ready) - 1
+            if top != default and default in ready and not self._beats(top, default, now,
+                                                                         challengers):
+                top = default
         else:
             weights = self.mixture(ready, now)
             top = min(weights, key=lambda i: (-weights[i], i))
@@ -276,6 +342,12 @@ class Auto(Policy):
         return dataclasses.replace(proposals[top], followed=self._name(top))
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        return self.learn(settled, target)
+
+    def learn(self, settled: Sensing, target: np.ndarray | None,
+              before: Before | None = None) -> tuple[float, ...]:
+        """Score every candidate on the tick (from :func:`reconstructed_pre`, see the class),
+        then let each learn from it, ``before`` included."""
         if target is not None:
             pre = reconstructed_pre(settled, target)
             now = self._leverages(pre)
@@ -290,7 +362,7 @@ class Auto(Policy):
                         last = self.loss[i]
                         self.loss[i] = error * error if last is None else (
                             self.memory * last + (1.0 - self.memory) * error * error)
-        measured = [cand.record(settled, target) for cand in self.candidates]
+        measured = [cand.learn(settled, target, before) for cand in self.candidates]
         return measured[0]
 
     def skip(self) -> None:

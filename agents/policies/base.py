@@ -8,12 +8,16 @@ the follower loop calls
    the policy's state: calling it twice, or not at all, changes nothing. The pre-move sensing
    carries the rod end only if the policy looks for it before moving
    (:attr:`Policy.looks_before_moving`), and a look costs its distance (design §4);
-2. :meth:`Policy.record` with the settled sensing and ``target``, the ideal position relative
-   to where the follower stood before moving (None when it lost the rod): the policy learns;
+2. :meth:`Policy.learn` with the settled sensing, ``target``, the ideal position relative
+   to where the follower stood before moving (None when it lost the rod), and ``before``, what
+   the follower sensed and did earlier in the tick (:class:`Before`): the policy learns. Its
+   default is :meth:`Policy.record` ``(settled, target)``, which is what most policies (and
+   plug-ins) implement; a policy that uses the tick's earlier readings overrides ``learn``;
 3. :meth:`Policy.skip` for a tick it did not take part in.
 
-State changes only in ``record`` and ``skip``, and a policy is a deterministic function of that
-call sequence, so a follower's state is the log of those calls (replayed after a crash).
+State changes only in ``learn`` (``record``) and ``skip``, and a policy is a deterministic
+function of that call sequence, so a follower's state is the log of those calls (replayed
+after a crash).
 """
 from __future__ import annotations
 
@@ -28,6 +32,28 @@ from protocol.messages import Sensing
 
 # The policy-level name of "too little history to propose"; StreamingEDMD raises the same.
 NotReady = NotFitted
+
+
+@dataclass(frozen=True)
+class Before:
+    """What a follower sensed and did in one tick before it settled, in its local frame.
+
+    Attributes
+    ----------
+    pre : Sensing
+        The sensing before the move (the leader's range and bearing; its rod field, if any, is
+        no reading a policy may use: the rod end is looked for after the move, design §5).
+    moved : Sensing or None
+        The sensing after the move, which the snap went by (its rod field: the rod end as seen
+        from there); None in a tick without a move (the initial ticks).
+    offset : tuple of float, shape (2,)
+        The move the follower commanded (a driving follower: the displacement its odometry
+        summed over the move phase); zeros without a move.
+    """
+
+    pre: Sensing
+    moved: Sensing | None
+    offset: tuple[float, float]
 
 
 @dataclass(frozen=True)
@@ -137,6 +163,13 @@ class Policy:
         """Learn from the settled sensing; returns the measurement it recorded."""
         raise NotImplementedError
 
+    def learn(self, settled: Sensing, target: np.ndarray | None,
+              before: Before | None = None) -> tuple[float, ...]:
+        """Learn from the tick: the settled sensing, ``target`` and, when the follower has
+        them, the tick's earlier readings and its move (``before``; None when replaying a
+        tick logged without them). The default ignores ``before``: :meth:`record`."""
+        return self.record(settled, target)
+
     def skip(self) -> None:
         """A tick went by without this follower (it missed it or was restarting)."""
 
@@ -208,8 +241,12 @@ class FallbackToPersist(Policy):
         return dataclasses.replace(proposal, followed=self.policy.name)
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        return self.learn(settled, target)
+
+    def learn(self, settled: Sensing, target: np.ndarray | None,
+              before: Before | None = None) -> tuple[float, ...]:
         self.persist.record(settled, target)
-        return self.policy.record(settled, target)
+        return self.policy.learn(settled, target, before)
 
     def skip(self) -> None:
         self.persist.skip()

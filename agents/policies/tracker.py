@@ -1,0 +1,324 @@
+"""``ekf``: a model-based tracker of the leader and its rod in the follower's dead-reckoned frame
+(beyond the paper; docs/estimators.md names its assumptions).
+
+The follower's next ideal position is its leader's rod end, ``E = L + rho``: the leader's
+position ``L`` plus the *rod vector* ``rho`` from the leader to the rod end (xy). Before moving
+the follower reads ``L`` (the ``pre`` reading), so what it must predict is ``rho`` — and, to read
+``L`` better than one reading does, where the leader was heading. This filter tracks both from
+every honest reading of the tick: the leader before the move, after the move and once settled,
+the rod end after the move and once settled, the moves the follower commanded, and its odometry.
+
+State (relative to where the follower stands now, xy, one tick the time unit), 14 numbers:
+
+- ``S, V, A``: the leader's track: position, displacement per tick and its change per tick
+  (constant acceleration; the unmodelled change of ``A`` is white *jerk*);
+- ``rho``: the rod vector at this tick, and ``lam = (kappa, omega)``: its log-length and turn
+  rates per tick. Seen as complex numbers, ``rho_{j+1} = rho_j exp(kappa + i omega)``: the rod
+  turns with the leader's heading at a rate that changes slowly, and its xy length changes with
+  the slope under it at a rate that changes slowly (random walks of the rates);
+- ``D``: the actuation error of the follower's own moves since it last settled (teleport: the
+  move's and the snap's noise), which the odometry of the interval reads;
+- ``J``: the leader's *landing offset* this tick, off its track: none for a leader that drives
+  its path; a leader that is itself a follower stands off its rod end by its snap's error
+  (white, one draw per tick, shared by every reading of that tick).
+
+Readings are linear in the state (leader: ``S + J``; rod end: ``S + J + rho``) with the
+declared range/bearing covariance (:func:`protocol.sensing.reading_covariance`) at the reading;
+the only nonlinearity is the rod's turn, linearised at the estimate (an extended Kalman filter).
+A move by ``u`` shifts the positions by ``-u`` and adds the move's declared actuation variance
+(shared with ``D``). The state after each tick is a deterministic function of the calls, so the
+follower's replay log rebuilds it (:mod:`agents.checkpoint`); :meth:`RodTracker.state` and
+:meth:`RodTracker.restore` give it as plain data as well.
+
+How fast the leader's acceleration changes (its jerk) and how far it lands off its track are
+properties of the hidden surface and of the follower's place in the column, which it does not
+know: :class:`RodTracker` runs one filter per pair of levels (``jerks`` x ``landings``),
+side by side as one batch of arrays, and proposes their mixture, each weighted by the
+likelihood of the readings it predicted (multiple-model adaptive estimation).
+"""
+from __future__ import annotations
+
+import math
+from itertools import product
+
+import numpy as np
+
+from agents.estimators import NotFitted
+from agents.policies.base import Before, Policy, Proposal, relative
+from protocol.messages import Sensing
+from protocol.sensing import reading_covariance
+
+N = 14
+S, V, A, RHO, LAM, D, J = (slice(i, i + 2) for i in range(0, N, 2))
+JITTER = 1e-12  # added to every reading's covariance: a noise-free reading stays invertible
+# Before any reading the leader's place and track and the rod vector are unknown: a prior far
+# wider than any rod (in units of the rod's length squared); the first readings replace it.
+DIFFUSE = 1e2
+EYE2 = np.eye(2)
+LOG_2PI = math.log(2.0 * math.pi)
+
+
+def _selector(*blocks: slice) -> np.ndarray:
+    """The (2, N) matrix summing the state's 2-vectors ``blocks``."""
+    h = np.zeros((2, N))
+    for block in blocks:
+        h[:, block] = EYE2
+    return h
+
+
+LEADER, ROD_END, ACTUATION = _selector(S, J), _selector(S, J, RHO), _selector(D)
+MOVED = (ACTUATION - _selector(S)).T @ (ACTUATION - _selector(S))  # a move's noise: -S, +D
+TRACK = np.eye(N)  # the linear part of a tick: constant acceleration; D and J start afresh
+TRACK[S, V], TRACK[S, A], TRACK[V, A] = EYE2, 0.5 * EYE2, EYE2
+TRACK[D, D] = TRACK[J, J] = 0.0
+# white jerk's covariance of (position, displacement, acceleration) over one tick, per unit
+JERK_DT = np.array([[1 / 20, 1 / 8, 1 / 6], [1 / 8, 1 / 3, 1 / 2], [1 / 6, 1 / 2, 1.0]])
+
+
+class RodTracker(Policy):
+    """``ekf``: the extended Kalman filters of the module docstring, one per (jerk, landing)
+    pair, and their likelihood-weighted mixture.
+
+    Parameters
+    ----------
+    sigma_r, sigma_theta : float
+        The declared range (length) and bearing (rad) noise of a reading.
+    move_variance : float
+        Declared variance per coordinate of where a move (and a snap) took the follower, as far
+        as it can tell (length²).
+    odometry_variance : float or None
+        Variance per coordinate of the odometry's displacement over one interval
+        (``(noise_velocity T_c)²``), or None when the odometry is what the moves were
+        reckoned with (a driving follower): then it tells nothing more.
+    comm_period : float
+        ``T_c``: the odometry's velocity times it is a displacement.
+    spacing : float
+        The rod's length ``d``: the scale of the priors and of the jerk.
+    jerks : sequence of float
+        Variances per coordinate of the leader's unmodelled change of acceleration per tick
+        the filters assume, in units of ``d²`` (length² per tick⁶ divided by ``d²``).
+    landings : sequence of float
+        Variances per coordinate of the leader's landing off its track the filters assume
+        (length²; 0: it drives its path).
+    turn : float
+        Variance of the unmodelled change of the rod's turn rate and log-length rate per tick
+        (rad² per tick²).
+    memory : float
+        In [0, 1]: each tick, the filters' past log-likelihoods are multiplied by it before the
+        tick's are added (old evidence fades, so a surface whose curvature changes is
+        followed).
+    name : str
+    """
+
+    def __init__(self, sigma_r: float = 0.0, sigma_theta: float = 0.0,
+                 move_variance: float = 0.0, odometry_variance: float | None = None,
+                 comm_period: float = 1.0, spacing: float = 1.0, jerks=(1e-4,),
+                 landings=(0.0,), turn: float = 1e-4, memory: float = 0.8,
+                 name: str = "ekf") -> None:
+        for key, value in (("sigma_r", sigma_r), ("sigma_theta", sigma_theta),
+                           ("move_variance", move_variance), ("turn", turn)):
+            if not 0.0 <= value < math.inf:
+                raise ValueError(f"{key} must be finite and >= 0, got {value}")
+        for key, values in (("jerks", jerks), ("landings", landings)):
+            if not len(values) or not all(0.0 <= v < math.inf for v in values):
+                raise ValueError(f"{key} must be finite values >= 0, at least one, "
+                                 f"got {values}")
+        if odometry_variance is not None and not 0.0 <= odometry_variance < math.inf:
+            raise ValueError(f"odometry_variance must be finite and >= 0 or None, "
+                             f"got {odometry_variance}")
+        for key, value in (("comm_period", comm_period), ("spacing", spacing)):
+            if not 0.0 < value < math.inf:
+                raise ValueError(f"{key} must be finite and > 0, got {value}")
+        if not 0.0 <= memory <= 1.0:
+            raise ValueError(f"memory must be in [0, 1], got {memory}")
+        self.name = name
+        self.sigma_r, self.sigma_theta = sigma_r, sigma_theta
+        self.move_variance, self.odometry_variance = move_variance, odometry_variance
+        self.comm_period, self.spacing, self.memory = comm_period, spacing, memory
+        levels = list(product(jerks, landings))
+        self.members = len(levels)
+        # each filter's process noise per tick: the leader's jerk and landing, the rates' drift
+        self._q = np.zeros((self.members, N, N))
+        for k, (jerk, landing) in enumerate(levels):
+            for axis in range(2):
+                idx = [S.start + axis, V.start + axis, A.start + axis]
+                self._q[k][np.ix_(idx, idx)] = jerk * spacing**2 * JERK_DT
+            self._q[k][LAM, LAM] = turn * EYE2
+            self._q[k][J, J] = landing * EYE2
+        self.mean: np.ndarray | None = None  # (members, N)
+        self.cov: np.ndarray | None = None  # (members, N, N)
+        self.scores = np.zeros(self.members)  # discounted log-likelihoods
+        self._ahead: tuple[np.ndarray, np.ndarray] | None = None  # _advanced(), until learn
+        self._evidence = np.zeros(self.members)
+
+    # -- the filters' steps, on (mean, cov) batches ---------------------------------------
+
+    def _update(self, mean, cov, h: np.ndarray, z: np.ndarray, noise: np.ndarray):
+        """Kalman update of every filter with the linear reading ``z = h x + noise`` (``h``
+        (2, N)); adds the reading's log-likelihood under each prediction to the evidence."""
+        hc = h @ cov  # (members, 2, N)
+        s = hc @ h.T + noise
+        a, b, c, d = s[:, 0, 0], s[:, 0, 1], s[:, 1, 0], s[:, 1, 1]
+        det = a * d - b * c
+        inverse = np.stack([np.stack([d, -b], -1), np.stack([-c, a], -1)], -2) / det[:, None,
+                                                                                       None]
+        gain = np.swapaxes(inverse @ hc, 1, 2)  # (members, N, 2)
+        surprise = z - mean @ h.T  # (members, 2)
+        mean = mean + np.einsum("kij,kj->ki", gain, surprise)
+        self._evidence -= 0.5 * (np.einsum("ki,kij,kj->k", surprise, inverse, surprise)
+                                 + np.log(det) + 2.0 * LOG_2PI)
+        cov = cov - gain @ hc
+        return mean, 0.5 * (cov + np.swapaxes(cov, 1, 2))
+
+    def _reading(self, mean, cov, z: np.ndarray, rod: bool):
+        """Update with a leader (``rod`` False) or rod-end reading ``z`` (2,)."""
+        r = math.hypot(z[0], z[1])
+        noise = reading_covariance(r, math.atan2(z[1], z[0]), self.sigma_r, self.sigma_theta)
+        return self._update(mean, cov, ROD_END if rod else LEADER, z, noise + JITTER * EYE2)
+
+    def _move(self, mean, cov, u: np.ndarray):
+        """The follower moved by ``u`` (2,) with the declared actuation variance."""
+        mean = mean.copy()
+        mean[:, S] -= u
+        if self.move_variance:
+            cov = cov + self.move_variance * MOVED
+        return mean, cov
+
+    def _advance(self, mean, cov):
+        """One tick of the models: the leader's track and the rod's turn; a new landing
+        offset; the actuation error restarts."""
+        rho, lam = mean[:, RHO], mean[:, LAM]
+        scale, cos, sin = np.exp(lam[:, 0]), np.cos(lam[:, 1]), np.sin(lam[:, 1])
+        turn = scale[:, None, None] * np.stack([np.stack([cos, -sin], -1),
+                                                np.stack([sin, cos], -1)], -2)
+        turned = np.einsum("kij,kj->ki", turn, rho)
+        f = np.broadcast_to(TRACK, cov.shape).copy()
+        f[:, RHO, RHO] = turn
+        f[:, RHO, LAM] = np.stack([turned, np.c_[-turned[:, 1], turned[:, 0]]], -1)
+        new = mean @ TRACK.T
+        new[:, RHO], new[:, LAM] = turned, lam
+        cov = f @ cov @ np.swapaxes(f, 1, 2) + self._q
+        return new, 0.5 * (cov + np.swapaxes(cov, 1, 2))
+
+    def _start(self):
+        """The prior before the first tick: nothing known but the scales (the leader's place
+        and track, the rod vector and its rates are found by the first readings)."""
+        cov = np.zeros((self.members, N, N))
+        wide = DIFFUSE * self.spacing**2 * EYE2
+        cov[:, S, S] = cov[:, V, V] = cov[:, A, A] = cov[:, RHO, RHO] = wide
+        cov[:, LAM, LAM] = EYE2  # rates of the order of a radian per tick
+        cov[:, J, J] = self._q[:, J, J]
+        return np.zeros((self.members, N)), cov
+
+    def _advanced(self):
+        """The filters at the start of the coming tick, before its readings (remembered until
+        the state changes: ``auto`` asks for two proposals a tick before the policy learns)."""
+        if self._ahead is None:
+            self._ahead = self._start() if self.mean is None else self._advance(self.mean,
+                                                                                  self.cov)
+        return self._ahead
+
+    def _before_move(self, pre: Sensing):
+        """The filters at this tick after its ``pre`` reading (copies)."""
+        mean, cov = self._advanced()
+        return self._reading(mean, cov, relative(pre), rod=False)
+
+    def weights(self) -> np.ndarray:
+        """Each filter's weight in the mixture (members,), summing to 1."""
+        w = np.exp(self.scores - self.scores.max())
+        return w / w.sum()
+
+    def _rod_end(self, mean: np.ndarray) -> np.ndarray:
+        """The mixture's rod end relative to the follower (2,)."""
+        return self.weights() @ (mean[:, S] + mean[:, J] + mean[:, RHO])
+
+    # -- the policy interface ----------------------------------------------------------------
+
+    def propose(self, pre: Sensing) -> Proposal:
+        if self.mean is None:
+            raise NotFitted("ekf needs one settled tick")
+        evidence = self._evidence.copy()  # a pure read: its readings' evidence is not kept
+        mean, _ = self._before_move(pre)
+        self._evidence = evidence
+        e = self._rod_end(mean)
+        return Proposal(e, (float(e[0]), float(e[1])))
+
+    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        return self.learn(settled, target)
+
+    def learn(self, settled: Sensing, target: np.ndarray | None,
+              before: Before | None = None) -> tuple[float, ...]:
+        self._evidence = np.zeros(self.members)
+        if before is None:
+            # No earlier readings (a plain record): the follower is where ``target`` took it
+            # (lost: where it was, as far as it knows).
+            mean, cov = self._advanced()
+            if target is not None:
+                mean, cov = self._move(mean, cov, np.asarray(target, dtype=float))
+        else:
+            mean, cov = self._before_move(before.pre)
+            offset = np.asarray(before.offset, dtype=float)
+            mean, cov = self._move(mean, cov, offset)
+            moved = before.moved
+            if moved is not None:
+                mean, cov = self._reading(mean, cov, relative(moved), rod=False)
+                if moved.rod is not None:
+                    mean, cov = self._reading(mean, cov, np.asarray(moved.rod), rod=True)
+            if target is not None:  # it snapped onto the rod end it read
+                mean, cov = self._move(mean, cov, self._snap(moved, target, offset))
+        mean, cov = self._reading(mean, cov, relative(settled), rod=False)
+        if settled.rod is not None:
+            mean, cov = self._reading(mean, cov, np.asarray(settled.rod), rod=True)
+        if before is not None and target is not None:
+            mean, cov = self._odometry(mean, cov, settled, before, target)
+        self.mean, self.cov, self._ahead = mean, cov, None
+        self.scores = self.memory * self.scores + self._evidence
+        e = self._rod_end(mean)
+        return float(e[0]), float(e[1])
+
+    @staticmethod
+    def _snap(moved: Sensing | None, target: np.ndarray, offset: np.ndarray) -> np.ndarray:
+        """The snap the follower commanded: by the rod end it read after the move; without a
+        move (an initial tick) by the offset its ``target`` says it went."""
+        if moved is not None and moved.rod is not None:
+            return np.asarray(moved.rod, dtype=float)
+        return np.asarray(target, dtype=float) - offset
+
+    def _odometry(self, mean, cov, settled: Sensing, before: Before, target: np.ndarray):
+        """The odometry of the interval read the actuation error ``D`` of this tick's moves."""
+        if (self.odometry_variance is None or not self.move_variance
+                or settled.velocity is None):
+            return mean, cov
+        offset = np.asarray(before.offset, dtype=float)
+        commanded = offset + self._snap(before.moved, target, offset)
+        z = np.asarray(settled.velocity, dtype=float) * self.comm_period - commanded
+        return self._update(mean, cov, ACTUATION, z, (self.odometry_variance + JITTER) * EYE2)
+
+    def skip(self) -> None:
+        if self.mean is not None:
+            self.mean, self.cov = self._advance(self.mean, self.cov)
+            self._ahead = None
+
+    def state(self) -> dict:
+        """The filters' state as plain data (lists of floats; None before the first tick)."""
+        if self.mean is None:
+            return {"mean": None, "cov": None, "scores": self.scores.tolist()}
+        return {"mean": self.mean.tolist(), "cov": self.cov.tolist(),
+                "scores": self.scores.tolist()}
+
+    def restore(self, state: dict) -> None:
+        """Take the state :meth:`state` gave (ValueError naming ``state`` if malformed)."""
+        k = self.members
+        try:
+            scores = np.asarray(state["scores"], dtype=float)
+            mean = None if state["mean"] is None else np.asarray(state["mean"], dtype=float)
+            cov = None if state["cov"] is None else np.asarray(state["cov"], dtype=float)
+        except (KeyError, TypeError, ValueError):
+            raise ValueError("state must be a map of mean, cov and scores") from None
+        if scores.shape != (k,) or not np.all(np.isfinite(scores)) or (mean is None) != (
+                cov is None) or mean is not None and (
+                mean.shape != (k, N) or cov.shape != (k, N, N)
+                or not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov)))):
+            raise ValueError(f"state must hold finite scores ({k},), mean ({k}, {N}) and cov "
+                             f"({k}, {N}, {N})")
+        self.mean, self.cov, self.scores, self._ahead = mean, cov, scores, None
