@@ -150,10 +150,11 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
     With one displacement known it is the exact quadratic through three points,
     ``χ + (χ − χ₋₁)/2`` for chords of equal length; with none, the end tangent of the
     circular arc tangent to ``heading``, ``ψ₀ + 2(χ − ψ₀)``. Directions are taken on the
-    heading's side (a goal behind is driven to in reverse). The tangent is trusted by the
-    weight ``1 − f / |t|²`` above ``f = 9 variance + (MIN_CHORD d)²`` (``variance``: the
-    chord's declared spread, both coordinates together): the heading turns smoothly from ``heading``
-    (a chord of nothing, or of noise) to the fit (a chord well above its spread), so a chord of a
+    heading's side (a goal behind is driven to in reverse). The result is trusted by the
+    weight ``1 − f / ρ²`` of the chord ``ρ`` above ``f = 9 variance + (MIN_CHORD d)²``
+    (``variance``: the chord's declared spread, both coordinates together): the heading turns
+    smoothly from ``heading`` (a chord of nothing, or of noise) to the fit (a chord well above its
+    spread), so a chord of a
     rounding error turns nothing."""
     floor = 9.0 * variance + (MIN_CHORD * spacing) ** 2
 
@@ -162,10 +163,10 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
             math.atan2(vector[1], vector[0]) - heading))))
 
     chord = np.asarray(chord, dtype=float)
+    weight = _trust(float(chord @ chord), floor)
+    if weight == 0.0:
+        return heading
     if not track:
-        weight = _trust(float(chord @ chord), floor)
-        if weight == 0.0:
-            return heading
         chi = forward(chord)
         return wrap(heading + weight * wrap(2.0 * wrap(chi - heading)))
     positions = [np.zeros(2)]
@@ -177,9 +178,6 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
     basis = np.stack([times**n for n in range(degree + 1)], axis=1)
     coef, *_ = np.linalg.lstsq(basis, points, rcond=None)
     tangent = sum(n * coef[n] for n in range(1, degree + 1))  # d/dt at t = 1
-    weight = _trust(float(tangent @ tangent), floor)
-    if weight == 0.0:
-        return heading
     return wrap(heading + weight * wrap(forward(tangent) - heading))
 
 
@@ -330,7 +328,8 @@ def step_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: 
     aside *= _weight(aside * aside, floor * floor)
     ahead = max(0.5 * along, floor)
     bend = math.atan2(aside, ahead)
-    room = 0.5 * limits.max_turn * max(time - dt, 0.0)  # turn out now, and back in time
+    left = max(time - dt, 0.0)  # turn out now, and back in time
+    room = 0.5 * limits.max_turn * left if left > 0.0 else 0.0
     bend = max(-room, min(room, bend))
     course = wrap(line + bend)  # the direction to travel
     error = wrap(course - heading)

@@ -76,7 +76,10 @@ class ExactSum:
 class _FollowerMetrics:
     """One follower's running totals for ``summary.json``."""
 
-    def __init__(self) -> None:
+    def __init__(self, tolerance: float = math.inf) -> None:
+        self.tolerance = tolerance
+        self.worst: float | None = None
+        self.broken = 0
         self.required, self.squares = ExactSum(), ExactSum()
         self.stay, self.persist, self.persist_noise_free = ExactSum(), ExactSum(), ExactSum()
         self.floor, self.formation = ExactSum(), ExactSum()
@@ -88,6 +91,10 @@ class _FollowerMetrics:
         self.lost += row.get("lost") or 0
         self.missed += row.get("missed") or 0
         self.saturated += row.get("saturated_steps") or 0
+        error = row.get("formation_error")
+        if error is not None:
+            self.worst = error if self.worst is None else max(self.worst, error)
+            self.broken += error > self.tolerance
         for total, name in ((self.formation, "formation_error"), (self.reach, "reach_error"),
                             (self.snap, "snap_error"), (self.path, "path_length")):
             if row.get(name) is not None:
@@ -120,6 +127,8 @@ class _FollowerMetrics:
             "fallback_ticks": self.fallback,
             "followed": _shares(self.followed),
             "mean_formation_error": self.formation.mean(),
+            "worst_formation_error": self.worst,
+            "broken_ticks": self.broken,
         }
 
     def drive_summary(self) -> dict:
@@ -152,7 +161,8 @@ class RunRecorder:
         self.out_dir = None if out_dir is None else Path(out_dir)
         self.config = config
         self.ticks_done = 0
-        self._metrics = {k: _FollowerMetrics() for k in range(1, config.followers + 1)}
+        self._metrics = {k: _FollowerMetrics(config.formation_tolerance)
+                         for k in range(1, config.followers + 1)}
         self._files: dict[str, AppendFile] = {}
         self._tables = {TICKS_FILE: TICK_COLUMNS, OBS_FILE: OBS_COLUMNS}
         if config.drives:
@@ -290,6 +300,8 @@ class RunRecorder:
             "ticks": cfg.ticks,
             "complete": complete,
             "reason": reason,
+            "formation_tolerance": cfg.formation_tolerance,
+            "formation_broken": any(m.broken for m in self._metrics.values()),
             "wall_time": wall_time,
         }
 
