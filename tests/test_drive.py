@@ -525,7 +525,11 @@ def test_the_drive_study_writes_its_table_figure_and_report(tmp_path, capsys):
                        "1"]) == 0
     rows = read_table(out / "tables" / "drive.csv")
     assert len(rows) == len(study_runs(QUICK))
-    assert {r["block"] for r in rows} == {"teleport", "steps", "speed"}
+    assert {r["block"] for r in rows} == {"teleport", "steps", "speed", "noise"}
+    noisy = [r for r in rows if r["block"] == "noise"]
+    assert {(r["noise"], r["motion"]) for r in noisy} == {
+        (level, motion) for level in QUICK.noise_levels for motion in ("drive", "teleport")}
+    assert all(len(str(r["formation_errors"]).split()) == r["followers"] for r in noisy)
     assert all(r["complete"] == 1 for r in rows)
     drive_rows = [r for r in rows if r["motion"] == "drive"]
     assert all(r["mean_formation_error"] > 0 and r["path_length"] > 0 for r in drive_rows)
@@ -533,4 +537,5 @@ def test_the_drive_study_writes_its_table_figure_and_report(tmp_path, capsys):
     assert {m["surface"] for m in minimum} == {"wavy", "dem"}
     assert all(m["min_speed_factor"] in QUICK.speed_factors for m in minimum)
     assert (out / "figures" / "drive.png").stat().st_size > 10_000
-    assert "Minimum top speed" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert "Minimum top speed" in report and "Under sensor noise" in report
