@@ -5,8 +5,9 @@ iterating on its own odometry, and the discrepancy accumulates) and never measur
 study does, with followers that drive (``--motion drive``): the required sensing range and the
 formation error against
 
-- the **control steps** per comm interval (2 … 64; the correction window kept at half a comm
-  period, ``snap_steps = control_steps / 2``, so only the granularity of control changes),
+- the **control steps** per comm interval (2 … 64, ``snap_steps = control_steps / 2``; the
+  correction window keeps its third of the comm period, so only the granularity of control
+  changes),
 - the **top speed**, as a multiple of the leader's speed (from just above it to unbounded),
 - the **comm period**, crossed with the top speed (the minimum top speed per surface and
   comm period comes from this block),
@@ -301,7 +302,8 @@ def write_report(out_dir: Path, rows: list[dict], minimum: list[dict], spec: Dri
     """``report.md``: the headline numbers of the study."""
     lines = ["# Driving followers: the study", "",
              f"`python -m swarm experiment drive`; {len(rows)} runs, {wall_time:.0f} s wall "
-             f"time. Noise-free; {spec.followers} followers; table `tables/drive.csv`, figure "
+             f"time. Noise-free but for the noise block; {spec.followers} followers but in it; "
+             "table `tables/drive.csv`, figure "
              "`figures/drive.png`.", "",
              "## Minimum top speed (multiple of the leader's speed)", "",
              f"The smallest top speed tried ({', '.join(_factor(f) for f in spec.speed_factors)}"
@@ -325,7 +327,8 @@ def write_report(out_dir: Path, rows: list[dict], minimum: list[dict], spec: Dri
             lines.append(f"| {surface} | {period:g} | " + " | ".join(cells) + " |")
     lines += ["", "## Formation error against control steps", "",
               f"T_c = {spec.base_period:g}, top speed {spec.base_factor:g}× the leader's, "
-              "correction window half a comm period; teleport: the same column teleporting.",
+              "correction window a third of the comm period; teleport: the same column "
+              "teleporting.",
               ""]
     head = ["surface", "estimator", *[str(n) for n in spec.control_steps], "teleport"]
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
