@@ -278,7 +278,7 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, out: Path, live
         print(f"warning: {line}", file=sys.stderr)
     if not summary["complete"]:
         print(f"error: run incomplete: {summary['reason']}", file=sys.stderr)
-    if summary.get("formation_broken"):
+    elif summary.get("formation_broken"):  # one line says why: incompleteness first
         print("error: the formation broke (a follower settled beyond --formation-tolerance)",
               file=sys.stderr)
     if live is not None:
