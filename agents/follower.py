@@ -9,8 +9,10 @@ the measurement; publish the observation and the rod. Three round trips to the w
 With ``--motion drive`` the move and the snap are control steps (:mod:`agents.drive`: one
 round trip each, to the estimate — in the initial ticks to the rod end sensed at ``pre`` —
 then onto the rod end), and the snap request only settles the follower where it stands. The
-controller's state lives within the tick (its dead reckoning starts afresh at every tick), so
-the replay log needs nothing more: a tick redone after a restart is driven again from its start.
+controller's state lives within the tick (its dead reckoning starts afresh at every tick) but
+for its track of past displacements, which it learns from the settled sensing as the policy
+does, so the replay log rebuilds both: a tick redone after a restart is driven again from its
+start.
 """
 from __future__ import annotations
 
