@@ -6,37 +6,41 @@ heading, the slope under it (tilt sensor) and the range/bearing readings of its 
 the rod end. It never knows its absolute position: within a tick it dead-reckons in the frame
 of where it stood when the tick began, by summing its odometry readings.
 
-A tick has two phases of control steps (each one round trip, :class:`Control`):
+A tick is one manoeuvre from rest to rest that fills the comm interval (the world's clock,
+:meth:`protocol.config.RunConfig.step_duration`), in two phases of control steps (each one
+round trip, :class:`Control`):
 
-1. **move** (``control_steps`` steps): drive to the estimate, an offset from the tick's start;
-2. **snap** (``snap_steps`` steps, the correction window): drive onto the rod end, re-read at
-   every step (so the landing is as good as the last reading, not the dead reckoning).
+1. **move** (``control_steps`` steps): towards the estimate, an offset from the tick's start;
+2. **correction** (``snap_steps`` steps): the rod end read after the move phase replaces the
+   estimate as the goal, and every reading after it refines it (:class:`_Goal`).
 
-Control law: **biarc pursuit**, re-planned at every step (receding horizon) from the dead
-reckoning and the latest readings, in the local frame. A biarc — two circular arcs with a
-common tangent — is the standard smooth path joining two poses (position and heading), and a
-control step of constant speed and turn rate *is* a circular arc, so on flat ground the plan
-is executed exactly and nothing needs tuning: the first arc's speed and turn rate are its
-length and turn over half the time left (the least constant speed that arrives when the
-window closes, so the limits bind as late as they can). Sideways offsets that no S-curve of
-the run's turn rate reaches within the time left are driven by point turns when they fit,
-else the reachable part is. The last steps turn onto the goal heading first: the heading a
-follower settles with sets the rod the follower behind it follows (design §3), and an error of
-ε rad there moves that follower's ideal position by about ``d·ε``. Chart speed and turn
-become surface commands through the slope reading ``s = ∇F``: along a chart direction ``ĥ``
-one metre of chart is ``√(1 + (s·ĥ)²)`` metres of arc, and the turn is the angle between the
-two chart directions in the metric ``I + s sᵀ``. Then both are saturated at the run's limits
-(a step at a limit is counted by the world).
+The goal is reached when the tick ends, not before: the drive is timed (the least cruise speed
+that arrives and stops in the time left, within the acceleration limit), so the robot still
+has ground to cover when the rod end is read and corrects a sideways offset with a gentle
+S-curve instead of a manoeuvre on the spot.
 
-Why not the usual laws: Corke's pose controller (``move_to_pose``; ρ, α, β in polar
-coordinates) is singular at the goal — exactly where the correction window works: with the
-goal a tenth of a millimetre away its bearing, and so its turn command, is arbitrary; and
-pure pursuit steers onto the goal position only, so a sideways correction swings the heading
-by up to π. Both also need gains; the biarc has none.
+**Control law** (:func:`step_command`), re-planned at every step from the dead reckoning and
+the latest estimates, without gains: the robot steers along the *approach line*, the line
+through the goal along the goal heading, aiming at the point of the line half-way between its
+own projection and the goal (a parabola tangent to the line at the goal, so it arrives on it);
+a goal behind is driven to in reverse, keeping the heading. The aim is turned from the line by
+at most what the time left can turn back, so the heading the robot settles with — which sets
+the rod of the follower behind it (design §3) — is the goal heading whatever the offset; an
+offset the time cannot correct is corrected in part. Offsets within the reading's spread are
+given a weight that vanishes smoothly with them, and the aim point keeps a distance of at
+least a tenth of the rod's length, so no branch is singular: a goal a rounding error away is
+held, not turned to. The speed is the timed cruise speed, times the cosine of the heading
+error (no speed while facing away), rate-limited by the acceleration limit and the stop the
+tick ends with. Chart speed and turn become surface commands through the slope reading.
 
-Goal heading: in ideal formation a follower moves along its heading (its velocity is
-g-orthogonal to its rod, as its heading is), so its path is tangent to its heading; the goal
-heading is estimated from the chord of this tick and of the last one (:func:`goal_heading`).
+Why not the usual laws: Corke's pose controller (``move_to_pose``) and pure pursuit steer on
+the goal's bearing, which is arbitrary where the correction works (the goal a tenth of a
+millimetre away); both swung headings by radians, which the next follower pays as metres.
+
+**Its own heading** (:class:`HeadingFilter`): a one-state Kalman filter on the compass angle,
+predicted by the turns commanded, updated by every compass reading and by every step's
+odometry (the chord of a step, plus half its turn, is its end heading), each with its declared
+variance; it starts every tick from the ``pre`` compass reading.
 """
 from __future__ import annotations
 
@@ -50,27 +54,41 @@ from agents.policies import move_variance, reading_variance
 from protocol.config import AgentSettings
 from protocol.messages import ActSensing, Control, Sensing
 
-MAX_S_TURN = math.pi / 2
-"""The sharpest turn of a sideways correction (an S-curve's first arc), radians."""
-MIN_MANOEUVRE = 1e-6
-"""The smallest sideways offset (m) worth a point-turn manoeuvre without sensor noise."""
+MIN_CHORD = 1e-6
+"""A chord (m) shorter than this, relative to the rod's length, says nothing of a direction."""
+TRACK = 3
+"""How many past ticks the goal heading's fit spans (:func:`goal_heading`): the fit's
+noise falls and its lag grows with it; 3 was the best of 1, 3, 6 and 10 on issue #30's grid."""
+DEGREE = 2
+"""The degree of the goal heading's fit in time."""
+"""How many past ticks the goal heading's fit spans (:func:`goal_heading`)."""
+TURN_SLIP = 0.1
+"""The share of a commanded turn the robot may not have turned (its actuation noise is not
+declared to it): the heading filter's process noise per radian turned."""
+TRANSPORT = 0.1
+"""How much a robot's chart heading may change per metre driven without a command (rad/m):
+the parallel transport over the terrain, the heading filter's process noise."""
 
 
 @dataclass(frozen=True)
 class Limits:
-    """What bounds a driving follower: its top speed (m of arc per time unit), its top turn
-    rate (rad per time unit), the duration of one control step, and the sideways offset
-    (m) below which a point-turn manoeuvre is not worth it (the declared spread of a
-    range/bearing reading at the rod's length ``d``, both coordinates together: a smaller
-    offset may be noise; a rod-end reading, taken closer, spreads less). With them, the
-    declared variance of a tick's chord (one range/bearing reading and one move's odometry,
-    both coordinates together), below which a chord cannot be told from standing still
-    (:func:`goal_heading`)."""
+    """What bounds a driving follower and what it knows of its sensors' noise: top speed (m of
+    arc per time unit), top turn rate (rad per time unit), top acceleration, each control
+    step's duration and the time it leaves to stop (:class:`protocol.config.RunConfig`), the
+    rod's length, the σ of the range and bearing sensor (also the compass's), the variance of
+    a step's odometry per coordinate (``noise_velocity² · δ · T_c``) and the declared
+    variance of a tick's chord (one range/bearing reading and one move's odometry, both
+    coordinates together)."""
 
     max_speed: float
     max_turn: float
-    step: float
-    tolerance: float = 0.0
+    max_accel: float
+    durations: tuple[float, ...]
+    stops: tuple[float, ...]
+    spacing: float = 1.0
+    sigma_range: float = 0.0
+    sigma_bearing: float = 0.0
+    odometry_variance: tuple[float, ...] = ()
     chord_variance: float = 0.0
 
     @classmethod
@@ -79,11 +97,19 @@ class Limits:
         within a run)."""
         if settings.max_speed is None:
             raise ValueError("settings.max_speed must be resolved (the world tells it on join)")
-        reading = reading_variance(settings)
-        return cls(settings.max_speed, settings.max_turn,
-                   settings.comm_period / settings.control_steps,
-                   max(math.sqrt(2.0 * reading), MIN_MANOEUVRE),
-                   2.0 * (reading + move_variance(settings)))
+        steps = range(settings.tick_steps)
+        durations = tuple(settings.step_duration(k) for k in steps)
+        return cls(settings.max_speed, settings.max_turn, settings.accel_limit, durations,
+                   tuple(settings.stop_time(k) for k in steps), settings.spacing,
+                   settings.noise_range, settings.noise_bearing,
+                   tuple(settings.noise_velocity**2 * d * settings.comm_period
+                         for d in durations),
+                   2.0 * (reading_variance(settings) + move_variance(settings)))
+
+    def reading_variance(self, distance: float) -> float:
+        """The declared variance of a range/bearing reading of a point ``distance`` away,
+        both coordinates together."""
+        return self.sigma_range**2 + (distance * self.sigma_bearing) ** 2
 
 
 def wrap(angle: float) -> float:
@@ -99,160 +125,228 @@ def _cross(a: np.ndarray, b: np.ndarray) -> float:
     return float(a[0] * b[1] - a[1] * b[0])
 
 
-def goal_heading(heading: float, chord: np.ndarray, previous: np.ndarray | None,
-                 variance: float) -> float:
+def _weight(square: float, scale: float) -> float:
+    """``square / (square + scale)``: 0 for nothing, 1 without noise (no singular branch)."""
+    return 0.0 if square == 0.0 else square / (square + scale)
+
+
+def _trust(square: float, floor: float) -> float:
+    """``1 − floor / square`` above ``floor``, 0 below: how much a vector of squared length
+    ``square`` says of its direction when its noise has squared spread ``floor`` (continuous,
+    so no branch is singular; a vector within its noise turns nothing)."""
+    return 0.0 if square <= floor else 1.0 - floor / square
+
+
+def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...],
+                 variance: float, spacing: float = 1.0) -> float:
     """The heading to settle with after moving along ``chord`` (xy, from the tick's start),
-    from a start with compass ``heading``; ``previous`` is the last tick's displacement (None
-    if unknown).
+    from a start with heading ``heading``; ``track`` holds the follower's last displacements,
+    one per tick, oldest first (:class:`Track`; may be empty).
 
     In ideal formation a follower moves along its heading, so its path is tangent to its
-    heading: the end tangent of a path through chords of constant turn is the chord's
-    direction plus half the turn between consecutive chords, ``χ + (χ − χ₋₁)/2``. Without a
-    previous chord, the end tangent of the circular arc tangent to ``heading``,
-    ``ψ₀ + 2(χ − ψ₀)`` (it passes the start heading's error on, with the opposite sign, so
-    it serves only until a previous chord is known). Chords are taken on the heading's side (a
-    chord behind is driven in reverse). A chord no longer than three times its declared spread
-    (``variance``: both coordinates together) cannot be told from standing still: the heading
-    is kept."""
-    rho2 = float(chord @ chord)
-    if rho2 == 0.0 or rho2 <= 9.0 * variance:
-        return heading
+    heading. The path through the track's positions and the goal (one comm period apart) is
+    fitted by a quadratic in time, least squares, and its tangent at the goal is the heading:
+    the fit averages the landing errors of the ticks it spans instead of passing them on.
+    With one displacement known it is the exact quadratic through three points,
+    ``χ + (χ − χ₋₁)/2`` for chords of equal length; with none, the end tangent of the
+    circular arc tangent to ``heading``, ``ψ₀ + 2(χ − ψ₀)``. Directions are taken on the
+    heading's side (a goal behind is driven to in reverse). The result is trusted by the
+    weight ``1 − f / ρ²`` of the chord ``ρ`` above ``f = 9 variance + (MIN_CHORD d)²``
+    (``variance``: the chord's declared spread, both coordinates together): the heading turns
+    smoothly from ``heading`` (a chord of nothing, or of noise) to the fit (a chord well above its
+    spread), so a chord of a
+    rounding error turns nothing."""
+    floor = 9.0 * variance + (MIN_CHORD * spacing) ** 2
 
     def forward(vector: np.ndarray) -> float:  # its direction, on the heading's side
         return heading + math.asin(max(-1.0, min(1.0, math.sin(
             math.atan2(vector[1], vector[0]) - heading))))
 
-    chi = forward(chord)
-    if previous is not None and float(previous @ previous) > 0.0:
-        end = chi + 0.5 * wrap(chi - forward(previous))
+    chord = np.asarray(chord, dtype=float)
+    weight = _trust(float(chord @ chord), floor)
+    if weight == 0.0:
+        return heading
+    if not track:
+        chi = forward(chord)
+        return wrap(heading + weight * wrap(2.0 * wrap(chi - heading)))
+    positions = [np.zeros(2)]
+    for step in reversed(track):
+        positions.insert(0, positions[0] - step)
+    points = np.array(positions + [chord])  # at t = -len(track) ... 0, 1
+    times = np.arange(-len(track), 2, dtype=float)
+    degree = min(DEGREE, len(times) - 1)
+    basis = np.stack([times**n for n in range(degree + 1)], axis=1)
+    coef, *_ = np.linalg.lstsq(basis, points, rcond=None)
+    tangent = sum(n * coef[n] for n in range(1, degree + 1))  # d/dt at t = 1
+    return wrap(heading + weight * wrap(forward(tangent) - heading))
+
+
+class Track:
+    """A follower's last :data:`TRACK` displacements, one per tick, oldest first: its
+    odometry's per-tick reading (design §5) times ``T_c``, in the local compass frame (axes
+    parallel to the world's, so they add up across ticks). A tick it missed breaks the track.
+    It learns from the settled sensing as a policy does (``record``, ``skip``), so a restarted
+    follower rebuilds it from its replay log."""
+
+    def __init__(self, comm_period: float, length: int = 0) -> None:
+        self.comm_period = comm_period
+        self.length = length or TRACK
+        self.steps: list[np.ndarray] = []
+
+    def skip(self) -> None:
+        self.steps.clear()
+
+    def record(self, settled: Sensing, target: np.ndarray | None) -> None:
+        if settled.velocity is None:
+            self.skip()
+            return
+        self.steps.append(self.comm_period * np.asarray(settled.velocity, dtype=float))
+        del self.steps[:-self.length]
+
+    def displacements(self) -> tuple[np.ndarray, ...]:
+        return tuple(self.steps)
+
+
+class HeadingFilter:
+    """The robot's own heading (chart angle, rad) from its compass and odometry: a one-state
+    Kalman filter, predicted by the chart turn each step commanded (variance:
+    :data:`TURN_SLIP` of the turn and :data:`TRANSPORT` per metre driven), updated by the
+    step's compass reading (variance ``σ_θ²``) and by the direction of the step's odometry plus half
+    its turn (variance ``σ_odometry² / |step|²`` plus a quarter of the turn's, squared: the chord's
+    direction is the mid-step heading only on a circular arc). Without noise the compass is
+    exact and is taken as is."""
+
+    def __init__(self, compass: float, limits: Limits) -> None:
+        self.limits = limits
+        self.heading = compass
+        self.variance = limits.sigma_bearing**2
+
+    def _update(self, reading: float, variance: float) -> None:
+        total = self.variance + variance
+        gain = 1.0 if total == 0.0 else self.variance / total
+        self.heading = wrap(self.heading + gain * wrap(reading - self.heading))
+        self.variance *= 1.0 - gain
+
+    def step(self, step: int, turn: float, speed: float, compass: float,
+             odometry: np.ndarray) -> float:
+        """Fold in control step ``step``: the chart ``turn`` it commanded (rad), the speed it
+        commanded, and the compass and odometry read after it; return the new estimate."""
+        limits = self.limits
+        moved = math.hypot(odometry[0], odometry[1])
+        self.heading = wrap(self.heading + turn)
+        self.variance += (TURN_SLIP * turn) ** 2 + (TRANSPORT * moved) ** 2
+        self._update(compass, limits.sigma_bearing**2)
+        odometry_variance = limits.odometry_variance[step] if limits.odometry_variance else 0.0
+        if speed != 0.0 and moved * moved > 9.0 * odometry_variance and moved > 0.0:
+            direction = math.atan2(odometry[1], odometry[0]) + (0.0 if speed > 0 else math.pi)
+            self._update(wrap(direction + 0.5 * turn),
+                         odometry_variance / (moved * moved) + (0.25 * turn) ** 2
+                         + (TRANSPORT * moved) ** 2)
+        return self.heading
+
+
+def _timed_speed(distance: float, speed: float, step: int, end: int, limits: Limits,
+                 stretch: float) -> float:
+    """The speed (m of arc per time unit, along the way to the goal) of step ``step`` in the
+    least-peak speed profile of the tick's steps left that covers ``distance`` (m of chart)
+    and stops by the end of step ``end - 1``: each later step's speed is the cruise speed
+    ``V`` clipped to what the acceleration limit allows from ``speed`` (the last step's) and
+    to what still stops in time (``accel_limit ×`` the time left, plus one step's). The
+    covered distance is piecewise linear in ``V``: ``V`` is solved exactly. A distance the profile
+    cannot cover gives the fastest step; one it must overshoot, the slowest. ``stretch``: m of arc
+    per m of chart."""
+    dt = np.asarray(limits.durations[step:max(end, step + 1)])
+    change = np.cumsum(limits.max_accel * dt) if math.isfinite(limits.max_accel) \
+        else np.full(dt.shape, math.inf)
+    left = np.cumsum(dt[::-1])[::-1] - dt + dt[-1]  # the time to stop after each step
+    stop = limits.max_accel * np.minimum(left, limits.stops[step:step + dt.size])
+    hi = np.minimum(np.minimum(limits.max_speed, speed + change), stop) / stretch
+    lo = np.maximum(np.maximum(-limits.max_speed, speed - change), -stop) / stretch
+    points = np.unique(np.concatenate([lo, hi]))
+    points = points[np.isfinite(points)]
+    if points.size == 0:
+        cruise = distance / float(dt.sum())
     else:
-        end = chi + wrap(chi - heading)
-    return wrap(end)
+        covered = np.clip(points[:, None], lo, hi) @ dt
+        if distance <= covered[0]:
+            slope = float(dt[np.isneginf(lo)].sum())
+            cruise = points[0] - (covered[0] - distance) / slope if slope else points[0]
+        elif distance >= covered[-1]:
+            slope = float(dt[np.isposinf(hi)].sum())
+            cruise = points[-1] + (distance - covered[-1]) / slope if slope else points[-1]
+        else:
+            j = int(np.searchsorted(covered, distance))
+            share = (distance - covered[j - 1]) / (covered[j] - covered[j - 1])
+            cruise = points[j - 1] + share * (points[j] - points[j - 1])
+    return stretch * float(min(max(cruise, lo[0]), hi[0]))
 
 
-def _arc_length(chord: float, half_turn: float) -> float:
-    """The length of the circular arc of chord ``chord`` that turns by ``2 · half_turn``:
-    ``chord · α / sin α`` (the chord itself for a straight line)."""
-    return chord if half_turn == 0.0 else chord * half_turn / math.sin(half_turn)
-
-
-def _arc_to(position: np.ndarray, heading: float, point: np.ndarray) -> tuple[float, float]:
-    """Length and turn of the circular arc from ``position`` (tangent ``heading``) through
-    ``point`` (ahead of it)."""
-    offset = point - position
-    chord = math.hypot(offset[0], offset[1])
-    if chord == 0.0:
-        return 0.0, 0.0
-    alpha = wrap(math.atan2(offset[1], offset[0]) - heading)
-    return _arc_length(chord, alpha), 2.0 * alpha
-
-
-def _biarc_junction(position: np.ndarray, heading: float, goal: np.ndarray,
-                    goal_heading: float) -> tuple[np.ndarray, np.ndarray] | None:
-    """Where the two arcs of the biarc from ``position`` (tangent ``heading``) to ``goal``
-    (tangent ``goal_heading``), the goal ahead, meet, and their common tangent there (a chart
-    vector): the biarc whose tangent segments have equal lengths. None if the goal is where
-    the robot stands."""
-    t0, t1 = _unit(heading), _unit(goal_heading)
-    v = goal - position
-    vv, vt, c = float(v @ v), float(v @ (t0 + t1)), float(t0 @ t1)
-    if vv == 0.0:
-        return None
-    if 1.0 - c < 1e-12:
-        d = vv / (2.0 * vt)
-    else:
-        d = (-vt + math.sqrt(vt * vt + 2.0 * (1.0 - c) * vv)) / (2.0 * (1.0 - c))
-    q0, q1 = position + d * t0, goal - d * t1
-    return 0.5 * (q0 + q1), q1 - q0
-
-
-def biarc_first_arc(position: np.ndarray, heading: float, goal: np.ndarray,
-                    goal_heading: float) -> tuple[float, float]:
-    """Length and turn of the first arc of the biarc from ``position`` (tangent ``heading``)
-    to ``goal`` (tangent ``goal_heading``), the goal ahead: the arc the controller drives
-    (:func:`biarc` gives both)."""
-    junction = _biarc_junction(position, heading, goal, goal_heading)
-    return (0.0, 0.0) if junction is None else _arc_to(position, heading, junction[0])
-
-
-def biarc(position: np.ndarray, heading: float, goal: np.ndarray,
-          goal_heading: float) -> tuple[tuple[float, float], tuple[float, float]]:
-    """The two arcs, (length, turn) each, of the biarc from ``position`` (tangent ``heading``)
-    to ``goal`` (tangent ``goal_heading``), the goal ahead: two circular arcs with a common
-    tangent, whose tangent segments have equal lengths (a goal where the robot stands: a turn
-    in place)."""
-    junction = _biarc_junction(position, heading, goal, goal_heading)
-    if junction is None:
-        return (0.0, 0.0), (0.0, wrap(goal_heading - heading))
-    point, tangent = junction
-    return (_arc_to(position, heading, point),
-            _arc_to(point, math.atan2(tangent[1], tangent[0]), goal))
-
-
-def _turn_steps(angle: float, limits: Limits) -> int:
-    """Control steps needed to turn by ``angle`` at the top turn rate."""
-    return math.ceil(abs(angle) / (limits.max_turn * limits.step) - 1e-9)
-
-
-def pose_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: np.ndarray,
-                 goal_heading: float, steps_left: int,
-                 limits: Limits) -> tuple[float, float]:
-    """The speed and turn rate of the next control step, saturated (module docstring).
-
-    In the frame of the goal heading the goal lies ``ahead`` and ``aside`` (a goal behind is
-    driven to in reverse). With ``back`` the steps needed to turn onto the goal heading:
-
-    - the last ``back`` steps (at least the last one) turn onto the goal heading and cover
-      the distance along it (the heading comes first: it sets the rod of the follower behind);
-    - a goal an S-curve can reach (``|aside| <= ahead tan(θ/2)``, ``θ = min(π/2, ω_max τ/2)``,
-      ``τ`` the time left) is driven to along a biarc: this step drives its first arc, timed
-      to end when half the time left is over;
-    - a goal further aside is reached by turning to face it, driving to it and turning back
-      (point turns), when the steps left allow the turns at the top turn rate; else the step
-      drives the biarc towards the nearest point an S-curve can reach.
+def step_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: np.ndarray,
+                 goal_heading: float, spread: float, speed: float, step: int,
+                 limits: Limits, end: int | None = None) -> tuple[float, float, float]:
+    """The speed and turn rate of control step ``step`` (module docstring), within the limits,
+    and the chart turn it means (for the heading filter).
 
     Parameters
     ----------
     position, goal : ndarray, shape (2,)
         Where the robot believes it is and where it is going (local frame, same origin).
     heading, goal_heading : float
-        Compass angles (rad) of its heading now and of the heading wanted at the goal.
+        Compass angles (rad) of its heading now (filtered) and of the heading wanted at the
+        goal.
     slope : ndarray, shape (2,)
         The slope reading ``(∂F/∂x, ∂F/∂y)`` under the robot.
-    steps_left : int
-        Control steps left in the phase, this one included (``>= 1``).
+    spread : float
+        The σ of the goal's position (m, per coordinate): offsets within it are barely
+        corrected.
+    speed : float
+        The speed the last step commanded (0 when the tick begins: a tick starts at rest).
+    step : int
+        The step's index in the tick.
     limits : Limits
+    end : int, optional
+        The step by which to be at the goal and at rest (default: the tick's end).
 
     Returns
     -------
-    v, omega : float
-        m of arc per time unit, rad per time unit; within the limits.
+    v, omega, turn : float
+        m of arc per time unit and rad per time unit (within the limits), and the chart turn
+        (rad) over the step.
     """
-    if steps_left < 1:
-        raise ValueError(f"steps_left must be >= 1, got {steps_left}")
-    tau = steps_left * limits.step
-    axis = _unit(goal_heading)
+    if not 0 <= step < len(limits.durations):
+        raise ValueError(f"step must be in 0..{len(limits.durations) - 1}, got {step}")
+    dt = limits.durations[step]
+    end = len(limits.durations) if end is None else max(end, step + 1)
+    time = sum(limits.durations[step:])  # to the tick's end
     offset = goal - position
-    ahead, aside = float(offset @ axis), _cross(axis, offset)
-    direction = 1.0
-    if ahead < 0.0:  # reverse: plan as the robot facing backwards
-        direction, heading, goal_heading = -1.0, heading + math.pi, goal_heading + math.pi
-        axis, ahead, aside = -axis, -ahead, -aside
-    back = max(1, _turn_steps(wrap(goal_heading - heading), limits))
-    if steps_left <= back:  # turn onto the goal heading, covering the distance along it
-        turn = wrap(goal_heading - heading)
-        along = wrap(heading + turn / 2.0 - goal_heading)
-        chord = ahead / math.cos(along) if abs(along) < math.pi / 2 else 0.0
-        speed, rate = _arc_length(chord, turn / 2.0) / tau, turn / tau
-    else:
-        s_turn = min(MAX_S_TURN, limits.max_turn * tau / 2.0)
-        speed, rate = _approach(position, heading, goal, goal_heading, ahead, aside, s_turn,
-                                steps_left, limits)
+    axis = _unit(goal_heading)
+    along, aside = float(offset @ axis), _cross(axis, offset)
+    line = goal_heading if along >= 0.0 else goal_heading + math.pi
+    if along < 0.0:
+        along, aside = -along, -aside
+    floor = 3.0 * spread + MIN_CHORD * limits.spacing
+    aside *= _weight(aside * aside, floor * floor)
+    ahead = max(0.5 * along, floor)
+    bend = math.atan2(aside, ahead)
+    left = max(time - dt, 0.0)  # turn out now, and back in time
+    room = 0.5 * limits.max_turn * left if left > 0.0 else 0.0
+    bend = max(-room, min(room, bend))
+    course = wrap(line + bend)  # the direction to travel
+    error = wrap(course - heading)
+    direction = 1.0 if math.cos(error) >= 0.0 else -1.0
+    if direction < 0.0:
+        error = wrap(error + math.pi)
+    distance = math.hypot(offset[0], offset[1]) * max(math.cos(error), 0.0)
     along_slope = slope[0] * math.cos(heading) + slope[1] * math.sin(heading)
-    v = direction * speed * math.sqrt(1.0 + along_slope * along_slope)
-    omega = metric_angle(slope, heading, heading + rate * limits.step) / limits.step
-    return (float(np.clip(v, -limits.max_speed, limits.max_speed)),
-            float(np.clip(omega, -limits.max_turn, limits.max_turn)))
+    stretch = math.sqrt(1.0 + along_slope * along_slope)  # m of arc per m of chart
+    v = direction * _timed_speed(distance, direction * speed, step, end, limits, stretch)
+    v = max(-limits.max_speed, min(limits.max_speed, v))
+    turn = error
+    omega = metric_angle(slope, heading, heading + turn) / dt
+    if abs(omega) > limits.max_turn:  # the chart turn of what it can turn
+        omega = math.copysign(limits.max_turn, omega)
+        turn = chart_turn(slope, heading, omega * dt)
+    return float(v), float(omega), float(turn)
 
 
 def metric_angle(slope: np.ndarray, start: float, end: float) -> float:
@@ -270,90 +364,108 @@ def metric_angle(slope: np.ndarray, start: float, end: float) -> float:
     return angle
 
 
-def _approach(position: np.ndarray, heading: float, goal: np.ndarray, goal_heading: float,
-              ahead: float, aside: float, s_turn: float, steps_left: int,
-              limits: Limits) -> tuple[float, float]:
-    """Chart speed and turn rate of a step before the final turn (see :func:`pose_command`;
-    the robot faces forwards here, the goal is not behind it)."""
-    step = limits.step
-    reach = ahead * math.tan(s_turn / 2.0)
-    if abs(aside) > max(reach, limits.tolerance):  # further aside than an S-curve reaches
-        bearing = math.atan2(goal[1] - position[1], goal[0] - position[0])
-        face = wrap(bearing - heading)
-        back = max(1, _turn_steps(wrap(goal_heading - bearing), limits))
-        if _turn_steps(face, limits) + 1 + back <= steps_left:  # the point turns fit
-            if abs(face) > s_turn / 2.0:
-                return 0.0, face / step  # turn to face the goal
-            length, turn = _arc_to(position, heading, goal)
-            drive = (steps_left - back) * step
-            return length / drive, turn / drive
-        aside = math.copysign(reach, aside)  # the part an S-curve reaches
-    axis = _unit(goal_heading)
-    target = position + ahead * axis + aside * np.array([-axis[1], axis[0]])
-    length, turn = biarc_first_arc(position, heading, target, goal_heading)
-    first = steps_left / 2 * step  # the biarc's two arcs share the time left
-    return length / first, turn / first
+def chart_turn(slope: np.ndarray, start: float, angle: float) -> float:
+    """The chart turn from the chart direction ``start`` that is the metric angle ``angle``
+    (|angle| < π; the inverse of :func:`metric_angle`)."""
+    a = _unit(start)
+    g = np.eye(2) + np.outer(slope, slope)
+    b = np.array([-a[1], a[0]])  # a chart normal, then made g-orthogonal to a, g-unit
+    b = b - (a @ g @ b) / (a @ g @ a) * a
+    a, b = a / math.sqrt(a @ g @ a), b / math.sqrt(b @ g @ b)
+    direction = math.cos(angle) * a + math.sin(angle) * b
+    return wrap(math.atan2(direction[1], direction[0]) - start)
+
+
+class _Fixed:
+    """Where a point that does not move within the tick is (the rod end), in the tick's frame,
+    from every reading of it so far: each reading (dead-reckoned position plus the sensed offset)
+    weighted by the inverse of its declared variance, the reading's (range and bearing at its
+    distance) plus the dead
+    reckoning's drift since it (the odometry's variance per step); without noise, the latest."""
+
+    def __init__(self, limits: Limits) -> None:
+        self.limits = limits
+        self.points: list[tuple[np.ndarray, float]] = []
+
+    def add(self, position: np.ndarray, offset: np.ndarray) -> None:
+        distance = math.hypot(offset[0], offset[1])
+        self.points.append((position + offset, self.limits.reading_variance(distance)))
+
+    def drift(self, step: int) -> None:
+        """Step ``step`` was driven: every earlier reading drifts by its odometry noise."""
+        if self.limits.odometry_variance:
+            extra = 2.0 * self.limits.odometry_variance[step]
+            self.points = [(p, v + extra) for p, v in self.points]
+
+    def estimate(self) -> tuple[np.ndarray, float]:
+        """The goal and its σ per coordinate."""
+        if self.points[-1][1] == 0.0:
+            return self.points[-1][0], 0.0
+        weights = np.array([1.0 / v for _, v in self.points])
+        goal = sum(w * p for w, (p, _) in zip(weights, self.points)) / weights.sum()
+        return goal, math.sqrt(0.5 / weights.sum())
 
 
 @dataclass(frozen=True)
 class Driven:
     """How a driving tick went: ``moved`` is the sensing after the move phase, ``travelled``
-    the displacement the odometry summed over it (local frame, from the tick's start)."""
+    the displacement the odometry summed over it (local frame, from the tick's start), and,
+    when the rod end was in range, ``residual``: where the robot believes the rod end is from
+    where it settled (its best estimate, after every reading) and that estimate's variance
+    (both coordinates together)."""
 
     moved: Sensing
     travelled: np.ndarray
-
-
-@dataclass(frozen=True)
-class _Reckoned:
-    """What a driving follower knows of its pose within a tick: its dead-reckoned position
-    (local frame, from the tick's start), its compass heading and the slope under it."""
-
-    position: np.ndarray
-    heading: float
-    slope: np.ndarray
-
-
-def _drive_phase(act: Callable[[Control], ActSensing], tick: int, first: int, steps: int,
-                 pose: _Reckoned, target: np.ndarray, target_heading: float, limits: Limits,
-                 reread: bool) -> tuple[_Reckoned, ActSensing | None]:
-    """Drive ``steps`` control steps (numbered from ``first``) towards ``target`` with
-    ``target_heading``, re-aiming at the rod end after every step if ``reread``; return the
-    pose after them and the last reply (None if no step)."""
-    reply = None
-    for left in range(steps, 0, -1):
-        step = first + steps - left
-        v, omega = pose_command(pose.position, pose.heading, pose.slope, target, target_heading,
-                                left, limits)
-        given = (float(target[0]), float(target[1])) if step == 0 else None
-        reply = act(Control(tick=tick, step=step, speed=v, turn=omega, goal=given))
-        pose = _Reckoned(pose.position + np.asarray(reply.odometry), reply.compass,
-                         np.asarray(reply.slope))
-        if reread and reply.rod is not None:
-            target = pose.position + np.asarray(reply.rod)
-    return pose, reply
+    residual: np.ndarray | None = None
+    residual_variance: float = 0.0
 
 
 def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndarray,
-               settings: AgentSettings, limits: Limits) -> Driven:
-    """Drive one tick's control steps: to ``goal`` (an offset from where the follower stands
-    at ``pre``), then onto the rod end (re-read after every step) if it is in range after the
-    move phase. ``act`` sends one :class:`Control` and returns the world's reply; ``limits``
-    are the follower's (:meth:`Limits.from_settings`)."""
+               settings: AgentSettings, limits: Limits, track: Track | None = None) -> Driven:
+    """Drive one tick's control steps: towards ``goal`` (an offset from where the follower
+    stands at ``pre``), then onto the rod end read after the move phase (re-read after every
+    step), ending at rest when the tick's comm interval ends. ``act`` sends one
+    :class:`Control` and returns the world's reply; ``limits`` are the follower's
+    (:meth:`Limits.from_settings`); ``track`` its last displacements (without one, the
+    ``pre`` sensing's odometry reading is the only one known)."""
     if pre.compass is None or pre.slope is None:
         raise ValueError("a driving follower's sensing must carry its compass and slope")
-    previous = None if pre.velocity is None else settings.comm_period * np.asarray(pre.velocity)
+    if track is not None and track.steps:
+        previous = track.displacements()
+    elif pre.velocity is not None:
+        previous = (settings.comm_period * np.asarray(pre.velocity, dtype=float),)
+    else:
+        previous = ()
+    filtered = HeadingFilter(pre.compass, limits)
+    rod = _Fixed(limits)
+    position, slope, speed = np.zeros(2), np.asarray(pre.slope), 0.0
+    target, spread = np.asarray(goal, dtype=float), math.sqrt(0.5 * limits.chord_variance)
 
-    def heading_at(target: np.ndarray) -> float:
-        return goal_heading(pre.compass, target, previous, limits.chord_variance)
+    def heading_at(point: np.ndarray) -> float:
+        return goal_heading(pre.compass, point, previous, limits.chord_variance,
+                            limits.spacing)
 
-    target = np.asarray(goal, dtype=float)
-    pose = _Reckoned(np.zeros(2), pre.compass, np.asarray(pre.slope))
-    pose, reply = _drive_phase(act, pre.tick, 0, settings.control_steps, pose, target,
-                               heading_at(target), limits, reread=False)
-    moved, travelled = reply.sensing, pose.position.copy()
-    if moved.rod is not None:  # else out of range: no correction (a lost tick)
-        target = pose.position + np.asarray(moved.rod)
-        _drive_phase(act, pre.tick, settings.control_steps, settings.snap_steps, pose, target,
-                     heading_at(target), limits, reread=True)
-    return Driven(moved, travelled)
+    wanted = heading_at(target)
+    moved, travelled, reply = pre, np.zeros(2), None
+    reserve = settings.control_steps + settings.snap_steps // 2  # the move phase's end
+    for step in range(settings.tick_steps):
+        v, omega, turn = step_command(position, filtered.heading, slope, target, wanted,
+                                      spread, speed, step, limits,
+                                      reserve if step < settings.control_steps else None)
+        given = (float(target[0]), float(target[1])) if step == 0 else None
+        reply = act(Control(tick=pre.tick, step=step, speed=v, turn=omega, goal=given))
+        odometry = np.asarray(reply.odometry)
+        position, slope, speed = position + odometry, np.asarray(reply.slope), v
+        filtered.step(step, turn, v, reply.compass, odometry)
+        rod.drift(step)
+        if step == settings.control_steps - 1:
+            moved, travelled = reply.sensing, position.copy()
+        if step >= settings.control_steps - 1 and moved.rod is not None:
+            if reply.rod is not None:
+                rod.add(position, np.asarray(reply.rod))
+            target, spread = rod.estimate()
+        wanted = heading_at(target)
+    if moved.rod is None or not rod.points:
+        return Driven(moved, travelled)
+    best, sigma = rod.estimate()
+    return Driven(moved, travelled, best - position, 2.0 * sigma * sigma)

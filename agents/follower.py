@@ -12,13 +12,16 @@ observation and the rod. Three round trips to the world per tick.
 With ``--motion drive`` the move and the snap are control steps (:mod:`agents.drive`: one
 round trip each, to the estimate — in the initial ticks to the rod end sensed at ``pre`` —
 then onto the rod end), and the snap request only settles the follower where it stands. The
-controller's state lives within the tick (its dead reckoning starts afresh at every tick), so
-the replay log needs nothing more: a tick redone after a restart is driven again from its start.
+controller's state lives within the tick (its dead reckoning starts afresh at every tick) but
+for its track of past displacements, which it learns from the settled sensing as the policy
+does, so the replay log rebuilds both: a tick redone after a restart is driven again from its
+start.
 """
 from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +31,7 @@ import zenoh
 
 from agents.checkpoint import Entry, StateLog, replay
 from agents.cli import parser, run_cli
-from agents.drive import Limits, drive_tick
+from agents.drive import Driven, Limits, Track, drive_tick
 from agents.link import AgentAbort, AgentLink, MarkedMissed, Rejoin, RunFinished
 from agents.policies import (
     Before,
@@ -82,10 +85,32 @@ def displacement(offset: np.ndarray, pre: Sensing, moved: Sensing,
     return target + weight * (relative(pre) - relative(moved) - offset)
 
 
+def at_rod_end(settled: Sensing, driven: Driven) -> Sensing:
+    """The settled sensing of a driving follower as seen from the rod end it drove onto: the
+    leader reading shifted by the follower's best estimate of the rod end's offset
+    (:class:`agents.drive.Driven`), weighted ``|e|² / (|e|² + 9 var)`` by its declared variance.
+
+    A follower that settled off its rod end would otherwise give its estimator a relative
+    position the formation never had; its estimator learns the formation's relative motion
+    (design §6), and the follower's own offset is what its next estimate corrects for anyway
+    (it is sensed from where it stands). The weight leaves a settle within the reading's
+    noise as it is (a shift would only add that noise) and shifts one clearly off by its whole
+    offset; without noise, by the exact offset."""
+    residual = driven.residual
+    if residual is None:
+        return settled
+    square = float(residual @ residual)
+    weight = 0.0 if square == 0.0 else square / (square + 9.0 * driven.residual_variance)
+    x, y = relative(settled) - weight * residual
+    return dataclasses.replace(settled, r=math.hypot(x, y), theta=math.atan2(y, x))
+
+
 def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick: int,
-                  limits: Limits | None = None) -> TickOutcome:
+                  limits: Limits | None = None, track: Track | None = None) -> TickOutcome:
     """Run one tick of the follower; a driving follower's ``limits`` (built once,
-    :meth:`agents.drive.Limits.from_settings`) must be given."""
+    :meth:`agents.drive.Limits.from_settings`) must be given, and its ``track`` (its last
+    displacements, :class:`agents.drive.Track`) may be: the tick's settled sensing is added
+    to it."""
     pre = link.sense(tick, look=tick < settings.init_ticks or looks_before_moving(policy))
     try:  # during the initial ticks the prediction is only scored, not followed
         proposal = policy.propose(pre)
@@ -93,11 +118,12 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
         followed, fallback = proposal.followed, proposal.fallback
     except NotReady:
         offset, prediction, followed, fallback = np.zeros(2), None, "", False
+    driven = None
     if settings.drives:  # control steps to the estimate, then onto the rod end
         if limits is None:
             raise ValueError("a driving follower's limits must be given")
         goal = np.asarray(pre.rod) if tick < settings.init_ticks else offset
-        driven = drive_tick(link.act, pre, goal, settings, limits)
+        driven = drive_tick(link.act, pre, goal, settings, limits, track)
         offset, moved = driven.travelled, driven.moved
     elif tick < settings.init_ticks:
         offset, moved = np.zeros(2), pre
@@ -105,18 +131,32 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
         moved = link.act(Move(tick=tick, offset=(float(offset[0]), float(offset[1])))).sensing
     snapped = link.act(Snap(tick=tick))
     lost, settled = not snapped.moved, snapped.sensing
+    if driven is not None and not lost:
+        settled = at_rod_end(settled, driven)
     target = None if lost or moved.rod is None else displacement(offset, pre, moved, settings)
     before = Before(pre=pre, moved=None if moved is pre else moved,
                     offset=(float(offset[0]), float(offset[1])))
     measurement = policy.learn(settled, target, before)
+    if track is not None:
+        track.record(settled, target)
     observation = Observation(tick=tick, estimator=policy.name, measurement=measurement,
                               prediction=prediction, lost=lost, followed=followed,
                               fallback=fallback)
     return TickOutcome(observation, settled, target, before)
 
 
+def _replay_track(track: Track, entries: list[Entry]) -> None:
+    """Rebuild a driving follower's track from its replay log (a missed tick breaks it, as it
+    does in the loop of :func:`run_follower`)."""
+    for entry in entries:
+        if entry.skips or entry.settled is None:
+            track.skip()
+        if entry.settled is not None:
+            track.record(entry.settled, None)
+
+
 def _join(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Policy, last: int,
-          state_dir: str | Path | None, again: bool
+          state_dir: str | Path | None, again: bool, track: Track
           ) -> tuple[StateLog | None, Policy, int, int, AgentSettings]:
     """Join the run, or join it ``again`` after :class:`agents.link.Rejoin`; return the state
     log (None without a state dir), the policy, the last tick it is through, the last tick
@@ -128,9 +168,9 @@ def _join(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Polic
     which tick the agent may act now). Log entries past that point describe ticks the world
     will run again (it restarted from its checkpoint, this agent died before reporting, or its
     session was cut while it stalled), so they are dropped and the policy is rebuilt from the
-    rest: the ticks are redone from the same state and the numbers are those of an
-    uninterrupted run. Without a state dir the policy can go on only if the world has the agent
-    through every tick the policy is through.
+    rest (and a driving follower's ``track`` with it): the ticks are redone from the same state
+    and the numbers are those of an uninterrupted run. Without a state dir the policy can go
+    on only if the world has the agent through every tick the policy is through.
     """
     joined = link.join(settings.start_timeout)
     through = joined.through
@@ -156,6 +196,8 @@ def _join(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Polic
         state.append(kept[-1])
         last = through
     replay(policy, kept)
+    track.skip()
+    _replay_track(track, kept)
     if entries:
         log.info("follower %d: restored %d ticks of history from %s", agent_id, len(kept),
                  state.path)
@@ -176,12 +218,13 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
     if not 1 <= agent_id <= settings.followers:
         raise ValueError(f"--id must be in 1..{settings.followers} for this run, got {agent_id}")
     policy = make_policy(settings)
+    track = Track(settings.comm_period)
     link = AgentLink.for_agent(session, settings, agent_id)
     state, last, again = None, -1, False
     try:
         while True:
             state, policy, last, tick, settings = _join(link, settings, agent_id, policy, last,
-                                                        state_dir, again)
+                                                        state_dir, again, track)
             limits = Limits.from_settings(settings) if settings.drives else None
             timeout = settings.start_timeout
             try:
@@ -193,10 +236,12 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
                         raise AgentAbort(f"tick {tick} is past this run's {settings.ticks} ticks")
                     for _ in range(skips):
                         policy.skip()
+                        track.skip()
                     last = tick - 1
                     try:
-                        outcome = follower_tick(link, policy, settings, tick, limits)
+                        outcome = follower_tick(link, policy, settings, tick, limits, track)
                     except MarkedMissed:
+                        track.skip()
                         entry = Entry(tick=tick, skips=skips, settled=None, target=None)
                         outcome = None
                     else:

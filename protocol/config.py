@@ -68,6 +68,8 @@ wall clock (``time_scale`` wall-clock seconds per simulated second) and lockstep
 as fast as it can; timeouts are wall-clock seconds."""
 SPEED, TURN = f"{LENGTH}/{TIME}", f"rad/{TIME}"
 """A speed (along the surface) and a turn rate (in its metric)."""
+ACCEL = f"{LENGTH}/{TIME}²"
+"""An acceleration (along the surface)."""
 
 MAX_COORDINATE = 1e9  # bound on a leader start component and on a surface parameter
 MAX_SURFACE_PARAMS = 32
@@ -76,6 +78,14 @@ _PARAM_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,31}")
 MAX_CONFIG_BYTES = 64 * 1024  # a real run.toml is under 2 KiB
 MAX_CONFIG_DEPTH = 3  # real files have 2: the file's table, and surface_params or leader_start
 MAX_TIMEOUT = 3600.0  # seconds: a day-long wait is never meant
+CORRECTION_SHARE = 1.0 / 3.0
+"""The share of a comm interval a driving follower's correction window takes (design §4): the
+move phase has the rest, so the rod end is read at the same time whatever the step counts."""
+ACCEL_FACTOR = 4.0
+"""``max_accel``'s default, in ``max_speed / comm_period``: top speed from rest in a quarter
+of a comm period (docs/drive.md)."""
+FORMATION_TOLERANCE = 1.0
+"""``formation_tolerance``'s default, metres (docs/drive.md)."""
 
 
 @dataclass(frozen=True)
@@ -261,6 +271,16 @@ class RunConfig:
     noise_turn: float = option(0.0, "drive: σ of the turn rate's actuation per control step",
                                unit=TURN, low=0.0, high=1e3, agents=True,
                                needs=("motion", "drive"))
+    max_accel: float | None = option(None, "drive: top forward acceleration along the "
+                                     f"surface; unset: {ACCEL_FACTOR:g} × max speed / comm "
+                                     "period, top speed from rest in a quarter comm period",
+                                     value_type=float, unit=ACCEL, low=0.0, high=math.inf,
+                                     low_open=True, agents=True, needs=("motion", "drive"))
+    formation_tolerance: float = option(FORMATION_TOLERANCE, "how far a follower may settle "
+                                        "from its place in the ideal formation before the tick "
+                                        "counts as broken formation (a run with one fails)",
+                                        unit=LENGTH, low=0.0, high=math.inf, low_open=True)
+
     def __post_init__(self) -> None:
         check_run_id(self.run_id)
         if (not isinstance(self.surface, str) or not 0 < len(self.surface) <= MAX_SURFACE_NAME
@@ -303,6 +323,51 @@ class RunConfig:
     def drives(self) -> bool:
         """Whether the followers drive (``motion = "drive"``) instead of being relocated."""
         return self.motion == "drive"
+
+    @property
+    def accel_limit(self) -> float:
+        """A driving follower's top forward acceleration: ``max_accel``, by default
+        :data:`ACCEL_FACTOR` × ``max_speed`` / ``comm_period`` (``max_speed`` resolved)."""
+        if self.max_accel is not None:
+            return self.max_accel
+        if self.max_speed is None:
+            raise ValueError("max_speed must be resolved before the default max_accel")
+        return ACCEL_FACTOR * self.max_speed / self.comm_period
+
+    @property
+    def tick_steps(self) -> int:
+        """A driving follower's control steps per tick: the move phase's, then the
+        correction window's."""
+        return self.control_steps + self.snap_steps
+
+    def step_duration(self, step: int) -> float:
+        """How long control step ``step`` of a tick lasts (design §4 "Motion"): the tick's
+        steps fill its comm interval, the move phase's ``control_steps`` its first
+        ``1 − CORRECTION_SHARE`` (all of it without a correction window) and the correction
+        window's ``snap_steps`` the rest."""
+        if not 0 <= step < self.tick_steps:
+            raise ValueError(f"step must be in 0..{self.tick_steps - 1}, got {step}")
+        share = CORRECTION_SHARE if self.snap_steps else 0.0
+        if step < self.control_steps:
+            return self.comm_period * (1.0 - share) / self.control_steps
+        return self.comm_period * share / self.snap_steps
+
+    def step_start(self, step: int) -> float:
+        """When control step ``step`` begins, from the start of its tick's comm interval
+        (``step = tick_steps``: the interval's end)."""
+        share = CORRECTION_SHARE if self.snap_steps else 0.0
+        move = self.comm_period * (1.0 - share)
+        if step <= self.control_steps:
+            return move * step / self.control_steps
+        return move + self.comm_period * share * (step - self.control_steps) / self.snap_steps
+
+    def stop_time(self, step: int) -> float:
+        """The time a driving robot has to come to rest after control step ``step``: the
+        steps after it, then the settle, a stop within one last step's time (the speed a step
+        may hold is at most ``accel_limit`` × this)."""
+        last = self.tick_steps - 1
+        return self.step_start(self.tick_steps) - self.step_start(step + 1) \
+            + self.step_duration(last)
 
     def replace(self, **changes: Any) -> RunConfig:
         """A copy with ``changes`` applied (unknown names raise ValueError)."""
@@ -393,6 +458,11 @@ def _agent_settings() -> type:
                    "world option). :class:`AgentBrief` adds the agent's id.",
         "side_sign": RunConfig.side_sign,
         "drives": RunConfig.drives,
+        "accel_limit": RunConfig.accel_limit,
+        "tick_steps": RunConfig.tick_steps,
+        "step_duration": RunConfig.step_duration,
+        "step_start": RunConfig.step_start,
+        "stop_time": RunConfig.stop_time,
         "step_timeout": property(step_timeout),
         "from_config": classmethod(from_config),
     })

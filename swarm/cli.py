@@ -61,7 +61,8 @@ def option_help(declared: Option) -> str:
 
 
 CLI_DEFAULTS = {"run_id": "a new one from the clock", "leader_start": "the surface's",
-                "max_speed": "twice the leader's speed"}
+                "max_speed": "twice the leader's speed",
+                "max_accel": "4 × max speed / comm period"}
 """What ``swarm run`` takes for an option it is not given, where that is not the option's
 declared default."""
 
@@ -147,13 +148,15 @@ def parse_leader_start(text: str) -> tuple[float, ...]:
 def format_summary(summary: dict) -> str:
     """The per-follower table printed at the end of a run: the estimator's required range,
     the baselines (persist from the same noisy readings, its ratio, the noise-free persist
-    counterfactual) and what ``auto`` followed."""
+    counterfactual), the formation's health (mean and worst formation error, ticks beyond
+    the tolerance) and what ``auto`` followed."""
     from swarm.grid import table_number  # not at start-up: grid brings the process pool
 
     label = "required (" + summary["estimator"] + ")"
     width = max(20, len(label))
     head = (f"{'follower':>8}  {label:>{width}}  {'rmse':>8}  {'stay':>8}  {'persist':>8}  "
-            f"{'/persist':>8}  {'persist*':>8}  {'lost':>4}  {'missed':>6}  {'fallback':>8}")
+            f"{'/persist':>8}  {'persist*':>8}  {'lost':>4}  {'missed':>6}  {'fallback':>8}  "
+            f"{'formation':>9}  {'worst':>8}  {'broken':>6}")
     lines = [head, "-" * len(head)]
     shares = []
     for k, s in summary["followers"].items():
@@ -164,13 +167,18 @@ def format_summary(summary: dict) -> str:
             s.get("mean_persist_range_noise_free"))]
         lines.append(f"{k:>8}  {table_number(required):>{width}}  " + "  ".join(ranges)
                      + f"  {s['lost_ticks']:>4}  {s['missed_ticks']:>6}  "
-                     f"{s.get('fallback_ticks', 0):>8}")
+                     f"{s.get('fallback_ticks', 0):>8}  "
+                     f"{table_number(s.get('mean_formation_error')):>9}  "
+                     f"{table_number(s.get('worst_formation_error')):>8}  "
+                     f"{s.get('broken_ticks', 0):>6}")
         followed = s.get("followed") or {}
         if len(followed) > 1:
             shares.append(f"follower {k} followed " + ", ".join(
                 f"{name} {share:.0%}" for name, share in followed.items()))
     lines.append("persist: from the same (noisy) readings; persist*: its noise-free "
-                 "counterfactual; /persist: required over persist")
+                 "counterfactual; /persist: required over persist; formation, worst: mean and "
+                 "worst distance from the ideal formation; broken: ticks beyond "
+                 f"{summary.get('formation_tolerance', math.inf):g} m")
     if summary.get("motion") == "drive":
         lines += [f"follower {k} drove {s['path_length']:.4g} m: reach error "
                   f"{table_number(s['mean_reach_error'])}, snap error "
@@ -179,6 +187,10 @@ def format_summary(summary: dict) -> str:
                   "at a limit" for k, s in summary["followers"].items()]
     lines += shares
     state = "complete" if summary["complete"] else f"INCOMPLETE: {summary['reason']}"
+    if summary.get("formation_broken"):
+        broken = sum(s.get("broken_ticks", 0) for s in summary["followers"].values())
+        state += (f", FORMATION BROKEN: {broken} follower-ticks beyond "
+                  f"{summary['formation_tolerance']:g} m")
     lines.append(f"surface {summary['surface']}, comm period {summary['comm_period']} s, "
                  f"{summary['ticks_completed']} ticks, {summary['wall_time']:.1f} s wall, {state}")
     return "\n".join(lines)
@@ -310,10 +322,13 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, surface, out: P
         print(f"warning: {line}", file=sys.stderr)
     if not summary["complete"]:
         print(f"error: run incomplete: {summary['reason']}", file=sys.stderr)
+    elif summary.get("formation_broken"):  # one line says why: incompleteness first
+        print("error: the formation broke (a follower settled beyond --formation-tolerance)",
+              file=sys.stderr)
     if live is not None:
         print(f"live view still at {live.server.url} (Ctrl-C to quit)", flush=True)
         live.serve_until_interrupted()
-    return FAILED if empty or not summary["complete"] else 0
+    return FAILED if empty or not summary["complete"] or summary.get("formation_broken") else 0
 
 
 def cmd_watch(args: argparse.Namespace) -> int:

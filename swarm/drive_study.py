@@ -5,15 +5,19 @@ iterating on its own odometry, and the discrepancy accumulates) and never measur
 study does, with followers that drive (``--motion drive``): the required sensing range and the
 formation error against
 
-- the **control steps** per comm interval (2 … 64; the correction window kept at half a comm
-  period, ``snap_steps = control_steps / 2``, so only the granularity of control changes),
+- the **control steps** per comm interval (2 … 64, ``snap_steps = control_steps / 2``; the
+  correction window keeps its third of the comm period, so only the granularity of control
+  changes),
 - the **top speed**, as a multiple of the leader's speed (from just above it to unbounded),
 - the **comm period**, crossed with the top speed (the minimum top speed per surface and
   comm period comes from this block),
 
 on the paper's three surfaces and a DEM, for ``persist``, EDMD on dictionary b and ``auto``,
-with the teleporting column of the same setup as the reference. Runs are noise-free: the
-shortfalls measured are those of driving, not of sensing. Every run is the in-memory layout
+with the teleporting column of the same setup as the reference. Those runs are noise-free:
+the shortfalls measured are those of driving, not of sensing. A **noise** block adds the
+default robot under sensor noise (none, low, mid, high: σ_r/σ_θ 0, 0.01/0.005, 0.02/0.01,
+0.05/0.03) with 3 and 5 followers, each beside the same column teleporting, with every
+follower's mean formation error and the worst tick (issue #30). Every run is the in-memory layout
 (:mod:`swarm.local`, the same code and numbers as a Zenoh run), in a process pool.
 
 The **minimum top speed** of a column (surface, comm period, estimator) is the smallest top
@@ -47,7 +51,11 @@ REPO_DEM_START = (6.0, 8.0, 1.0, 0.0)  # the test terrain's leader start (tests/
 COLUMNS = ("surface", "estimator", "block", "motion", "comm_period", "control_steps",
            "snap_steps", "speed_factor", "max_speed", "ticks", "mean_required_range",
            "mean_formation_error", "last_formation_error", "mean_reach_error",
-           "mean_snap_error", "saturated_steps", "path_length", "complete")
+           "mean_snap_error", "saturated_steps", "path_length", "complete", "noise",
+           "followers", "formation_errors", "worst_formation_error", "broken_ticks")
+NOISE_LEVELS = {"none": (0.0, 0.0), "low": (0.01, 0.005), "mid": (0.02, 0.01),
+                "high": (0.05, 0.03)}
+"""The noise block's sensor noise, σ_r (m) and σ_θ (rad)."""
 MIN_SPEED_COLUMNS = ("surface", "comm_period", "estimator", "min_speed_factor", "min_speed",
                      "formation_at_min", "best_speed_factor", "formation_best",
                      "formation_unbounded")
@@ -66,6 +74,8 @@ class DriveStudySpec:
     base_factor: float = 2.0
     base_period: float = 1.28
     followers: int = 3
+    noise_levels: tuple[str, ...] = tuple(NOISE_LEVELS)
+    noise_followers: tuple[int, ...] = (3, 5)
     duration: float = 51.2  # time units per run on a preset (the paper's 40 ticks of 1.28)
     dem: str = str(REPO_DEM)
     dem_start: tuple[float, float, float, float] = REPO_DEM_START
@@ -74,7 +84,8 @@ class DriveStudySpec:
 
 QUICK = DriveStudySpec(surfaces=("wavy", "dem"), estimators=("persist",),
                        control_steps=(2, 8), speed_factors=(1.25, math.inf),
-                       comm_periods=(1.28,), followers=2, duration=12.8, dem_duration=12.8)
+                       comm_periods=(1.28,), followers=2, duration=12.8, dem_duration=12.8,
+                       noise_levels=("none", "high"), noise_followers=(2,))
 """A reduced grid to check the pipeline (``--quick``)."""
 
 
@@ -84,9 +95,10 @@ class StudyRun:
 
     surface: str
     estimator: str
-    block: str  # "steps", "speed" or "teleport"
+    block: str  # "steps", "speed", "teleport" or "noise"
     config: RunConfig
     speed_factor: float
+    noise: str = "none"
 
 
 def _surface_options(surface: str, spec: DriveStudySpec) -> tuple[dict, float]:
@@ -128,6 +140,20 @@ def study_runs(spec: DriveStudySpec) -> list[StudyRun]:
                 key = (surface, label, block, period, config.motion, config.control_steps,
                        config.snap_steps, config.max_speed)
                 runs.setdefault(key, StudyRun(surface, label, block, config, factor))
+            for level in spec.noise_levels:
+                sigma_r, sigma_t = NOISE_LEVELS[level]
+                for n in spec.noise_followers:
+                    for motion in ("drive", "teleport"):
+                        config = RunConfig(
+                            run_id="drive-study", followers=n, motion=motion,
+                            ticks=max(int(round(duration / spec.base_period)), 6),
+                            noise_range=sigma_r, noise_bearing=sigma_t, **options,
+                            **estimator_options(label),
+                            **({"max_speed": spec.base_factor * speed}
+                               if motion == "drive" else {}))
+                        runs[(surface, label, "noise", level, n, motion)] = StudyRun(
+                            surface, label, "noise", config,
+                            spec.base_factor if motion == "drive" else math.nan, level)
     return list(runs.values())
 
 
@@ -159,6 +185,12 @@ def _execute(run: StudyRun) -> dict:
         "saturated_steps": sum(f.get("saturated_steps", 0) for f in followers),
         "path_length": mean("path_length"),
         "complete": int(summary["complete"]),
+        "noise": run.noise, "followers": cfg.followers,
+        "formation_errors": " ".join(table_number(f.get("mean_formation_error"))
+                                     for f in followers),
+        "worst_formation_error": max((f.get("worst_formation_error") or 0.0)
+                                     for f in followers),
+        "broken_ticks": sum(f.get("broken_ticks", 0) for f in followers),
     }
 
 
@@ -216,7 +248,8 @@ def write_report(out_dir: Path, rows: list[dict], minimum: list[dict], spec: Dri
     """``report.md``: the headline numbers of the study."""
     lines = ["# Driving followers: the study", "",
              f"`python -m swarm experiment drive`; {len(rows)} runs, {wall_time:.0f} s wall "
-             f"time. Noise-free; {spec.followers} followers; table `tables/drive.csv`, figure "
+             f"time. Noise-free but for the noise block; {spec.followers} followers but in it; "
+             "table `tables/drive.csv`, figure "
              "`figures/drive.png`.", "",
              "## Minimum top speed (multiple of the leader's speed)", "",
              f"The smallest top speed tried ({', '.join(_factor(f) for f in spec.speed_factors)}"
@@ -240,7 +273,8 @@ def write_report(out_dir: Path, rows: list[dict], minimum: list[dict], spec: Dri
             lines.append(f"| {surface} | {period:g} | " + " | ".join(cells) + " |")
     lines += ["", "## Formation error against control steps", "",
               f"T_c = {spec.base_period:g}, top speed {spec.base_factor:g}× the leader's, "
-              "correction window half a comm period; teleport: the same column teleporting.",
+              "correction window a third of the comm period; teleport: the same column "
+              "teleporting.",
               ""]
     head = ["surface", "estimator", *[str(n) for n in spec.control_steps], "teleport"]
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -255,11 +289,52 @@ def write_report(out_dir: Path, rows: list[dict], minimum: list[dict], spec: Dri
                     and r["estimator"] == label and r["comm_period"] == spec.base_period]
             cells.append(table_number(tele[0]["mean_formation_error"]) if tele else "-")
             lines.append(f"| {surface} | {label} | " + " | ".join(cells) + " |")
+    lines += _noise_table(rows, spec)
     incomplete = [r for r in rows if not r["complete"]]
     lines += ["", f"Runs that ended early: {len(incomplete)}."]
     path = out_dir / "report.md"
     write_atomic(path, "\n".join(lines) + "\n")
     return path
+
+
+def _noise_table(rows: list[dict], spec: DriveStudySpec) -> list[str]:
+    """The report's noise block: per surface, estimator, noise level and column length, the
+    required range and every follower's mean formation error (follower 1 first) driving and
+    teleporting, the worst tick driving, and issue #30's bound on the last follower
+    (drive ≤ 2 × teleport + 0.05 m)."""
+    noisy = [r for r in rows if r["block"] == "noise"]
+    if not noisy:
+        return []
+    levels = ", ".join(f"{name} {r:g}/{t:g}" for name, (r, t) in NOISE_LEVELS.items())
+    lines = ["", "## Under sensor noise", "",
+             f"The default robot ({spec.base_steps} control steps, top speed "
+             f"{spec.base_factor:g}× the leader's, T_c = {spec.base_period:g}) under sensor "
+             f"noise σ_r/σ_θ ({levels}), beside the same column teleporting. Formation error "
+             "per follower (mean over the run, follower 1 first); worst: the largest any "
+             "follower settled with; bound: the last follower's mean driving is within 2 × "
+             "teleport's + 0.05 m.", "",
+             "| surface | estimator | noise | N | required, drive | required, teleport | "
+             "formation per follower, drive | formation per follower, teleport | worst, "
+             "drive | bound |", "|" + "---|" * 10]
+    for surface in spec.surfaces:
+        for label in spec.estimators:
+            for level in spec.noise_levels:
+                for n in spec.noise_followers:
+                    cell = {r["motion"]: r for r in noisy if r["surface"] == surface
+                            and r["estimator"] == label and r["noise"] == level
+                            and r["followers"] == n}
+                    if len(cell) < 2:
+                        continue
+                    d, t = cell["drive"], cell["teleport"]
+                    ok = d["last_formation_error"] <= 2 * t["last_formation_error"] + 0.05
+                    lines.append(
+                        f"| {surface} | {label} | {level} | {n} | "
+                        f"{table_number(d['mean_required_range'])} | "
+                        f"{table_number(t['mean_required_range'])} | {d['formation_errors']} | "
+                        f"{t['formation_errors']} | "
+                        f"{table_number(d['worst_formation_error'])} | "
+                        f"{'yes' if ok else 'NO'} |")
+    return lines
 
 
 def _factor(x: float) -> str:

@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from agents.drive import Limits
+from agents.drive import Limits, Track
 from agents.follower import follower_tick
 from agents.policies import Policy, estimator_settings, make_policy
 from protocol.config import AgentSettings, RunConfig
@@ -89,6 +89,7 @@ def _simulate(config: RunConfig, out_dir: str | Path | None,
     settings = AgentSettings.from_config(config)
     limits = Limits.from_settings(settings) if settings.drives else None
     policies = [policy_factory(estimator_settings(settings)) for _ in range(config.followers)]
+    tracks = [Track(settings.comm_period) for _ in range(config.followers)]
     links = [LocalLink(sim, 0)] + [link_factory(sim, k)
                                    for k in range(1, config.followers + 1)]
     recorder = RunRecorder(out_dir, config)
@@ -101,7 +102,7 @@ def _simulate(config: RunConfig, out_dir: str | Path | None,
         if k == 0:
             links[0].act(Drive(tick=tick, t=sim.time_of(tick)))
             return
-        outcome = follower_tick(links[k], policies[k - 1], settings, tick, limits)
+        outcome = follower_tick(links[k], policies[k - 1], settings, tick, limits, tracks[k - 1])
         observations.setdefault(tick, []).append((k, LocalLink.wire(outcome.observation)))
 
     # the service's tick order (world.schedule); an action that meets a condition ending the

@@ -362,8 +362,9 @@ def driven_paths(config: RunConfig, surface: Surface, rows: list[dict],
     Tick ``j`` starts from the pose the follower settled at in tick ``j - 1`` (``ticks.csv``'s
     position and heading; tick 0 from its place in the starting column,
     :func:`world.geometry.column`) and drives each of the tick's steps in ``controls.csv`` at
-    its achieved speed and turn rate for ``T_c / control_steps`` (:func:`world.motion.drive`,
-    as the world moved it). A tick's path therefore ends where the follower settled, lost and
+    its achieved speed and turn rate for the step's duration (``config.step_duration``)
+    (:func:`world.motion.drive`, as the world moved it). A tick's path therefore ends where the
+    follower settled, lost and
     missed ticks included (a missed tick keeps the steps it drove).
 
     Parameters
@@ -392,7 +393,6 @@ def driven_paths(config: RunConfig, surface: Surface, rows: list[dict],
     steps: dict[tuple[int, int], list[dict]] = {}
     for c in controls:
         steps.setdefault((c["tick"], c["agent"]), []).append(c)
-    duration = config.comm_period / config.control_steps
     paths: dict[int, list[np.ndarray]] = {}
     for k in range(1, config.followers + 1):
         pos, heading = positions[k], headings[k]
@@ -401,7 +401,8 @@ def driven_paths(config: RunConfig, surface: Surface, rows: list[dict],
             points = [pos]
             for c in steps.get((row["tick"], k), ()):
                 pos, heading = motion.drive(surface, pos, heading, c["achieved_speed"],
-                                            c["achieved_turn"], duration)
+                                            c["achieved_turn"],
+                                            config.step_duration(c["step"]))
                 points.append(pos)
             paths[k].append(np.array(points))
             pos = np.array([row["pos_x"], row["pos_y"]])

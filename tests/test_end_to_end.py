@@ -21,7 +21,8 @@ from world.surfaces import make_surface
 ROOT = Path(__file__).resolve().parents[1]
 SUMMARY_KEYS = {"mean_required_range", "rmse", "mean_stay_range", "mean_persist_range",
                 "mean_persist_range_noise_free", "mean_floor_range", "lost_ticks", "missed_ticks",
-                "estimated_ticks", "fallback_ticks", "followed", "mean_formation_error"}
+                "estimated_ticks", "fallback_ticks", "followed", "mean_formation_error",
+                "worst_formation_error", "broken_ticks"}
 
 
 def _numbers(run_dir: Path) -> tuple[str, dict]:

@@ -76,7 +76,10 @@ class ExactSum:
 class _FollowerMetrics:
     """One follower's running totals for ``summary.json``."""
 
-    def __init__(self) -> None:
+    def __init__(self, tolerance: float = math.inf) -> None:
+        self.tolerance = tolerance
+        self.worst: float | None = None
+        self.broken = 0
         self.required, self.squares = ExactSum(), ExactSum()
         self.stay, self.persist, self.persist_noise_free = ExactSum(), ExactSum(), ExactSum()
         self.floor, self.formation = ExactSum(), ExactSum()
@@ -84,10 +87,16 @@ class _FollowerMetrics:
         self.lost = self.missed = self.fallback = self.saturated = 0
         self.followed: dict[str, int] = {}
 
-    def add_row(self, row: dict) -> None:
+    def add_row(self, row: dict, cut: bool = False) -> None:
+        """Count one row; ``cut``: the column was cut ahead of (or at) this follower in this
+        tick (a missed agent), so its formation error is no broken tick nor its worst."""
         self.lost += row.get("lost") or 0
         self.missed += row.get("missed") or 0
         self.saturated += row.get("saturated_steps") or 0
+        error = row.get("formation_error")
+        if error is not None and not cut:
+            self.worst = error if self.worst is None else max(self.worst, error)
+            self.broken += error > self.tolerance
         for total, name in ((self.formation, "formation_error"), (self.reach, "reach_error"),
                             (self.snap, "snap_error"), (self.path, "path_length")):
             if row.get(name) is not None:
@@ -120,6 +129,8 @@ class _FollowerMetrics:
             "fallback_ticks": self.fallback,
             "followed": _shares(self.followed),
             "mean_formation_error": self.formation.mean(),
+            "worst_formation_error": self.worst,
+            "broken_ticks": self.broken,
         }
 
     def drive_summary(self) -> dict:
@@ -152,7 +163,8 @@ class RunRecorder:
         self.out_dir = None if out_dir is None else Path(out_dir)
         self.config = config
         self.ticks_done = 0
-        self._metrics = {k: _FollowerMetrics() for k in range(1, config.followers + 1)}
+        self._metrics = {k: _FollowerMetrics(config.formation_tolerance)
+                         for k in range(1, config.followers + 1)}
         self._files: dict[str, AppendFile] = {}
         self._tables = {TICKS_FILE: TICK_COLUMNS, OBS_FILE: OBS_COLUMNS}
         if config.drives:
@@ -181,8 +193,8 @@ class RunRecorder:
             else:
                 self._files[name].cut(resume_offsets[name])
         if resume_offsets is not None:
-            for row in ticks:
-                self._count_row(row)
+            for tick in _by_tick(ticks):
+                self._count_rows(tick)
             for row in observations:
                 self._count_observation(row)
         write_atomic(self.out_dir / RESERVE_FILE, bytes(self.reserve_bytes()))
@@ -235,10 +247,16 @@ class RunRecorder:
         """Byte length of each CSV file after the last complete tick."""
         return {name: fh.size for name, fh in self._files.items()}
 
-    def _count_row(self, row: dict) -> None:
-        if row["agent"] in self._metrics:
-            self._metrics[row["agent"]].add_row(row)
-        self.ticks_done = max(self.ticks_done, row["tick"] + 1)
+    def _count_rows(self, rows: list[dict]) -> None:
+        """Count one tick's rows (in agent order). From the first agent that missed the tick
+        on, the column was cut: those followers' formation errors count towards no broken
+        tick (the missed ticks are counted as such)."""
+        cut = False
+        for row in rows:
+            cut = cut or bool(row.get("missed"))
+            if row["agent"] in self._metrics:
+                self._metrics[row["agent"]].add_row(row, cut)
+            self.ticks_done = max(self.ticks_done, row["tick"] + 1)
 
     def _count_observation(self, row: dict) -> None:
         m = self._metrics.get(row["agent"])
@@ -265,8 +283,7 @@ class RunRecorder:
                 for name, size in before.items():
                     self._files[name].cut(size)
                 raise
-        for row in rows:
-            self._count_row(row)
+        self._count_rows(rows)
         for row in obs_rows:
             self._count_observation(row)
 
@@ -290,6 +307,8 @@ class RunRecorder:
             "ticks": cfg.ticks,
             "complete": complete,
             "reason": reason,
+            "formation_tolerance": cfg.formation_tolerance,
+            "formation_broken": any(m.broken for m in self._metrics.values()),
             "wall_time": wall_time,
         }
 
@@ -303,6 +322,16 @@ class RunRecorder:
             (self.out_dir / RESERVE_FILE).unlink(missing_ok=True)
         summary = self.summary(complete=complete, reason=reason, wall_time=wall_time)
         write_atomic(self.out_dir / SUMMARY_FILE, json.dumps(summary, indent=2) + "\n")
+
+
+def _by_tick(rows: list[dict]) -> list[list[dict]]:
+    """``rows`` (in tick, then agent order) grouped by tick."""
+    groups: list[list[dict]] = []
+    for row in rows:
+        if not groups or groups[-1][0]["tick"] != row["tick"]:
+            groups.append([])
+        groups[-1].append(row)
+    return groups
 
 
 def observation_row(agent: int, msg) -> dict:

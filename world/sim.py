@@ -101,6 +101,7 @@ class DriveTick:
     reach_error: float | None = None
     sees_rod: bool = True  # whether the rod end is in range after the move phase
     path_length: float = 0.0
+    speed: float = 0.0  # the speed the last step drove (at rest when the tick begins)
     saturated: int = 0
     controls: list[ControlStep] = field(default_factory=list)  # the steps driven so far
     # the errors of the step odometry readings sent so far, summed (xy)
@@ -356,15 +357,11 @@ class WorldSim:
         return rows
 
     def control_time(self, tick: int, step: int) -> float:
-        """The stamp of control step ``step`` of tick ``tick``: ``t_j + step·T_c / n``, ``n``
-        the tick's steps with the correction window (``control_steps + snap_steps``). The
-        steps of a tick are spread evenly over its comm interval, so a robot's stamps increase
-        from step to step and tick to tick; the world integrates each step for
-        :attr:`control_period` (``T_c / control_steps``), so without a correction window
-        the stamp is the step's start in the integration's time too."""
-        cfg = self.config
-        return self.time_of(tick) + step * cfg.comm_period / (cfg.control_steps
-                                                              + cfg.snap_steps)
+        """The stamp of control step ``step`` of tick ``tick``: when it begins on the world's
+        clock, ``t_j`` plus the durations of the tick's steps before it
+        (:meth:`protocol.config.RunConfig.step_start`: a tick's steps fill its comm
+        interval), so a robot's stamps increase from step to step and tick to tick."""
+        return self.time_of(tick) + self.config.step_start(step)
 
     def control_rows(self, tick: int) -> list[dict]:
         """The ``controls.csv`` rows of tick ``tick``, the tick :meth:`finish_tick` finished
@@ -604,34 +601,46 @@ class WorldSim:
         self._settle(agent, tick)
         return seen
 
-    @property
-    def control_period(self) -> float:
-        """Duration of one control step (``--motion drive``): ``T_c / control_steps``."""
-        return self.config.comm_period / self.config.control_steps
-
-    def _phase_steps(self, state: AgentState) -> int:
-        """How many control steps the tick takes: the move phase's, and the correction
-        window's when the rod end is in range after it."""
-        cfg = self.config
-        return cfg.control_steps + (cfg.snap_steps if state.drive.sees_rod else 0)
+    def _executed(self, agent: int, request: Control) -> tuple[float, float, bool]:
+        """The speed and turn rate a control step really drives, and whether a limit bound:
+        the command plus actuation noise (σ ``noise_speed``, ``noise_turn``), clipped to the
+        robot's limits (design §4): ``|ω| ≤ max_turn``; ``|v| ≤ max_speed``, within
+        ``accel_limit · δ`` of the speed of the step before (at rest when the tick begins),
+        and at most ``accel_limit`` times the time left to stop before the tick settles
+        (:meth:`protocol.config.RunConfig.stop_time`), so the robot is at rest when it
+        settles. A step binds when its command is at a limit or what it drove was clipped."""
+        cfg, drive = self.config, self.agents[agent].drive
+        tick, step = request.tick, request.step
+        noise = [gaussian_scalar(cfg.seed, agent, tick, channel, "act", sigma, step)
+                 for channel, sigma in (("speed", cfg.noise_speed), ("turn", cfg.noise_turn))]
+        accel = cfg.accel_limit
+        change, stop = accel * cfg.step_duration(step), accel * cfg.stop_time(step)
+        low = max(-cfg.max_speed, drive.speed - change, -stop)
+        high = min(cfg.max_speed, drive.speed + change, stop)
+        wanted = request.speed + noise[0], request.turn + noise[1]
+        v = min(max(wanted[0], low), high)
+        omega = min(max(wanted[1], -cfg.max_turn), cfg.max_turn)
+        bound = (abs(request.speed) >= cfg.max_speed or abs(request.turn) >= cfg.max_turn
+                 or v != wanted[0] or omega != wanted[1])
+        return v, omega, bound
 
     def control(self, agent: int, request: Control) -> Sensing:
         """One control step of a driving follower (design §4 "Motion"): it drives at
-        ``request.speed`` turning at ``request.turn`` for ``T_c / control_steps``, each with
-        actuation noise (σ ``noise_speed``, ``noise_turn``), on the surface
-        (:func:`world.motion.drive`); returns what its sensors read after the step.
+        ``request.speed`` turning at ``request.turn`` for the step's duration
+        (:meth:`protocol.config.RunConfig.step_duration`: a tick's steps fill its comm
+        interval), with actuation noise and within the robot's limits (:meth:`_executed`), on
+        the surface (:func:`world.motion.drive`); returns what its sensors read after the step.
 
         Its odometry reads the step's displacement (local frame) with noise of σ
         ``noise_velocity · √(δ T_c)`` per coordinate (δ the step's duration): a random walk
-        whose spread over the move phase (one comm interval of driving) is that of the odometry
-        of design §5 over one interval (``noise_velocity · T_c``); the tick's velocity reading
-        is these readings summed (:meth:`_odometry`), the correction steps' too, so its
-        variance is ``(control_steps + snap_steps) / control_steps`` times that. The first
-        step carries the move phase's goal, which the world records as the estimate (from tick
-        ``init_ticks`` on); after the move phase's last step the world notes how far the
-        follower is from that goal
-        (``reach_error``) and whether the rod end is in range (else the correction window is
-        skipped: a lost tick).
+        whose spread over the tick's steps (one comm interval) is that of the odometry of
+        design §5 over one interval (``noise_velocity · T_c``), so the tick's velocity reading,
+        these readings summed over ``T_c`` (:meth:`_odometry`), has exactly the declared
+        variance ``noise_velocity²``. The first step carries the move phase's goal, which the
+        world records as the estimate (from tick ``init_ticks`` on); after the move phase's
+        last step the world notes how far the follower is from that goal (``reach_error``)
+        and whether the rod end is in range (else the tick is lost; the robot still has the
+        correction window's steps to come to rest).
         """
         tick, step = request.tick, request.step
         self._check_request(agent, tick)
@@ -643,9 +652,9 @@ class WorldSim:
         drive = state.drive
         if step != drive.step:
             raise RequestError(f"control step {step} out of order: step {drive.step} is next")
-        if step >= self._phase_steps(state):
+        if step >= cfg.tick_steps:
             raise RequestError(f"control step {step} is past the tick's "
-                               f"{self._phase_steps(state)} steps: settle (snap) now")
+                               f"{cfg.tick_steps} steps: settle (snap) now")
         if abs(request.speed) > cfg.max_speed or abs(request.turn) > cfg.max_turn:
             raise RequestError(f"control (speed {request.speed:g}, turn {request.turn:g}) "
                                f"exceeds the limits (max speed {cfg.max_speed:g}, max turn "
@@ -656,10 +665,8 @@ class WorldSim:
             drive.goal = state.pos + np.asarray(request.goal, dtype=float)
             if tick >= cfg.init_ticks:
                 state.estimate = drive.goal.copy()
-        noise = [gaussian_scalar(cfg.seed, agent, tick, channel, "act", sigma, step)
-                 for channel, sigma in (("speed", cfg.noise_speed), ("turn", cfg.noise_turn))]
-        v, omega = request.speed + noise[0], request.turn + noise[1]
-        duration = self.control_period
+        v, omega, bound = self._executed(agent, request)
+        duration = cfg.step_duration(step)
         start = state.pos
         try:
             pos, heading = motion.drive(self.surface, start, state.heading, v, omega, duration)
@@ -669,9 +676,9 @@ class WorldSim:
         state.pos, state.heading = pos, heading
         state.acted = "control"
         drive.step += 1
+        drive.speed = v
         drive.path_length += abs(v) * duration
-        drive.saturated += (abs(request.speed) >= cfg.max_speed
-                            or abs(request.turn) >= cfg.max_turn)
+        drive.saturated += bound
         drive.controls.append(ControlStep(step, float(request.speed), float(request.turn),
                                           float(v), float(omega)))
         sigma = cfg.noise_velocity * math.sqrt(duration * cfg.comm_period)
@@ -694,9 +701,9 @@ class WorldSim:
         heading (its rod normal comes from it, design §3); returns False (lost) if the rod end
         was out of range after the move phase."""
         state = self.agents[agent]
-        if state.drive.step != self._phase_steps(state):
+        if state.drive.step != self.config.tick_steps:
             raise RequestError(f"agent {agent} has done {state.drive.step} of the tick's "
-                               f"{self._phase_steps(state)} control steps: it cannot settle yet")
+                               f"{self.config.tick_steps} control steps: it cannot settle yet")
         state.lost = not state.drive.sees_rod
         self._settle(agent, tick)
         return not state.lost

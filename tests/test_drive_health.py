@@ -1,0 +1,206 @@
+"""Issue #30: driving followers that hold the column under noise, on the world's clock and
+within real limits, and runs that say when the formation broke (design §4 "Motion", §7)."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from protocol.config import AgentSettings, RunConfig, estimator_options
+from protocol.messages import Control, Snap
+from swarm.cli import main as swarm_main
+from swarm.local import run_local
+from world.main import resolve_with_surface
+from world.sim import WorldSim
+
+
+def _worst(rows: list[dict]) -> dict[int, float]:
+    worst: dict[int, float] = {}
+    for r in rows:
+        if r["agent"] > 0:
+            worst[r["agent"]] = max(worst.get(r["agent"], 0.0), r["formation_error"])
+    return worst
+
+
+# --- the issue's three cases, as regression tests -------------------------------------------
+
+
+@pytest.mark.slow
+def test_case_a_a_follower_ahead_of_its_rod_end_does_not_run_away():
+    """Case A (``--surface wavy --followers 3 --estimator persist --noise-range 0.01
+    --noise-bearing 0.005 --seed 0 --ticks 150 --motion drive``): on main follower 2 drove
+    away from a goal behind it (36.9 m), follower 3 68 m."""
+    summary, rows = run_local(RunConfig(motion="drive", surface="wavy", followers=3,
+                                        estimator="persist", noise_range=0.01,
+                                        noise_bearing=0.005, seed=0, ticks=150))
+    assert summary["complete"] and not summary["formation_broken"]
+    assert max(_worst(rows).values()) < 0.5
+    assert summary["followers"]["3"]["mean_formation_error"] < 0.15
+
+
+@pytest.mark.slow
+def test_case_b_sideways_offsets_do_not_ratchet():
+    """Case B (``--surface wavy --followers 3 --noise-range 0.02 --noise-bearing 0.01
+    --seed 1 --ticks 150 --motion drive``, EDMD-b): on main the estimate was 0.3-0.6 m off
+    sideways and the heading error ratcheted to -1.26 rad; the column broke."""
+    summary, rows = run_local(RunConfig(motion="drive", surface="wavy", followers=3, seed=1,
+                                        noise_range=0.02, noise_bearing=0.01, ticks=150))
+    assert summary["complete"] and not summary["formation_broken"]
+    assert max(_worst(rows).values()) < 1.0
+    assert summary["followers"]["3"]["mean_formation_error"] < 0.25
+
+
+def test_case_c_no_spin_without_noise():
+    """Case C (``--surface elliptic --followers 5 --ticks 10 --motion drive``): on main a
+    3.6e-14 m leftover set follower 3's goal heading, it spun 2.95 rad in place and followers
+    4 and 5 started 7 m off. Every follower stays within 0.05 m of the teleport run from
+    tick 0 on, and never turns hard."""
+    base = dict(surface="elliptic", followers=5, ticks=10)
+    _, teleport = run_local(RunConfig(**base))
+    _, rows = run_local(RunConfig(**base, motion="drive"))
+    where = {(r["tick"], r["agent"]): np.array([r["pos_x"], r["pos_y"]]) for r in teleport}
+    for r in rows:
+        if r["agent"] > 0:
+            assert np.linalg.norm(np.array([r["pos_x"], r["pos_y"]])
+                                  - where[r["tick"], r["agent"]]) < 0.05, r
+
+
+# --- the world's clock and real limits --------------------------------------------------------
+
+
+def test_a_ticks_steps_fill_its_comm_period():
+    """The move phase takes two thirds of T_c whatever the step counts, the correction window
+    the rest; without a window the move phase takes it all."""
+    for steps, snap in ((8, 4), (3, 7), (64, 4), (5, 0)):
+        config = RunConfig(motion="drive", control_steps=steps, snap_steps=snap)
+        total = sum(config.step_duration(k) for k in range(config.tick_steps))
+        assert total == pytest.approx(config.comm_period, rel=1e-12)
+        assert config.step_start(config.tick_steps) == pytest.approx(config.comm_period)
+        if snap:
+            assert config.step_start(steps) == pytest.approx(config.comm_period * 2 / 3)
+    with pytest.raises(ValueError, match="step"):
+        RunConfig(motion="drive").step_duration(12)
+
+
+def _world(**options) -> tuple[WorldSim, RunConfig]:
+    config, surface = resolve_with_surface(RunConfig(motion="drive", surface="wavy", **options))
+    sim = WorldSim(config, surface)
+    sim.start_tick(0)
+    sim.drive(0, 0, 0.0)
+    return sim, config
+
+
+def test_executed_speed_and_turn_never_exceed_their_limits():
+    """Full-limit commands with large actuation noise: what the world drives is clipped to the
+    limits, and every such step counts as saturated."""
+    sim, config = _world(noise_speed=0.5, noise_turn=0.5, max_accel=1e6)
+    for step in range(config.tick_steps):
+        speed = config.max_speed if step < config.tick_steps - 1 else 0.0
+        sim.act(1, Control(tick=0, step=step, speed=speed, turn=config.max_turn,
+                           goal=(0.0, 0.0) if step == 0 else None))
+    sim.act(1, Snap(tick=0))
+    controls = sim.agents[1].records[0].controls
+    assert all(abs(c.achieved_speed) <= config.max_speed for c in controls)
+    assert all(abs(c.achieved_turn) <= config.max_turn for c in controls)
+    assert sim.agents[1].records[0].drive.saturated_steps >= config.tick_steps - 1
+
+
+def test_a_robot_cannot_reverse_in_one_step():
+    """The acceleration limit: from rest the speed grows by at most ``a δ`` a step, a full
+    reversal takes several steps, and the robot is at rest when the tick settles."""
+    sim, config = _world()
+    accel = config.accel_limit
+    assert accel == pytest.approx(4 * config.max_speed / config.comm_period)
+    commands = [config.max_speed] * 4 + [-config.max_speed] * (config.tick_steps - 4)
+    for step, speed in enumerate(commands):
+        sim.act(1, Control(tick=0, step=step, speed=speed, turn=0.0,
+                           goal=(0.0, 0.0) if step == 0 else None))
+    achieved = [c.achieved_speed for c in sim.agents[1].drive.controls]
+    before = 0.0
+    for step, v in enumerate(achieved):
+        assert abs(v - before) <= accel * config.step_duration(step) * (1 + 1e-12)
+        before = v
+    assert achieved[4] > 0  # still going forward the step after the reverse command
+    assert abs(achieved[-1]) <= accel * config.step_duration(config.tick_steps - 1) * (1 + 1e-9)
+
+
+def test_the_odometrys_declared_variance_is_the_one_drawn():
+    """The tick's velocity reading (its step readings summed over T_c) has spread
+    ``noise_velocity`` per coordinate: the declared one (it was 1.48x in variance)."""
+    sigma, errors = 0.05, []
+    for seed in range(300):
+        sim, config = _world(noise_velocity=sigma, seed=seed)
+        for step in range(config.tick_steps):
+            sim.act(1, Control(tick=0, step=step, speed=0.0, turn=0.0,
+                               goal=(0.0, 0.0) if step == 0 else None))
+        sim.act(1, Snap(tick=0))
+        errors.append(sim.agents[1].odometry_errors[0] / config.comm_period)
+    spread = np.std(np.array(errors))
+    assert spread == pytest.approx(sigma, rel=0.1)
+
+
+def test_the_agents_know_the_same_limits_as_the_world():
+    config, _ = resolve_with_surface(RunConfig(motion="drive", surface="wavy"))
+    settings = AgentSettings.from_config(config)
+    assert settings.accel_limit == config.accel_limit
+    assert [settings.step_duration(k) for k in range(settings.tick_steps)] == [
+        config.step_duration(k) for k in range(config.tick_steps)]
+
+
+# --- formation health is a result ------------------------------------------------------------
+
+
+def test_the_summary_holds_every_followers_mean_and_worst_formation_error():
+    summary, rows = run_local(RunConfig(motion="drive", surface="wavy", followers=3, ticks=12,
+                                        noise_range=0.01, noise_bearing=0.005))
+    worst = _worst(rows)
+    for k in (1, 2, 3):
+        s = summary["followers"][str(k)]
+        assert s["worst_formation_error"] == worst[k]
+        assert s["broken_ticks"] == 0
+    assert summary["formation_tolerance"] == 1.0 and not summary["formation_broken"]
+
+
+def test_a_broken_formation_is_counted_and_the_run_exits_1(tmp_path, capsys):
+    """A tolerance below what the run achieves: the ticks beyond it are counted per follower,
+    the end line says the formation broke and ``swarm run`` exits 1."""
+    out = tmp_path / "run"
+    code = swarm_main(["run", "--in-process", "--surface", "wavy", "--followers", "2",
+                       "--ticks", "8", "--motion", "drive", "--noise-range", "0.05",
+                       "--noise-bearing", "0.03", "--formation-tolerance", "0.001",
+                       "--out", str(out)])
+    captured = capsys.readouterr()
+    summary = json.loads((out / "summary.json").read_text())
+    assert code == 1
+    assert summary["complete"] and summary["formation_broken"]
+    assert sum(f["broken_ticks"] for f in summary["followers"].values()) > 0
+    assert "FORMATION BROKEN" in captured.out
+    assert "formation broke" in captured.err
+
+
+@pytest.mark.parametrize("estimator", ["persist", "edmd-b"])
+def test_teleport_runs_stay_healthy_under_noise(estimator):
+    """The default tolerance is no trap for teleport: 10 followers at σ 0.05/0.03."""
+    summary, _ = run_local(RunConfig(surface="hyperbolic", followers=10, ticks=40,
+                                     noise_range=0.05, noise_bearing=0.03,
+                                     **estimator_options(estimator)))
+    assert not summary["formation_broken"]
+    assert max(f["worst_formation_error"] for f in summary["followers"].values()) < 0.7
+
+
+def test_the_distance_to_teleport_does_not_grow_with_the_control_steps():
+    """Default limits, no noise: more control steps never take follower 1 further from the
+    teleport run (the correction window keeps its third of T_c)."""
+    base = dict(surface="wavy", followers=1, ticks=12, estimator="persist")
+    _, teleport = run_local(RunConfig(**base))
+    where = {r["tick"]: np.array([r["pos_x"], r["pos_y"]]) for r in teleport if r["agent"]}
+    distances = []
+    for steps in (4, 8, 16, 32):
+        _, rows = run_local(RunConfig(**base, motion="drive", control_steps=steps))
+        distances.append(max(float(np.linalg.norm(np.array([r["pos_x"], r["pos_y"]])
+                                                  - where[r["tick"]]))
+                             for r in rows if r["agent"]))
+    assert max(distances[1:]) <= distances[0] * 1.5 + 1e-3, distances
+    assert all(math.isfinite(d) and d < 0.02 for d in distances), distances
