@@ -140,7 +140,7 @@ def test_a_drive_runs_figures_read_at_a_glance(drawn, tmp_path):
     from swarm.plots import plot_run
 
     assert main(["run", "--surface", "wavy", "--followers", "3", "--estimator", "auto",
-                 "--motion", "drive", "--max-speed", "1.3", "--in-process",
+                 "--motion", "drive", "--in-process",
                  "--out", str(tmp_path / "run")]) == 0
     plot_run(tmp_path / "run")
     assert len(drawn) == 3
