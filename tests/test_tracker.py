@@ -94,6 +94,8 @@ def test_ekf_refuses_bad_parameters():
         RodTracker(spacing=0.0)
     with pytest.raises(ValueError, match="jerks"):
         RodTracker(jerks=())
+    with pytest.raises(ValueError, match="turns"):
+        RodTracker(turns=(1e-4, -1.0))
     with pytest.raises(ValueError, match="memory"):
         RodTracker(memory=1.5)
     with pytest.raises(ValueError, match="model-based"):

@@ -87,7 +87,7 @@ def classical(name: str, settings: AgentSettings) -> Policy:
 
 
 EKF_JERKS = (1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)  # the leader's jerk levels ekf weighs, in d²
-EKF_TURN = 1e-4  # drift of the rod's rates per tick (rad²/tick²): ~0.01 rad/tick per tick
+EKF_TURNS = (1e-8, 1e-6, 1e-4, 1e-2)  # drifts of the rod's rates per tick (rad²/tick²) ekf weighs
 EKF_MEMORY = 0.8  # per tick: a tick's evidence counts ~5 ticks (ekf follows a changing surface)
 # the leader's landing off its track, in units of the declared range variance: none (it drives
 # its path), or one follower's snap error ... a few followers' accumulated (a column)
@@ -105,7 +105,7 @@ def model_based(name: str, settings: AgentSettings) -> Policy:
     landing = settings.noise_range**2 + move_variance(settings)
     return RodTracker(settings.noise_range, settings.noise_bearing, move_variance(settings),
                       odometry, settings.comm_period, settings.spacing, jerks=EKF_JERKS,
-                      landings=tuple(share * landing for share in EKF_LANDINGS), turn=EKF_TURN,
+                      landings=tuple(share * landing for share in EKF_LANDINGS), turns=EKF_TURNS,
                       memory=EKF_MEMORY, name=name)
 
 
