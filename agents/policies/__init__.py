@@ -87,7 +87,9 @@ def classical(name: str, settings: AgentSettings) -> Policy:
 
 
 EKF_JERKS = (1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)  # the leader's jerk levels ekf weighs, in d²
-EKF_TURNS = (1e-8, 1e-6, 1e-4, 1e-2)  # drifts of the rod's rates per tick (rad²/tick²) ekf weighs
+# the drifts of the rod's rates per tick (rad²/tick²) ekf weighs: from a rod that barely turns
+# (~1e-4 rad/tick change per tick) to one sweeping over waves (~0.1)
+EKF_TURNS = (1e-8, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)
 EKF_MEMORY = 0.8  # per tick: a tick's evidence counts ~5 ticks (ekf follows a changing surface)
 # the leader's landing off its track, in units of the declared range variance: none (it drives
 # its path), or one follower's snap error ... a few followers' accumulated (a column)
