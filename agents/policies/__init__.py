@@ -160,6 +160,7 @@ def make_auto(settings: AgentSettings, candidates: list[Policy] | None = None,
     score's expected share from the readings' noise, the pre reading's in 2 coordinates; its
     ``default`` is the model-based filter among the candidates, if any (see :class:`Auto`)."""
     options.setdefault("noise_floor", 2.0 * reading_variance(settings))
+    options.setdefault("made", reading_variance(settings) > 0)
     candidates = auto_candidates(settings) if candidates is None else candidates
     if options.get("combine", "best") == "best" and "default" not in options:
         options["default"] = next((c.name for c in candidates if c.name in FILTERS), None)
