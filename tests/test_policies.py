@@ -17,6 +17,7 @@ from agents.policies import (
     make_policy,
     relative,
 )
+from agents.policies.base import Before
 from protocol.config import AgentSettings, RunConfig
 from protocol.messages import Sensing
 from swarm.local import run_local
@@ -169,6 +170,48 @@ def test_auto_leaves_out_wild_proposals_and_falls_back_to_anchor():
     auto.candidates[1].offset = np.array([2.0, 0.0])  # b beyond the radius too
     proposal = auto.propose(_sensing())
     assert np.array_equal(proposal.offset, [0.0, 0.0]) and proposal.followed == "a"
+
+
+def test_auto_trusts_its_default_beyond_the_radius():
+    """The ``default`` (the filter weighing the pre reading against its model) departs from the
+    anchor by the reading's error: the trust radius does not leave it out."""
+    auto = _three(default="c")
+    auto.errors[0].extend([0.4, 0.05])  # radius 1.2
+    auto.errors[1].extend([0.6, 0.95])
+    auto.errors[2].extend([0.0, 0.0])
+    auto.candidates[2].offset = np.array([5.0, 0.0])
+    assert auto._eligible(auto._proposals(_sensing())) == [0, 1, 2]
+    assert auto.propose(_sensing()).followed == "c"
+    auto.candidates[1].offset = np.array([4.0, 0.0])  # any other candidate still is left out
+    assert auto._eligible(auto._proposals(_sensing())) == [0, 2]
+
+
+class _Reading(Stay):
+    """A candidate that proposes the pre reading it is given, moved by ``shift``."""
+
+    def __init__(self, name, shift):
+        super().__init__()
+        self.name, self.shift = name, np.asarray(shift, float)
+
+    def propose(self, pre):
+        return Proposal(relative(pre) + self.shift)
+
+
+def test_auto_made_scores_each_candidate_on_the_proposal_it_made():
+    """With ``made``, a candidate is scored on what it proposed from the tick's own ``pre``
+    reading (``before.pre``), not on a proposal from the reconstructed one."""
+    pre = Sensing(tick=3, r=2.0, theta=0.0)
+    settled = Sensing(tick=3, r=1.5, theta=0.0)  # the reconstruction: 1.5 + 0.3 = 1.8
+    target = np.array([0.3, 0.0])
+    before = Before(pre=pre, moved=None, offset=(0.0, 0.0))
+    for made, expected in ((True, 2.0 + 0.1 - 0.3), (False, 1.8 + 0.1 - 0.3)):
+        auto = Auto([_Fixed("a", [0.0, 0.0]), _Reading("r", [0.1, 0.0])], burn_in=0,
+                    made=made)
+        auto.learn(settled, target, before)
+        assert auto.errors[1][-1] == pytest.approx(expected, abs=1e-12)
+    auto = Auto([_Fixed("a", [0.0, 0.0]), _Reading("r", [0.1, 0.0])], burn_in=0, made=True)
+    auto.record(settled, target)  # no ``before``: the reconstruction
+    assert auto.errors[1][-1] == pytest.approx(1.6, abs=1e-12)
 
 
 def test_auto_compares_candidates_on_the_same_ticks():

@@ -94,6 +94,8 @@ def test_ekf_refuses_bad_parameters():
         RodTracker(spacing=0.0)
     with pytest.raises(ValueError, match="jerks"):
         RodTracker(jerks=())
+    with pytest.raises(ValueError, match="turns"):
+        RodTracker(turns=(1e-4, -1.0))
     with pytest.raises(ValueError, match="memory"):
         RodTracker(memory=1.5)
     with pytest.raises(ValueError, match="model-based"):
@@ -139,3 +141,56 @@ def test_ekf_beats_persist_in_a_noisy_run_and_the_state_file_keeps_the_tick(tmp_
     log.append(entry)
     _, entries = StateLog.open(tmp_path, "r", 1, "s")
     assert entries == [entry]
+
+
+def _drive_jittery(policy, ticks: int, seed: int, sigma: float = 0.02) -> list[float]:
+    """A teleport follower behind a leader that lands off a straight track by white jitter
+    (as a follower does), its rod not turning at all; every reading off by white noise of
+    ``sigma`` per coordinate (drawn from ``seed``, printed by the caller). The error of each
+    proposal after ten ticks."""
+    rng = np.random.default_rng(seed)
+
+    def noisy(z: complex) -> complex:
+        return z + complex(*rng.normal(0.0, sigma, 2))
+
+    rod = 3.57j
+    follower, errors = rod, []
+    for j in range(ticks):
+        leader = complex(0.9 * j, 0.0) + complex(*rng.normal(0.0, sigma, 2))
+        end = leader + rod
+        pre = _reading(j, noisy(leader - follower))
+        if j < 4:
+            offset, moved = 0j, None
+        else:
+            proposal = policy.propose(pre)
+            offset = complex(*proposal.offset)
+            if j >= 10:
+                errors.append(abs(offset - (end - follower)))
+            moved = _reading(j, noisy(leader - follower - offset),
+                             noisy(end - follower - offset))
+        target = end - follower
+        follower = end + complex(*rng.normal(0.0, sigma, 2))  # the snap lands off the end
+        settled = _reading(j, noisy(leader - follower), noisy(end - follower))
+        policy.learn(settled, np.array([target.real, target.imag]),
+                     Before(pre=pre, moved=moved, offset=(offset.real, offset.imag)))
+    return errors
+
+
+def test_ekf_weighs_how_fast_the_rod_turns(monkeypatch):
+    """Behind a leader that lands off its track, with a rod that does not turn, the bank of
+    rate drifts averages the rod over many ticks: the slow drifts take most of the weight, and
+    the bank errs less than the single drift of 1e-4 it replaced (which forgot the rod within
+    about two ticks)."""
+    import agents.policies as policies
+
+    seed = 20261128
+    print(f"seed {seed}")
+    settings = _settings(noise_range=0.02, noise_bearing=0.01)
+    bank = model_based("ekf", settings)
+    banked = _drive_jittery(bank, ticks=40, seed=seed)
+    turns = np.array([level for _ in policies.EKF_JERKS for _ in policies.EKF_LANDINGS
+                      for level in policies.EKF_TURNS])
+    assert bank.weights()[turns <= 1e-6].sum() > 0.5
+    monkeypatch.setattr(policies, "EKF_TURNS", (1e-4,))
+    single = _drive_jittery(model_based("ekf", settings), ticks=40, seed=seed)
+    assert np.mean(banked) < 0.8 * np.mean(single), (np.mean(banked), np.mean(single))

@@ -87,7 +87,9 @@ def classical(name: str, settings: AgentSettings) -> Policy:
 
 
 EKF_JERKS = (1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)  # the leader's jerk levels ekf weighs, in d²
-EKF_TURN = 1e-4  # drift of the rod's rates per tick (rad²/tick²): ~0.01 rad/tick per tick
+# the drifts of the rod's rates per tick (rad²/tick²) ekf weighs: from a rod that barely turns
+# (~1e-4 rad/tick change per tick) to one sweeping over waves (~0.1)
+EKF_TURNS = (1e-8, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)
 EKF_MEMORY = 0.8  # per tick: a tick's evidence counts ~5 ticks (ekf follows a changing surface)
 # the leader's landing off its track, in units of the declared range variance: none (it drives
 # its path), or one follower's snap error ... a few followers' accumulated (a column)
@@ -105,7 +107,7 @@ def model_based(name: str, settings: AgentSettings) -> Policy:
     landing = settings.noise_range**2 + move_variance(settings)
     return RodTracker(settings.noise_range, settings.noise_bearing, move_variance(settings),
                       odometry, settings.comm_period, settings.spacing, jerks=EKF_JERKS,
-                      landings=tuple(share * landing for share in EKF_LANDINGS), turn=EKF_TURN,
+                      landings=tuple(share * landing for share in EKF_LANDINGS), turns=EKF_TURNS,
                       memory=EKF_MEMORY, name=name)
 
 
@@ -158,6 +160,7 @@ def make_auto(settings: AgentSettings, candidates: list[Policy] | None = None,
     score's expected share from the readings' noise, the pre reading's in 2 coordinates; its
     ``default`` is the model-based filter among the candidates, if any (see :class:`Auto`)."""
     options.setdefault("noise_floor", 2.0 * reading_variance(settings))
+    options.setdefault("made", reading_variance(settings) > 0)
     candidates = auto_candidates(settings) if candidates is None else candidates
     if options.get("combine", "best") == "best" and "default" not in options:
         options["default"] = next((c.name for c in candidates if c.name in FILTERS), None)

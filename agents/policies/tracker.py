@@ -30,11 +30,13 @@ A move by ``u`` shifts the positions by ``-u`` and adds the move's declared actu
 follower's replay log rebuilds it (:mod:`agents.checkpoint`); :meth:`RodTracker.state` and
 :meth:`RodTracker.restore` give it as plain data as well.
 
-How fast the leader's acceleration changes (its jerk) and how far it lands off its track are
-properties of the hidden surface and of the follower's place in the column, which it does not
-know: :class:`RodTracker` runs one filter per pair of levels (``jerks`` x ``landings``),
-side by side as one batch of arrays, and proposes their mixture, each weighted by the
-likelihood of the readings it predicted (multiple-model adaptive estimation).
+How fast the leader's acceleration changes (its jerk), how far it lands off its track and how
+fast the rod's rates drift (the rod of a follower further out sweeps over the surface as the
+column turns) are properties of the hidden surface and of the follower's place in the column,
+which it does not know: :class:`RodTracker` runs one filter per triple of levels (``jerks`` x
+``landings`` x ``turns``), side by side as one batch of arrays, and proposes their mixture,
+each weighted by the likelihood of the readings it predicted (multiple-model adaptive
+estimation).
 """
 from __future__ import annotations
 
@@ -76,8 +78,8 @@ JERK_DT = np.array([[1 / 20, 1 / 8, 1 / 6], [1 / 8, 1 / 3, 1 / 2], [1 / 6, 1 / 2
 
 
 class RodTracker(Policy):
-    """``ekf``: the extended Kalman filters of the module docstring, one per (jerk, landing)
-    pair, and their likelihood-weighted mixture.
+    """``ekf``: the extended Kalman filters of the module docstring, one per (jerk, landing,
+    turn) triple, and their likelihood-weighted mixture.
 
     Parameters
     ----------
@@ -100,9 +102,9 @@ class RodTracker(Policy):
     landings : sequence of float
         Variances per coordinate of the leader's landing off its track the filters assume
         (length²; 0: it drives its path).
-    turn : float
-        Variance of the unmodelled change of the rod's turn rate and log-length rate per tick
-        (rad² per tick²).
+    turns : sequence of float
+        Variances of the unmodelled change of the rod's turn rate and log-length rate per tick
+        the filters assume (rad² per tick²).
     memory : float
         In [0, 1]: each tick, the filters' past log-likelihoods are multiplied by it before the
         tick's are added (old evidence fades, so a surface whose curvature changes is
@@ -113,13 +115,13 @@ class RodTracker(Policy):
     def __init__(self, sigma_r: float = 0.0, sigma_theta: float = 0.0,
                  move_variance: float = 0.0, odometry_variance: float | None = None,
                  comm_period: float = 1.0, spacing: float = 1.0, jerks=(1e-4,),
-                 landings=(0.0,), turn: float = 1e-4, memory: float = 0.8,
+                 landings=(0.0,), turns=(1e-4,), memory: float = 0.8,
                  name: str = "ekf") -> None:
         for key, value in (("sigma_r", sigma_r), ("sigma_theta", sigma_theta),
-                           ("move_variance", move_variance), ("turn", turn)):
+                           ("move_variance", move_variance)):
             if not 0.0 <= value < math.inf:
                 raise ValueError(f"{key} must be finite and >= 0, got {value}")
-        for key, values in (("jerks", jerks), ("landings", landings)):
+        for key, values in (("jerks", jerks), ("landings", landings), ("turns", turns)):
             if not len(values) or not all(0.0 <= v < math.inf for v in values):
                 raise ValueError(f"{key} must be finite values >= 0, at least one, "
                                  f"got {values}")
@@ -135,11 +137,11 @@ class RodTracker(Policy):
         self.sigma_r, self.sigma_theta = sigma_r, sigma_theta
         self.move_variance, self.odometry_variance = move_variance, odometry_variance
         self.comm_period, self.spacing, self.memory = comm_period, spacing, memory
-        levels = list(product(jerks, landings))
+        levels = list(product(jerks, landings, turns))
         self.members = len(levels)
         # each filter's process noise per tick: the leader's jerk and landing, the rates' drift
         self._q = np.zeros((self.members, N, N))
-        for k, (jerk, landing) in enumerate(levels):
+        for k, (jerk, landing, turn) in enumerate(levels):
             for axis in range(2):
                 idx = [S.start + axis, V.start + axis, A.start + axis]
                 self._q[k][np.ix_(idx, idx)] = jerk * spacing**2 * JERK_DT
