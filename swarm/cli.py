@@ -275,6 +275,7 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, surface, out: P
     from tqdm import tqdm
 
     from swarm.launch import launch
+    from world.results import run_failure
 
     def observe(credentials) -> None:  # the live view joins as the run's observer user
         from protocol.session import zenoh_config
@@ -320,15 +321,12 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, surface, out: P
     empty = empty_followers(summary, config.init_ticks) if summary["complete"] else []
     for line in empty:
         print(f"warning: {line}", file=sys.stderr)
-    if not summary["complete"]:
-        print(f"error: run incomplete: {summary['reason']}", file=sys.stderr)
-    elif summary.get("formation_broken"):  # one line says why: incompleteness first
-        print("error: the formation broke (a follower settled beyond --formation-tolerance)",
-              file=sys.stderr)
+    if (failure := run_failure(summary)) is not None:  # one line says why
+        print(f"error: {failure}", file=sys.stderr)
     if live is not None:
         print(f"live view still at {live.server.url} (Ctrl-C to quit)", flush=True)
         live.serve_until_interrupted()
-    return FAILED if empty or not summary["complete"] or summary.get("formation_broken") else 0
+    return FAILED if empty or failure is not None else 0
 
 
 def cmd_watch(args: argparse.Namespace) -> int:

@@ -204,3 +204,19 @@ def test_the_distance_to_teleport_does_not_grow_with_the_control_steps():
                              for r in rows if r["agent"]))
     assert max(distances[1:]) <= distances[0] * 1.5 + 1e-3, distances
     assert all(math.isfinite(d) and d < 0.02 for d in distances), distances
+
+
+def test_a_broken_formation_is_a_failure_of_every_command():
+    """``world.results.run_failure`` is the one verdict of ``swarm run`` and ``python -m world``:
+    an incomplete run first, then a broken formation, and nothing for a healthy run."""
+    from world.results import run_failure
+
+    followers = {"1": {"broken_ticks": 0}, "2": {"broken_ticks": 3}}
+    healthy = {"complete": True, "formation_broken": False, "followers": followers,
+               "formation_tolerance": 1.0, "reason": ""}
+    assert run_failure(healthy) is None
+    broken = {**healthy, "formation_broken": True}
+    assert run_failure(broken) == ("the formation broke: 3 follower-ticks settled beyond "
+                                   "--formation-tolerance 1 m")
+    cut = {**broken, "complete": False, "reason": "the leader left the surface's domain"}
+    assert run_failure(cut) == "run incomplete: the leader left the surface's domain"

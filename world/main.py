@@ -32,6 +32,7 @@ from protocol.distribution import require
 from protocol.folder import FolderLock, check_out_dir
 from protocol.session import LOCAL_ROUTER, add_connection_flags, connection_config, open_session
 from world import checkpoint, geometry
+from world.results import run_failure
 from world.service import WorldService
 from world.sim import default_max_speed, resolve_leader_start
 from world.surfaces import Surface, make_surface, require_surface_extra
@@ -188,6 +189,6 @@ def _serve(args: argparse.Namespace) -> int:
         except checkpoint.AlreadyComplete as exc:
             print(str(exc), file=sys.stderr)
             return DONE
-    if not summary["complete"]:
-        fail(f"run incomplete: {summary['reason']}")
+    if (failure := run_failure(summary)) is not None:
+        fail(failure)
     return DONE

@@ -37,6 +37,21 @@ from protocol.record import (
 RESERVE_FILE = ".summary.reserve"
 
 
+
+def run_failure(summary: dict) -> str | None:
+    """Why the run ``summary`` describes is not a success, in one line, or None if it is: it
+    ended incomplete (its reason first), or a follower settled beyond the formation tolerance
+    (design §7: a broken formation is not success). The one verdict of ``swarm run`` and
+    ``python -m world`` (both exit 1 on it)."""
+    if not summary["complete"]:
+        return f"run incomplete: {summary['reason']}"
+    if summary.get("formation_broken"):
+        broken = sum(s.get("broken_ticks", 0) for s in summary["followers"].values())
+        return (f"the formation broke: {broken} follower-ticks settled beyond "
+                f"--formation-tolerance {summary['formation_tolerance']:g} m")
+    return None
+
+
 class ExactSum:
     """Running sum of floats, rounded exactly like ``math.fsum`` over every value added so far
     (Shewchuk's partials): the summary, rewritten after every tick, costs O(1) per tick.
