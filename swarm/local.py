@@ -99,8 +99,8 @@ def _simulate(config: RunConfig, out_dir: str | Path | None,
     observations: dict[int, list[tuple[int, Observation]]] = {}  # per open tick
 
     def agent_tick(k: int, tick: int) -> None:
-        if k == 0:
-            links[0].act(Drive(tick=tick, t=sim.time_of(tick)))
+        if k == 0:  # the leader's time from its settings, as agents.leader's (not the world's)
+            links[0].act(Drive(tick=tick, t=tick * settings.comm_period))
             return
         outcome = follower_tick(links[k], policies[k - 1], settings, tick, limits, tracks[k - 1])
         observations.setdefault(tick, []).append((k, LocalLink.wire(outcome.observation)))
