@@ -230,19 +230,18 @@ def _terrain_map(fig, ax, rows: list[dict], config: RunConfig, surface: Surface,
                  aspect: float) -> tuple[str, list]:
     """Draw a run's terrain under ``ax`` (contour lines or a DEM's relief, with its colour
     bar), fitted to every settled and ideal position at ``aspect`` and equal axes, and the
-    leader's path; return the axis label's length unit and the leader's rows."""
+    leader's path; return the leader's rows."""
     positions = np.array([(r[f"{c}_x"], r[f"{c}_y"]) for r in rows for c in ("pos", "ideal")
                           if r.get(f"{c}_x") is not None])
     low, high = widen_to_aspect(np.nanmin(positions, axis=0) - config.spacing,
                                 np.nanmax(positions, axis=0) + config.spacing, aspect)
-    length = LENGTH
     contours = _surface_contours(ax, surface, low, high)
-    fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {length}")
+    fig.colorbar(contours, ax=ax, shrink=0.9, pad=0.01, label=f"height z {LENGTH}")
     lead = sorted((r for r in rows if r["agent"] == 0), key=lambda r: r["tick"])
     ax.plot([r["pos_x"] for r in lead], [r["pos_y"] for r in lead], "k.-", lw=1, ms=4,
             label="leader")
     ax.set(xlim=(low[0], high[0]), ylim=(low[1], high[1]), aspect="equal")
-    return length, lead
+    return lead
 
 
 def _run_record(run_dir: Path) -> tuple[list[dict], RunConfig]:
@@ -278,7 +277,7 @@ def _draw_effectiveness(rows: list[dict], config: RunConfig, surface: Surface, p
     fig = _figure(width, 10.0)
     grid = fig.add_gridspec(3, len(followers), height_ratios=(1.6, 1, 1))
     ax = fig.add_subplot(grid[0, :])
-    length, lead = _terrain_map(fig, ax, rows, config, surface, aspect=3.3)
+    lead = _terrain_map(fig, ax, rows, config, surface, aspect=3.3)
     ax.plot(lead[0]["pos_x"], lead[0]["pos_y"], "ks", mfc="none", ms=10, label="leader at tick 0")
     for k in range(1, config.followers + 1):
         mine = sorted((r for r in rows if r["agent"] == k), key=lambda r: r["tick"])
@@ -287,14 +286,14 @@ def _draw_effectiveness(rows: list[dict], config: RunConfig, surface: Surface, p
         est = [r for r in mine if r["est_x"] is not None]
         ax.plot([r["est_x"] for r in est], [r["est_y"] for r in est], "x", color=ESTIMATE_COLOR,
                 ms=5, mew=1.2, label="estimated" if k == 1 else None)
-    ax.set(xlabel=f"x {length}", ylabel=f"y {length}",
+    ax.set(xlabel=f"x {LENGTH}", ylabel=f"y {LENGTH}",
            title=f"leader and {config.followers} follower(s) over the "
                  f"{'hillshaded relief' if isinstance(surface, DemSurface) else 'contour lines'}, "
                  f"estimator {_estimator_label(config)}")
     for col, k in enumerate(followers):
         rel = leader_relative(rows, k)
         for row, (ideal, est, label, scale) in enumerate((
-                ("r_ideal", "r_est", f"distance {length}", 1.0),
+                ("r_ideal", "r_est", f"distance {LENGTH}", 1.0),
                 ("theta_ideal", "theta_est", "bearing (deg)", 180 / math.pi)), start=1):
             sub = fig.add_subplot(grid[row, col])
             first = row == 1 and col == 0  # labels its curves, once, for the figure's legend
@@ -418,7 +417,7 @@ def _draw_driven_paths(rows: list[dict], config: RunConfig, surface: Surface,
     positions (red), with the leader (black)."""
     fig = _figure(13.0, 6.5, layout="compressed")
     ax = fig.add_subplot()
-    length, _ = _terrain_map(fig, ax, rows, config, surface, aspect=2.0)
+    _terrain_map(fig, ax, rows, config, surface, aspect=2.0)
     paths = driven_paths(config, surface, rows, controls)
     for k in range(1, config.followers + 1):
         mine = sorted((r for r in rows if r["agent"] == k), key=lambda r: r["tick"])
@@ -429,7 +428,7 @@ def _draw_driven_paths(rows: list[dict], config: RunConfig, surface: Surface,
                 label="driven paths" if k == 1 else None)
         ax.plot([r["pos_x"] for r in mine], [r["pos_y"] for r in mine], "x",
                 color=ESTIMATE_COLOR, ms=4, mew=1, label="settled" if k == 1 else None)
-    ax.set(xlabel=f"x {length}", ylabel=f"y {length}")
+    ax.set(xlabel=f"x {LENGTH}", ylabel=f"y {LENGTH}")
     _figure_legend(fig)
     _suptitle(fig, f"{config.surface}: driving followers ({config.control_steps} control + "
                    f"{config.snap_steps} correction steps per T_c = {config.comm_period:g} "
