@@ -115,6 +115,13 @@ def _leader_speed(options: dict) -> float:
     return leader_speed(config, surface)
 
 
+def _base_drive(spec: DriveStudySpec, max_speed: float) -> dict:
+    """The default robot's drive options (``spec.base_steps`` control steps, half as many
+    correction steps) at the top speed ``max_speed``."""
+    return {"control_steps": spec.base_steps, "snap_steps": max(1, spec.base_steps // 2),
+            "max_speed": max_speed}
+
+
 def study_runs(spec: DriveStudySpec) -> list[StudyRun]:
     """Every run of the study (no duplicates)."""
     runs: dict[tuple, StudyRun] = {}
@@ -126,9 +133,7 @@ def study_runs(spec: DriveStudySpec) -> list[StudyRun]:
                    {"control_steps": steps, "snap_steps": max(1, steps // 2),
                     "max_speed": spec.base_factor * speed})
                   for steps in spec.control_steps]
-        cases += [("speed", period,
-                   {"control_steps": spec.base_steps, "snap_steps": max(1, spec.base_steps // 2),
-                    "max_speed": factor * speed})
+        cases += [("speed", period, _base_drive(spec, factor * speed))
                   for period in spec.comm_periods for factor in spec.speed_factors]
         for label in spec.estimators:
             for block, period, drive in cases:
@@ -144,13 +149,14 @@ def study_runs(spec: DriveStudySpec) -> list[StudyRun]:
                 sigma_r, sigma_t = NOISE_LEVELS[level]
                 for n in spec.noise_followers:
                     for motion in ("drive", "teleport"):
+                        drive = (_base_drive(spec, spec.base_factor * speed)
+                                 if motion == "drive" else {})
                         config = RunConfig(
                             run_id="drive-study", followers=n, motion=motion,
                             ticks=max(int(round(duration / spec.base_period)), 6),
-                            noise_range=sigma_r, noise_bearing=sigma_t, **options,
-                            **estimator_options(label),
-                            **({"max_speed": spec.base_factor * speed}
-                               if motion == "drive" else {}))
+                            comm_period=spec.base_period, noise_range=sigma_r,
+                            noise_bearing=sigma_t, **options, **estimator_options(label),
+                            **drive)
                         runs[(surface, label, "noise", level, n, motion)] = StudyRun(
                             surface, label, "noise", config,
                             spec.base_factor if motion == "drive" else math.nan, level)
