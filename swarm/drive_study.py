@@ -163,11 +163,15 @@ def study_runs(spec: DriveStudySpec) -> list[StudyRun]:
     return list(runs.values())
 
 
-def _execute(run: StudyRun) -> dict:
-    """Run one study run in memory; its table row."""
+def _simulate(config: RunConfig) -> dict:
+    """Run ``config`` in memory (:func:`swarm.local.run_local`); its summary."""
     from swarm.local import run_local
 
-    summary, _ = run_local(run.config)
+    return run_local(config)[0]
+
+
+def _row(run: StudyRun, summary: dict) -> dict:
+    """The table row of ``run``, whose run gave ``summary``."""
     followers = [summary["followers"][str(k)] for k in range(1, run.config.followers + 1)]
 
     def mean(key: str) -> float:
@@ -203,16 +207,20 @@ def _execute(run: StudyRun) -> dict:
 def run_study(spec: DriveStudySpec, workers: int | None = None,
               on_run: Callable[[int, int], None] | None = None) -> list[dict]:
     """Every run's table row, in the order of :func:`study_runs` (a pool of ``workers``
-    processes, default ``min(2, CPU count)``)."""
+    processes, default ``min(2, CPU count)``). A configuration two blocks share (the noise
+    block's noise-free column of the base length is the steps block's and the teleport
+    reference's) is run once; ``on_run`` counts the configurations run."""
     runs = study_runs(spec)
+    configs = list({repr(run.config): run.config for run in runs}.items())
     workers = workers or min(2, os.cpu_count() or 1)
-    rows: list[dict] = []
+    summaries: dict[str, dict] = {}
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        for done, row in enumerate(pool.map(_execute, runs, chunksize=1), start=1):
-            rows.append(row)
+        done = pool.map(_simulate, [config for _, config in configs], chunksize=1)
+        for count, ((key, _), summary) in enumerate(zip(configs, done), start=1):
+            summaries[key] = summary
             if on_run is not None:
-                on_run(done, len(runs))
-    return rows
+                on_run(count, len(configs))
+    return [_row(run, summaries[repr(run.config)]) for run in runs]
 
 
 def minimum_speeds(rows: list[dict], spec: DriveStudySpec) -> list[dict]:
