@@ -672,6 +672,17 @@ def _plain_ticks(ax, values: Sequence[float], labels: Sequence[str] | None = Non
     ax.xaxis.set_minor_locator(NullLocator())
 
 
+def _key_legend(fig: Figure, colours: dict[str, str], styles: dict[str, dict]) -> None:
+    """One legend below the panels keying a figure's two encodings: a line of each colour of
+    ``colours`` (label to colour), then a black sample of each line style of ``styles``
+    (label to :class:`matplotlib.lines.Line2D` keywords)."""
+    proxies = [matplotlib.lines.Line2D([], [], color=c, lw=2, label=label)
+               for label, c in colours.items()]
+    proxies += [matplotlib.lines.Line2D([], [], color="k", label=label, **style)
+                for label, style in styles.items()]
+    fig.legend(handles=proxies, loc="outside lower center", ncol=len(proxies))
+
+
 @_styled
 def plot_drive_study(rows: list[dict], spec, path: str | Path) -> Path:
     """The drive study's figure: mean formation error (top) and mean required sensing range
@@ -741,10 +752,7 @@ def plot_drive_study(rows: list[dict], spec, path: str | Path) -> Path:
         unbounded.set_xlim(-1, 1)
         unbounded.tick_params(axis="y", labelleft=False)
         unbounded.grid(axis="x", visible=False)
-    proxies = [matplotlib.lines.Line2D([], [], color=c, lw=2, label=s) for s, c in colours.items()]
-    proxies += [matplotlib.lines.Line2D([], [], color="k", marker=m, ls="none", label=e)
-                for e, m in markers.items()]
-    fig.legend(handles=proxies, loc="outside lower center", ncol=len(proxies))
+    _key_legend(fig, colours, {e: {"marker": m, "ls": "none"} for e, m in markers.items()})
     _suptitle(fig, "driving followers (--motion drive), noise-free: mean over the column's "
                    f"{spec.followers} followers (colour: surface; marker: estimator)")
     return _save(fig, path)
@@ -792,13 +800,10 @@ def plot_column_noise(rows: list[dict], path: str | Path) -> Path:
         axes[0][col].set_title(SURFACE_TITLES.get(surface, surface))
     followers = sorted({r["follower"] for r in rows})
     axes[1][0].set_xticks(followers, [str(k) for k in followers])
-    proxies = [matplotlib.lines.Line2D([], [], color=c, lw=2,
-                                       label=f"σ_range {nr:g} {LENGTH_UNIT}, σ_bearing {nb:g} rad")
-               for (nr, nb), c in colours.items()]
-    proxies += [matplotlib.lines.Line2D([], [], color="k", ls=lines[e], marker=markers[e],
-                                        mfc="white" if lines[e] != "-" else None, label=e)
-                for e in estimators]
-    fig.legend(handles=proxies, loc="outside lower center", ncol=len(proxies))
+    _key_legend(fig, {f"σ_range {nr:g} {LENGTH_UNIT}, σ_bearing {nb:g} rad": c
+                      for (nr, nb), c in colours.items()},
+                {e: {"ls": lines[e], "marker": markers[e],
+                     "mfc": "white" if lines[e] != "-" else None} for e in estimators})
     _suptitle(fig, "Errors down a noisy column: mean over seeds per follower (colour: noise "
                    "on range and bearing; line and marker: estimator)")
     return _save(fig, path)
