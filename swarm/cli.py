@@ -550,10 +550,9 @@ def cmd_drive_study(args: argparse.Namespace) -> int:
         bar.total = total
         bar.update(done - bar.n)
 
-    try:
-        with ends_with(REFUSED, ValueError):  # the options or the DEM
-            result = _run_grid(lambda: run_drive_study(out, spec, workers=args.workers,
-                                                       on_run=progress), out)
+    try:  # the options or the DEM refused: _run_grid's
+        result = _run_grid(lambda: run_drive_study(out, spec, workers=args.workers,
+                                                   on_run=progress), out)
     finally:
         bar.close()
     return _print_experiment({**result, "figure_problems": {}, "failed": []},
