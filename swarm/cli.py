@@ -522,9 +522,9 @@ def cmd_terrain(args: argparse.Namespace) -> int:
             ) or options["comm_periods"][:1]
         spec = TerrainSpec(**options)
         spec = quick(spec) if args.quick else spec
-        out = args.out or "runs/experiment-terrain"
-        result = _run_grid(lambda: run_terrain_experiment(args.dem, out, spec,
-                                                          workers=args.workers), out)
+    out = args.out or "runs/experiment-terrain"
+    result = _run_grid(lambda: run_terrain_experiment(args.dem, out, spec, workers=args.workers),
+                       out)  # the DEM or a leader start refused there
     return _print_experiment(result, f"wall time {result['wall_time']:.1f} s (runs)")
 
 
