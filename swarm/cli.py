@@ -6,7 +6,7 @@ import math
 import sys
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from protocol.cli import (
     FAILED,
@@ -41,6 +41,9 @@ from protocol.distribution import DISTRIBUTION, version
 from protocol.folder import FolderLock, check_out_dir
 from protocol.session import add_connection_flags, connection_config
 from swarm.ros2_join import add_ros2_listen_flag, check_ros2_listen
+
+if TYPE_CHECKING:  # for annotations only: the world is imported when a run needs it
+    from world.surfaces import Surface
 
 
 def option_help(declared: Option) -> str:
@@ -218,7 +221,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
     live = endpoint = None
     with ends_with(REFUSED, ValueError, RuntimeError):
-        config, surface = prepare_run(config_from_args(args))
+        config = config_from_args(args)
+        surface = prepare_run(config)
         check_ros2_listen(args.ros2_listen, config.ros2)
         out = Path(args.out) if args.out else default_out(config.run_id)
         if args.live:  # its arguments are checked before anything is written
@@ -251,12 +255,12 @@ def cmd_run(args: argparse.Namespace) -> int:
             live.close()
 
 
-def prepare_run(config: RunConfig):
+def prepare_run(config: RunConfig) -> Surface:
     """Everything ``config`` can be refused for before a run writes anything (ValueError,
     one line; a missing extra): the extras it needs, its surface, raster and start
     (:func:`world.main.resolve_with_surface`) and that a plug-in estimator is importable here
     (found, none of its code run: the world's process never runs an agent's code). Returns
-    the config and its surface, built once."""
+    its surface, built once (the run is given it)."""
     from protocol.config import PLUGIN_ESTIMATOR
     from protocol.imports import user_module_exists
     from world.main import require_extras, resolve_with_surface
@@ -267,7 +271,7 @@ def prepare_run(config: RunConfig):
         if not user_module_exists(module):
             raise ValueError(f"estimator {config.estimator!r}: no module {module!r} is "
                              "importable here (the installed packages and the current folder)")
-    return config, resolve_with_surface(config)[1]
+    return resolve_with_surface(config)[1]
 
 
 def _run_and_report(args: argparse.Namespace, config: RunConfig, surface, out: Path, live,
