@@ -25,6 +25,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from protocol.config import RunConfig, estimator_options  # noqa: E402
+from swarm.drive_study import within_bound  # noqa: E402
 
 NOISE = {"0": (0.0, 0.0), "0.01/0.005": (0.01, 0.005), "0.02/0.01": (0.02, 0.01),
          "0.05/0.03": (0.05, 0.03)}
@@ -91,7 +92,7 @@ def main() -> None:
                             "broken": sum(r["broken"] for r in runs),
                             "incomplete": sum(not r["complete"] for r in runs)}
                     d, t = cell["drive"], cell["teleport"]
-                    mean_ok = d["last"] <= 2 * t["last"] + 0.05
+                    mean_ok = within_bound(d["last"], t["last"])
                     worst_ok = d["worst"] <= 1.0 and math.isfinite(d["worst"])
                     failures += (not mean_ok) + (not worst_ok)
                     print(f"| {surface} | {n} | {noise} | {est} | {d['first']:.3f} / "

@@ -311,6 +311,12 @@ def write_report(out_dir: Path, rows: list[dict], minimum: list[dict], spec: Dri
     return path
 
 
+def within_bound(drive: float, teleport: float) -> bool:
+    """Issue #30's bound on a driving column's last follower: its mean formation error
+    ``drive`` is at most twice the same column's teleporting, ``teleport``, plus 0.05 m."""
+    return drive <= 2 * teleport + 0.05
+
+
 def _noise_table(rows: list[dict], spec: DriveStudySpec) -> list[str]:
     """The report's noise block: per surface, estimator, noise level and column length, the
     required range and every follower's mean formation error (follower 1 first) driving and
@@ -340,7 +346,7 @@ def _noise_table(rows: list[dict], spec: DriveStudySpec) -> list[str]:
                     if len(cell) < 2:
                         continue
                     d, t = cell["drive"], cell["teleport"]
-                    ok = d["last_formation_error"] <= 2 * t["last_formation_error"] + 0.05
+                    ok = within_bound(d["last_formation_error"], t["last_formation_error"])
                     lines.append(
                         f"| {surface} | {label} | {level} | {n} | "
                         f"{table_number(d['mean_required_range'])} | "
