@@ -25,10 +25,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from protocol.config import RunConfig, estimator_options  # noqa: E402
-from swarm.drive_study import within_bound  # noqa: E402
+from swarm.drive_study import NOISE_LEVELS, within_bound  # noqa: E402
 
-NOISE = {"0": (0.0, 0.0), "0.01/0.005": (0.01, 0.005), "0.02/0.01": (0.02, 0.01),
-         "0.05/0.03": (0.05, 0.03)}
+NOISE = {f"{r:g}/{t:g}" if r or t else "0": (r, t) for r, t in NOISE_LEVELS.values()}
+"""The drive study's noise levels, named σ_r/σ_θ ("0": none) on the command line."""
 BROKEN = 0.5  # a follower this far out of formation: the column broke (issue #30's measure)
 
 
