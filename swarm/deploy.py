@@ -67,6 +67,12 @@ def agent_user(agent: int) -> str:
     return "leader" if agent == 0 else f"follower-{agent}"
 
 
+def agent_briefs(config: RunConfig) -> dict[str, AgentBrief]:
+    """Every agent's brief (:class:`protocol.config.AgentBrief`) in the run ``config``, by its
+    user (:func:`agent_user`), the leader first."""
+    return {agent_user(k): AgentBrief.of(config, k) for k in range(config.followers + 1)}
+
+
 def users(followers: int) -> list[str]:
     """Every user of a run with ``followers`` followers, in a fixed order."""
     _check_followers(followers)
@@ -419,8 +425,7 @@ def generated_files(config: RunConfig, build: str | None = None) -> dict[str, st
         ".gitignore": (f"# Random passwords and private keys: never commit them; .env names the\n"
                        f"# user who owns them.\n{SECRETS}/\n.env\n"),
         "run.toml": _run_toml(config),
-        **{f"{BRIEFS}/{agent_user(k)}.toml": AgentBrief.of(config, k).text()
-           for k in range(config.followers + 1)},
+        **{f"{BRIEFS}/{user}.toml": brief.text() for user, brief in agent_briefs(config).items()},
         "zenoh/router.json5": _json5(header, router),
         "docker-compose.yml": COMPOSE_HEADER + "\n".join(_yaml(compose(config, build))) + "\n",
     }

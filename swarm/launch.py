@@ -25,12 +25,13 @@ from agents.follower import run_follower
 from agents.leader import run_leader
 from agents.link import AgentAbort, RunFinished
 from protocol.cli import describe
-from protocol.config import AgentBrief, AgentSettings, RunConfig
+from protocol.config import AgentSettings, RunConfig
 from protocol.folder import FolderLock, open_file
 from protocol.messages import safe_text
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.deploy import (
     OBSERVER,
+    agent_briefs,
     agent_user,
     private_dir,
     router_config,
@@ -54,8 +55,8 @@ def write_briefs(config: RunConfig, folder: Path) -> Path:
     ``follower-K.toml``); return ``folder``. What :func:`agent_commands` gives the agents."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    for agent in range(config.followers + 1):
-        AgentBrief.of(config, agent).write(folder / f"{agent_user(agent)}.toml")
+    for user, brief in agent_briefs(config).items():
+        brief.write(folder / f"{user}.toml")
     return folder
 
 
