@@ -290,10 +290,11 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, surface, out: P
 
     bar = tqdm(total=config.ticks, desc=f"{config.surface} {config.estimator}", unit="tick",
                disable=None)
-    ticks = []
+    ticks = 0  # recorded so far
 
     def on_tick(tick: int) -> None:
-        ticks.append(tick)
+        nonlocal ticks
+        ticks += 1
         bar.update(1)
 
     try:
@@ -310,7 +311,7 @@ def _run_and_report(args: argparse.Namespace, config: RunConfig, surface, out: P
             print(f"interrupted before the first tick: nothing kept ({out} removed)",
                   file=sys.stderr)
         else:
-            print(f"interrupted: partial result in {out} ({len(ticks)} ticks)", file=sys.stderr)
+            print(f"interrupted: partial result in {out} ({ticks} ticks)", file=sys.stderr)
         return INTERRUPTED
     finally:
         bar.close()
