@@ -207,9 +207,10 @@ def _row(run: StudyRun, summary: dict) -> dict:
 def run_study(spec: DriveStudySpec, workers: int | None = None,
               on_run: Callable[[int, int], None] | None = None) -> list[dict]:
     """Every run's table row, in the order of :func:`study_runs` (a pool of ``workers``
-    processes, default ``min(2, CPU count)``). A configuration two blocks share (the noise
-    block's noise-free column of the base length is the steps block's and the teleport
-    reference's) is run once; ``on_run`` counts the configurations run."""
+    processes, default ``min(2, CPU count)``). A configuration several blocks share is run
+    once: the default robot at the base comm period is a cell of the steps, the speed and the
+    noise block (noise-free, base length), and that column teleporting is the teleport
+    reference and a noise cell; ``on_run`` counts the configurations run."""
     runs = study_runs(spec)
     configs = list({repr(run.config): run.config for run in runs}.items())
     workers = workers or min(2, os.cpu_count() or 1)
