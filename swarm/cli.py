@@ -191,8 +191,9 @@ def format_summary(summary: dict) -> str:
     lines += shares
     state = "complete" if summary["complete"] else f"INCOMPLETE: {summary['reason']}"
     if summary.get("formation_broken"):
-        broken = sum(s.get("broken_ticks", 0) for s in summary["followers"].values())
-        state += (f", FORMATION BROKEN: {broken} follower-ticks beyond "
+        from world.results import broken_ticks
+
+        state += (f", FORMATION BROKEN: {broken_ticks(summary)} follower-ticks beyond "
                   f"{summary['formation_tolerance']:g} m")
     lines.append(f"surface {summary['surface']}, comm period {summary['comm_period']} s, "
                  f"{summary['ticks_completed']} ticks, {summary['wall_time']:.1f} s wall, {state}")

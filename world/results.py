@@ -38,6 +38,12 @@ RESERVE_FILE = ".summary.reserve"
 
 
 
+def broken_ticks(summary: dict) -> int:
+    """The follower-ticks of the run ``summary`` describes that settled beyond the formation
+    tolerance, over every follower."""
+    return sum(s.get("broken_ticks", 0) for s in summary["followers"].values())
+
+
 def run_failure(summary: dict) -> str | None:
     """Why the run ``summary`` describes is not a success, in one line, or None if it is: it
     ended incomplete (its reason first), or a follower settled beyond the formation tolerance
@@ -46,8 +52,7 @@ def run_failure(summary: dict) -> str | None:
     if not summary["complete"]:
         return f"run incomplete: {summary['reason']}"
     if summary.get("formation_broken"):
-        broken = sum(s.get("broken_ticks", 0) for s in summary["followers"].values())
-        return (f"the formation broke: {broken} follower-ticks settled beyond "
+        return (f"the formation broke: {broken_ticks(summary)} follower-ticks settled beyond "
                 f"--formation-tolerance {summary['formation_tolerance']:g} m")
     return None
 
