@@ -340,6 +340,12 @@ class RunConfig:
         correction window's."""
         return self.control_steps + self.snap_steps
 
+    @property
+    def correction_share(self) -> float:
+        """The share of a comm interval a driving follower's correction window takes:
+        :data:`CORRECTION_SHARE`, or 0 without one (``snap_steps = 0``)."""
+        return CORRECTION_SHARE if self.snap_steps else 0.0
+
     def step_duration(self, step: int) -> float:
         """How long control step ``step`` of a tick lasts (design §4 "Motion"): the tick's
         steps fill its comm interval, the move phase's ``control_steps`` its first
@@ -347,7 +353,7 @@ class RunConfig:
         window's ``snap_steps`` the rest."""
         if not 0 <= step < self.tick_steps:
             raise ValueError(f"step must be in 0..{self.tick_steps - 1}, got {step}")
-        share = CORRECTION_SHARE if self.snap_steps else 0.0
+        share = self.correction_share
         if step < self.control_steps:
             return self.comm_period * (1.0 - share) / self.control_steps
         return self.comm_period * share / self.snap_steps
@@ -355,7 +361,7 @@ class RunConfig:
     def step_start(self, step: int) -> float:
         """When control step ``step`` begins, from the start of its tick's comm interval
         (``step = tick_steps``: the interval's end)."""
-        share = CORRECTION_SHARE if self.snap_steps else 0.0
+        share = self.correction_share
         move = self.comm_period * (1.0 - share)
         if step <= self.control_steps:
             return move * step / self.control_steps
@@ -460,6 +466,7 @@ def _agent_settings() -> type:
         "drives": RunConfig.drives,
         "accel_limit": RunConfig.accel_limit,
         "tick_steps": RunConfig.tick_steps,
+        "correction_share": RunConfig.correction_share,
         "step_duration": RunConfig.step_duration,
         "step_start": RunConfig.step_start,
         "stop_time": RunConfig.stop_time,
