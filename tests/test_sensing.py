@@ -214,12 +214,31 @@ def test_a_tick_rolled_back_and_redone_reads_the_same_noise():
     def tick_replies(interrupted: bool) -> list:
         sim = _world(noise_move=0.01, **NOISY)
         j = _through_initial_ticks(sim)
-        if interrupted:
-            sim.sense(1, j, look=True)
-            sim.act(1, Move(tick=j, offset=(0.2, 0.1)))
+        if interrupted:  # what the vanished process did, as its deterministic redo will
+            sim.sense(1, j)
+            sim.act(1, Move(tick=j, offset=(0.1, 0.0)))
             sim.rollback(1, j)
         replies = [sim.sense(1, j), sim.act(1, Move(tick=j, offset=(0.1, 0.0))),
                    sim.act(1, Snap(tick=j))]
         return replies + [sim.finish_tick(j)[1]]
 
     assert tick_replies(True) == tick_replies(False)
+
+
+def test_a_redone_tick_that_acts_otherwise_is_refused():
+    """A rolled-back tick draws the same noise again, so a follower that rejoined mid-tick on
+    purpose and moved elsewhere would read the same draws from another pose and could solve
+    for the truth: a redo must repeat the undone attempt's requests (it may go further)."""
+    sim = _world(**NOISY)
+    j = _through_initial_ticks(sim)
+    sim.sense(1, j)
+    sim.act(1, Move(tick=j, offset=(0.5, 0.0)))
+    sim.rollback(1, j)
+    with pytest.raises(RequestError, match="must repeat"):
+        sim.sense(1, j, look=True)
+    sim.sense(1, j)
+    with pytest.raises(RequestError, match="must repeat"):
+        sim.act(1, Move(tick=j, offset=(0.0, 0.5)))
+    sim.act(1, Move(tick=j, offset=(0.5, 0.0)))
+    sim.act(1, Snap(tick=j))  # past what the undone attempt did: free
+    assert sim.is_settled(1, j)

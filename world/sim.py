@@ -126,6 +126,11 @@ class AgentState:
     odometry_errors: dict[int, np.ndarray] = field(default_factory=dict)
     # what its sensors did in each tick it began (world.sensing), until the tick after is done
     sensed: dict[int, TickSensing] = field(default_factory=dict)
+    # the requests of the tick it is in, in order; and what an attempt of tick ``redo_tick``
+    # that was rolled back had requested (a redo must repeat it: it draws the same noise)
+    requests: list = field(default_factory=list)
+    redo: tuple = ()
+    redo_tick: int = -1
     begun: tuple = ()  # (pos, heading[, leader velocity, leader time]) when ``tick`` began
     estimate: np.ndarray | None = None
     acted: str = ""
@@ -137,6 +142,7 @@ class AgentState:
         """Forget what the agent did in the tick it is in."""
         self.estimate, self.acted, self.lost, self.missed = None, "", False, False
         self.drive = DriveTick()
+        self.requests = []
 
 
 def resolve_leader_start(config: RunConfig, surface: Surface) -> tuple[float, float, float, float]:
@@ -255,10 +261,16 @@ class WorldSim:
         """Undo whatever ``agent`` did in tick ``tick`` (its process vanished before the world
         had it through): it will redo the tick from the pose it had when it began it, and draw
         the same noise (its readings are counted again from the first), so the tick's numbers
-        are those of an uninterrupted run. Nothing to do if the agent has not begun ``tick``."""
+        are those of an uninterrupted run. Nothing to do if the agent has not begun ``tick``.
+
+        Because the noise is the same, the redo must request what the undone attempt did, in
+        the same order (:meth:`_check_redo`): an agent that rejoined mid-tick on purpose and
+        acted otherwise would read the same draws from another pose and could cancel them."""
         state = self.agents[agent]
         if state.tick != tick:
             return
+        if state.redo_tick != tick or len(state.requests) > len(state.redo):
+            state.redo, state.redo_tick = tuple(state.requests), tick
         state.pos, state.heading = state.begun[0].copy(), state.begun[1].copy()
         if agent == 0:
             self.leader_velocity, self.leader_time = state.begun[2].copy(), state.begun[3]
@@ -427,6 +439,18 @@ class WorldSim:
 
     # --- requests ------------------------------------------------------------------------------
 
+    def _check_redo(self, agent: int, tick: int, request: object) -> None:
+        """Refuse a request of a tick redone after :meth:`rollback` that differs from what the
+        undone attempt requested at the same place (a deterministic agent redoes it exactly)."""
+        if not 0 <= agent < self.n_agents:
+            return  # refused by _check_request
+        state = self.agents[agent]
+        done = len(state.requests) if state.tick == tick else 0
+        if state.redo_tick == tick and done < len(state.redo) and state.redo[done] != request:
+            raise RequestError(f"agent {agent} redoes tick {tick} after a rollback: request "
+                               f"{done + 1} must repeat what it asked before (the same noise "
+                               "is drawn again)")
+
     def _check_request(self, agent: int, tick: int) -> None:
         """Refuse a request out of turn; an agent's first request for the tick after the one it
         settled at begins that tick for it."""
@@ -527,6 +551,7 @@ class WorldSim:
         :meth:`act`). It carries the rod end only if the follower ``look``s for it (then the
         distance counts in the tick's required range, from tick ``init_ticks`` on); a
         follower always looks in an initial tick, where it is placed by that reading."""
+        self._check_redo(agent, tick, ("sense", bool(look)))
         self._check_request(agent, tick)
         self._check_follower_turn(agent, tick)
         state, cfg = self.agents[agent], self.config
@@ -542,6 +567,7 @@ class WorldSim:
         reading = self._read(agent, tick, "pre", look)
         if cfg.drives or tick < cfg.init_ticks:  # the floor decides here (no teleport move)
             sensed.events.append(floor.DECISION)
+        state.requests.append(("sense", bool(look)))
         return reading
 
     def _sends_oracle(self) -> bool:
@@ -714,6 +740,12 @@ class WorldSim:
         :class:`Control` step with the sensing after it and a :class:`Snap` with the
         settled sensing, all as :class:`ActSensing`: each a reading of its own (design §5).
         The one dispatch of the Zenoh service and of the in-memory layout."""
+        self._check_redo(agent, request.tick, request)
+        reply = self._act(agent, request)
+        self.agents[agent].requests.append(request)
+        return reply
+
+    def _act(self, agent: int, request: Message) -> ActResult | ActSensing:
         if isinstance(request, Drive):
             self.drive(agent, request.tick, request.t)
             return ActResult(tick=request.tick, moved=True)
