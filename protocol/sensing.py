@@ -35,17 +35,3 @@ def reading_variance(distance: float, sigma_r: float, sigma_theta: float) -> flo
     """
     return (sigma_r**2 + (distance * sigma_theta) ** 2) / 2.0
 
-
-def reading_precision(r: float, theta: float, sigma_r: float, sigma_theta: float,
-                      jitter: float = 0.0) -> np.ndarray:
-    """The inverse (2, 2) of :func:`reading_covariance` plus ``jitter`` times the identity,
-    in closed form: the covariance is diagonal along and across the line of sight.
-
-    >>> a = reading_precision(2.0, 0.3, 0.1, 0.05)
-    >>> bool(np.allclose(a @ reading_covariance(2.0, 0.3, 0.1, 0.05), np.eye(2)))
-    True
-    """
-    c, s = math.cos(theta), math.sin(theta)
-    along, across = 1.0 / (sigma_r**2 + jitter), 1.0 / ((r * sigma_theta) ** 2 + jitter)
-    return np.array([[along * c * c + across * s * s, (along - across) * c * s],
-                     [(along - across) * c * s, along * s * s + across * c * c]])
