@@ -349,3 +349,36 @@ def test_not_ready_and_factory():
     assert make_policy(settings).name == "edmd-c-estimated"
     with pytest.raises(ValueError, match="candidates must not be empty"):
         Auto([])
+
+
+class _Counted(_Reading):
+    """A :class:`_Reading` that counts the proposals it is asked for."""
+
+    def __init__(self, name, shift):
+        super().__init__(name, shift)
+        self.asked = 0
+
+    def propose(self, pre):
+        self.asked += 1
+        return super().propose(pre)
+
+
+def test_auto_asks_each_candidate_once_a_tick_when_it_scores_what_was_made():
+    """With ``made``, learn scores the proposals propose already had for the same reading
+    (the candidates are pure until they learn): each candidate is asked once a tick, and the
+    scores are those of an auto that was never asked to propose."""
+    pre = Sensing(tick=3, r=2.0, theta=0.0)
+    settled, target = Sensing(tick=3, r=1.5, theta=0.0), np.array([0.3, 0.0])
+    before = Before(pre=pre, moved=None, offset=(0.0, 0.0))
+    asked, unasked = (Auto([_Counted("a", [0.0, 0.0]), _Counted("r", [0.1, 0.0])], burn_in=0,
+                           made=True) for _ in range(2))
+    for tick in range(3):
+        asked.propose(pre)
+        asked.learn(settled, target, before)
+        unasked.learn(settled, target, before)
+        assert [c.asked for c in asked.candidates] == [tick + 1] * 2
+        assert asked.errors == unasked.errors
+    asked.propose(Sensing(tick=3, r=2.5, theta=0.0))  # another reading: asked anew
+    asked.learn(settled, target, before)
+    assert [c.asked for c in asked.candidates] == [5, 5]
+    assert asked.errors[1][-1] == pytest.approx(2.0 + 0.1 - 0.3, abs=1e-12)

@@ -194,3 +194,42 @@ def test_ekf_weighs_how_fast_the_rod_turns(monkeypatch):
     monkeypatch.setattr(policies, "EKF_TURNS", (1e-4,))
     single = _drive_jittery(model_based("ekf", settings), ticks=40, seed=seed)
     assert np.mean(banked) < 0.8 * np.mean(single), (np.mean(banked), np.mean(single))
+
+
+class _Logged:
+    """Forwards to ``policy`` and keeps every propose and learn call."""
+
+    def __init__(self, policy) -> None:
+        self.policy, self.calls = policy, []
+
+    def propose(self, pre):
+        self.calls.append(("propose", (pre,)))
+        return self.policy.propose(pre)
+
+    def learn(self, *args):
+        self.calls.append(("learn", args))
+        return self.policy.learn(*args)
+
+
+def test_ekf_learns_the_same_whether_or_not_it_was_asked():
+    """What propose works out from a pre reading is remembered for learn: a filter asked for
+    proposals (twice, as auto asks, and once from another reading) ends every tick in exactly
+    the state of one never asked, and its proposal for a reading does not depend on what it
+    was asked before."""
+    seed = 31
+    print(f"seed {seed}")
+    settings = _settings(noise_range=0.02, noise_bearing=0.01, noise_move=0.01)
+    log = _Logged(model_based("ekf", settings))
+    _drive_jittery(log, ticks=14, seed=seed)
+    asked, unasked = model_based("ekf", settings), model_based("ekf", settings)
+    for kind, args in log.calls:
+        if kind == "propose":
+            (pre,) = args
+            other = asked.propose(_reading(pre.tick, complex(pre.r + 0.1, 0.0)))
+            first, again = asked.propose(pre), asked.propose(pre)
+            assert np.array_equal(first.offset, again.offset)
+            assert not np.array_equal(first.offset, other.offset)
+            continue
+        assert asked.learn(*args) == unasked.learn(*args)
+        assert asked.state() == unasked.state()
+    assert sum(kind == "propose" for kind, _ in log.calls) == 10

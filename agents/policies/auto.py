@@ -202,6 +202,8 @@ class Auto(Policy):
         # each score's leverage (Policy.leverage) when it was made, aligned with the windows
         self.levels = [deque(maxlen=horizon) for _ in range(len(candidates) + 1)]
         self.scored = [0] * (len(candidates) + 1)  # ticks each was scored on
+        # the last propose()'s reading, leverages and proposals, until the state changes
+        self._asked: tuple[Sensing, list, list] | None = None
 
     def _eligible(self, proposals: list[Proposal | None]) -> list[int]:
         """Candidates (by index) with enough scores and a proposal within the trust radius
@@ -335,9 +337,17 @@ class Auto(Policy):
                 out.append(None)
         return out + [self._blended(pre, out, now)]
 
+    def _asked_for(self, pre: Sensing) -> tuple[list, list]:
+        """The leverages and proposals for ``pre``, remembered until the state changes: the
+        candidates are pure until they learn, so scoring the proposals made (``made``) asks
+        for what :meth:`propose` already had."""
+        if self._asked is None or self._asked[0] != pre:
+            now = self._leverages(pre)
+            self._asked = (pre, now, self._proposals(pre, now))
+        return self._asked[1], self._asked[2]
+
     def propose(self, pre: Sensing) -> Proposal:
-        now = self._leverages(pre)
-        proposals = self._proposals(pre, now)
+        now, proposals = self._asked_for(pre)
         if all(p is None for p in proposals):
             raise NotFitted("no candidate of auto is ready")
         ready = self._eligible(proposals)
@@ -373,8 +383,7 @@ class Auto(Policy):
         if target is not None:
             pre = before.pre if self.made and before is not None else reconstructed_pre(
                 settled, target)
-            now = self._leverages(pre)
-            proposals = self._proposals(pre, now)
+            now, proposals = self._asked_for(pre)
             for i, proposal in enumerate(proposals):
                 if proposal is not None:
                     self.scored[i] += 1
@@ -385,9 +394,11 @@ class Auto(Policy):
                         last = self.loss[i]
                         self.loss[i] = error * error if last is None else (
                             self.memory * last + (1.0 - self.memory) * error * error)
+        self._asked = None
         measured = [cand.learn(settled, target, before) for cand in self.candidates]
         return measured[0]
 
     def skip(self) -> None:
+        self._asked = None
         for cand in self.candidates:
             cand.skip()

@@ -151,6 +151,8 @@ class RodTracker(Policy):
         self.cov: np.ndarray | None = None  # (members, N, N)
         self.scores = np.zeros(self.members)  # discounted log-likelihoods
         self._ahead: tuple[np.ndarray, np.ndarray] | None = None  # _advanced(), until learn
+        self._pre: tuple | None = None  # _before_move()'s reading and result, until learn
+        self._weights: np.ndarray | None = None  # weights(), until the scores change
         self._evidence = np.zeros(self.members)
 
     # -- the filters' steps, on (mean, cov) batches ---------------------------------------
@@ -221,14 +223,27 @@ class RodTracker(Policy):
         return self._ahead
 
     def _before_move(self, pre: Sensing):
-        """The filters at this tick after its ``pre`` reading (copies)."""
-        mean, cov = self._advanced()
-        return self._reading(mean, cov, relative(pre), rod=False)
+        """The filters at this tick after its ``pre`` reading, and that reading's evidence
+        (members,), remembered for the last ``pre`` until the state changes: ``auto`` asks
+        for two proposals a tick from the same reading before the policy learns it, and
+        learning starts from it again. Read-only: copy before changing them."""
+        if self._pre is None or self._pre[0] != pre:
+            kept, self._evidence = self._evidence, np.zeros(self.members)
+            mean, cov = self._advanced()
+            mean, cov = self._reading(mean, cov, relative(pre), rod=False)
+            self._pre, self._evidence = (pre, mean, cov, self._evidence), kept
+        return self._pre[1:]
+
+    def _forget(self) -> None:
+        """The filters' state or scores changed: drop what was derived from them."""
+        self._ahead = self._pre = self._weights = None
 
     def weights(self) -> np.ndarray:
         """Each filter's weight in the mixture (members,), summing to 1."""
-        w = np.exp(self.scores - self.scores.max())
-        return w / w.sum()
+        if self._weights is None:
+            w = np.exp(self.scores - self.scores.max())
+            self._weights = w / w.sum()
+        return self._weights
 
     def _rod_end(self, mean: np.ndarray) -> np.ndarray:
         """The mixture's rod end relative to the follower (2,)."""
@@ -239,9 +254,7 @@ class RodTracker(Policy):
     def propose(self, pre: Sensing) -> Proposal:
         if self.mean is None:
             raise NotFitted("ekf needs one settled tick")
-        evidence = self._evidence.copy()  # a pure read: its readings' evidence is not kept
-        mean, _ = self._before_move(pre)
-        self._evidence = evidence
+        mean, _, _ = self._before_move(pre)
         e = self._rod_end(mean)
         return Proposal(e, (float(e[0]), float(e[1])))
 
@@ -258,7 +271,8 @@ class RodTracker(Policy):
             if target is not None:
                 mean, cov = self._move(mean, cov, np.asarray(target, dtype=float))
         else:
-            mean, cov = self._before_move(before.pre)
+            mean, cov, evidence = self._before_move(before.pre)
+            self._evidence = evidence.copy()
             offset = np.asarray(before.offset, dtype=float)
             mean, cov = self._move(mean, cov, offset)
             moved = before.moved
@@ -273,8 +287,9 @@ class RodTracker(Policy):
             mean, cov = self._reading(mean, cov, np.asarray(settled.rod), rod=True)
         if before is not None and target is not None:
             mean, cov = self._odometry(mean, cov, settled, before, target)
-        self.mean, self.cov, self._ahead = mean, cov, None
+        self.mean, self.cov = mean, cov
         self.scores = self.memory * self.scores + self._evidence
+        self._forget()
         e = self._rod_end(mean)
         return float(e[0]), float(e[1])
 
@@ -299,7 +314,7 @@ class RodTracker(Policy):
     def skip(self) -> None:
         if self.mean is not None:
             self.mean, self.cov = self._advance(self.mean, self.cov)
-            self._ahead = None
+            self._forget()
 
     def state(self) -> dict:
         """The filters' state as plain data (lists of floats; None before the first tick)."""
@@ -323,4 +338,5 @@ class RodTracker(Policy):
                 or not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov)))):
             raise ValueError(f"state must hold finite scores ({k},), mean ({k}, {N}) and cov "
                              f"({k}, {N}, {N})")
-        self.mean, self.cov, self.scores, self._ahead = mean, cov, scores, None
+        self.mean, self.cov, self.scores = mean, cov, scores
+        self._forget()
