@@ -7,13 +7,15 @@ checkout in DIR (e.g. ``git worktree add /tmp/before 8d2b9b1``), for each estima
 and processes, over Zenoh), in ``--repeats`` rounds that alternate the two checkouts run by
 run (the machine may be shared: interleaved rounds see the same load), and prints the runs'
 own wall times (``summary.json``, start-up excluded), their medians and the ratio here /
-baseline. Both use this interpreter.
+baseline; then the same for the CPU time each run took, all its processes together
+(start-up included), which a shared machine disturbs less. Both use this interpreter.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -26,14 +28,22 @@ CASE = ["--followers", "3", "--ticks", "200", "--noise-range", "0.02", "--noise-
 LAYOUTS = {"in-process": ["--in-process"], "processes": []}
 
 
-def wall_time(checkout: Path, estimator: str, layout: str, out: Path) -> float:
-    """The wall time ``summary.json`` of one run of the case reports (s)."""
+def _cpu() -> float:
+    """CPU time (user and system) of this process's finished children so far (s)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def run_times(checkout: Path, estimator: str, layout: str, out: Path) -> tuple[float, float]:
+    """The wall time ``summary.json`` of one run of the case reports and the CPU time the
+    run's processes took (s)."""
     env = {**os.environ, "PYTHONPATH": str(checkout)}
+    before = _cpu()
     subprocess.run([sys.executable, "-m", "swarm", "run", *LAYOUTS[layout], *CASE,
                     "--estimator", estimator, "--out", str(out)], cwd=checkout, env=env,
                    check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                    timeout=600)
-    return json.loads((out / "summary.json").read_text())["wall_time"]
+    return json.loads((out / "summary.json").read_text())["wall_time"], _cpu() - before
 
 
 def main() -> None:
@@ -52,20 +62,25 @@ def main() -> None:
         p.error(f"--repeats must be >= 1 and --layouts of {', '.join(LAYOUTS)}")
     cells = [(e, lay) for lay in layouts for e in args.estimators.split(",")]
     times = {(cell, side): [] for cell in cells for side in ("baseline", "here")}
+    cpus = {key: [] for key in times}
     with tempfile.TemporaryDirectory() as scratch:
         for i in range(args.repeats):
             for cell in cells:
                 for side, checkout in (("baseline", args.baseline), ("here", HERE)):
                     out = Path(scratch) / f"{side}-{cell[0]}-{cell[1]}-{i}"
-                    times[(cell, side)].append(wall_time(checkout, *cell, out))
-    for estimator, layout in cells:
-        got = {side: times[((estimator, layout), side)] for side in ("baseline", "here")}
-        medians = {side: statistics.median(v) for side, v in got.items()}
-        print(f"{estimator}, {layout}: baseline " + " ".join(f"{t:.2f}" for t in got["baseline"])
-              + f" s (median {medians['baseline']:.2f}); here "
-              + " ".join(f"{t:.2f}" for t in got["here"])
-              + f" s (median {medians['here']:.2f}); ratio "
-              f"{medians['here'] / medians['baseline']:.3f}")
+                    wall, cpu = run_times(checkout, *cell, out)
+                    times[(cell, side)].append(wall)
+                    cpus[(cell, side)].append(cpu)
+    for what, table in (("wall time", times), ("CPU time", cpus)):
+        for estimator, layout in cells:
+            got = {side: table[((estimator, layout), side)] for side in ("baseline", "here")}
+            medians = {side: statistics.median(v) for side, v in got.items()}
+            print(f"{what}, {estimator}, {layout}: baseline "
+                  + " ".join(f"{t:.2f}" for t in got["baseline"])
+                  + f" s (median {medians['baseline']:.2f}); here "
+                  + " ".join(f"{t:.2f}" for t in got["here"])
+                  + f" s (median {medians['here']:.2f}); ratio "
+                  f"{medians['here'] / medians['baseline']:.3f}")
 
 
 if __name__ == "__main__":

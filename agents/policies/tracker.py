@@ -60,21 +60,29 @@ EYE2 = np.eye(2)
 LOG_2PI = math.log(2.0 * math.pi)
 
 
-def _selector(*blocks: slice) -> np.ndarray:
-    """The (2, N) matrix summing the state's 2-vectors ``blocks``."""
-    h = np.zeros((2, N))
-    for block in blocks:
-        h[:, block] = EYE2
-    return h
-
-
-LEADER, ROD_END, ACTUATION = _selector(S, J), _selector(S, J, RHO), _selector(D)
-MOVED = (ACTUATION - _selector(S)).T @ (ACTUATION - _selector(S))  # a move's noise: -S, +D
+# What a reading sums of the state's 2-vectors (its observation matrix is a sum of 2x2
+# identities there), in the order of the state, which is the order a matrix product adds them.
+LEADER, ROD_END, ACTUATION = (S, J), (S, RHO, J), (D,)
+MOVED = np.zeros((N, N))  # a move's noise: -S, +D
+MOVED[S, S] = MOVED[D, D] = EYE2
+MOVED[S, D] = MOVED[D, S] = -EYE2
 TRACK = np.eye(N)  # the linear part of a tick: constant acceleration; D and J start afresh
 TRACK[S, V], TRACK[S, A], TRACK[V, A] = EYE2, 0.5 * EYE2, EYE2
 TRACK[D, D] = TRACK[J, J] = 0.0
 # white jerk's covariance of (position, displacement, acceleration) over one tick, per unit
 JERK_DT = np.array([[1 / 20, 1 / 8, 1 / 6], [1 / 8, 1 / 3, 1 / 2], [1 / 6, 1 / 2, 1.0]])
+ADJUGATE = np.array([[1.0, -1.0], [-1.0, 1.0]])  # the signs of a 2x2 matrix's adjugate
+
+
+def _observed(x: np.ndarray, blocks: tuple[slice, ...], axis: int = 1) -> np.ndarray:
+    """``H x`` (axis 1 of a batch) or ``x H^T`` (axis 2) for the observation matrix ``H``
+    that sums the state's 2-vectors ``blocks``: their sum, added in the given order."""
+    def pick(block):
+        return x[:, block] if axis == 1 else x[:, :, block]
+    total = pick(blocks[0])
+    for block in blocks[1:]:
+        total = total + pick(block)
+    return total
 
 
 class RodTracker(Policy):
@@ -157,17 +165,17 @@ class RodTracker(Policy):
 
     # -- the filters' steps, on (mean, cov) batches ---------------------------------------
 
-    def _update(self, mean, cov, h: np.ndarray, z: np.ndarray, noise: np.ndarray):
-        """Kalman update of every filter with the linear reading ``z = h x + noise`` (``h``
-        (2, N)); adds the reading's log-likelihood under each prediction to the evidence."""
-        hc = h @ cov  # (members, 2, N)
-        s = hc @ h.T + noise
-        a, b, c, d = s[:, 0, 0], s[:, 0, 1], s[:, 1, 0], s[:, 1, 1]
-        det = a * d - b * c
-        inverse = np.stack([np.stack([d, -b], -1), np.stack([-c, a], -1)], -2) / det[:, None,
-                                                                                       None]
+    def _update(self, mean, cov, blocks: tuple[slice, ...], z: np.ndarray,
+                noise: np.ndarray):
+        """Kalman update of every filter with the linear reading ``z = H x + noise`` (``H``
+        sums the state's 2-vectors ``blocks``, :func:`_observed`); adds the reading's
+        log-likelihood under each prediction to the evidence."""
+        hc = _observed(cov, blocks)  # H P (members, 2, N)
+        s = _observed(hc, blocks, axis=2) + noise
+        det = s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0]
+        inverse = np.swapaxes(s[:, ::-1, ::-1], 1, 2) * ADJUGATE / det[:, None, None]
         gain = np.swapaxes(inverse @ hc, 1, 2)  # (members, N, 2)
-        surprise = z - mean @ h.T  # (members, 2)
+        surprise = z - _observed(mean, blocks)  # (members, 2)
         mean = mean + np.einsum("kij,kj->ki", gain, surprise)
         self._evidence -= 0.5 * (np.einsum("ki,kij,kj->k", surprise, inverse, surprise)
                                  + np.log(det) + 2.0 * LOG_2PI)
@@ -193,12 +201,13 @@ class RodTracker(Policy):
         offset; the actuation error restarts."""
         rho, lam = mean[:, RHO], mean[:, LAM]
         scale, cos, sin = np.exp(lam[:, 0]), np.cos(lam[:, 1]), np.sin(lam[:, 1])
-        turn = scale[:, None, None] * np.stack([np.stack([cos, -sin], -1),
-                                                np.stack([sin, cos], -1)], -2)
+        turn = scale[:, None, None] * np.stack([cos, -sin, sin, cos], -1).reshape(-1, 2, 2)
         turned = np.einsum("kij,kj->ki", turn, rho)
         f = np.broadcast_to(TRACK, cov.shape).copy()
         f[:, RHO, RHO] = turn
-        f[:, RHO, LAM] = np.stack([turned, np.c_[-turned[:, 1], turned[:, 0]]], -1)
+        f[:, RHO, LAM.start] = turned  # d rho' / d lam: rho' and rho' turned a quarter
+        f[:, RHO.start, LAM.start + 1], f[:, RHO.start + 1, LAM.start + 1] = -turned[:, 1], \
+            turned[:, 0]
         new = mean @ TRACK.T
         new[:, RHO], new[:, LAM] = turned, lam
         cov = f @ cov @ np.swapaxes(f, 1, 2) + self._q
