@@ -246,6 +246,9 @@ class Kalman(RelativeTracker):
             self._predict_step()
 
 
+ONE = np.ones(1)  # the affine regressor's constant
+
+
 class ARX(Policy):
     """``arx``: least-squares autoregression with the leader's displacement as input.
 
@@ -276,14 +279,18 @@ class ARX(Policy):
         # the fit of the data above (coefficients, projector), until they change
         self._fitted: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
-    def _regressor(self, end: int, u_now: np.ndarray | None = None) -> np.ndarray:
-        """``[x_end, u_end, x_{end-1}, u_{end-1}, ... (, 1)]`` over ``order`` lags."""
-        xs, us = list(self.xs), list(self.us) + ([] if u_now is None else [u_now])
+    def _regressor(self, end: int, u_now: np.ndarray | None = None,
+                   samples: tuple[list, list] | None = None) -> np.ndarray:
+        """``[x_end, u_end, x_{end-1}, u_{end-1}, ... (, 1)]`` over ``order`` lags, from
+        ``samples`` (``xs`` and ``us`` as lists; default: the policy's, copied)."""
+        xs, us = (list(self.xs), list(self.us)) if samples is None else samples
+        if u_now is not None:
+            us = [*us, u_now]
         parts = []
         for k in range(self.order):
             parts += [xs[end - k], us[end - k]]
         if self.affine:
-            parts.append(np.ones(1))
+            parts.append(ONE)
         return np.concatenate(parts)
 
     def _fit(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -301,7 +308,8 @@ class ARX(Policy):
         if self.window is not None:
             first = max(first, len(self.us) - self.window)
         rows = range(first, len(self.us))
-        phi = np.array([self._regressor(i) for i in rows])
+        samples = list(self.xs), list(self.us)  # once, not once a row
+        phi = np.array([self._regressor(i, samples=samples) for i in rows])
         target = np.array([self.xs[i + 1] for i in rows])
         pinv = np.linalg.pinv(phi, rcond=RCOND)
         self._fitted = (pinv @ target, pinv, phi)  # (p, 2), and for leverage's projector
