@@ -366,7 +366,8 @@ class _Counted(_Reading):
 def test_auto_asks_each_candidate_once_a_tick_when_it_scores_what_was_made():
     """With ``made``, learn scores the proposals propose already had for the same reading
     (the candidates are pure until they learn): each candidate is asked once a tick, and the
-    scores are those of an auto that was never asked to propose."""
+    scores are those of an auto that was never asked to propose; what propose had is not
+    used once the candidates learnt, nor for another reading."""
     pre = Sensing(tick=3, r=2.0, theta=0.0)
     settled, target = Sensing(tick=3, r=1.5, theta=0.0), np.array([0.3, 0.0])
     before = Before(pre=pre, moved=None, offset=(0.0, 0.0))
@@ -378,7 +379,10 @@ def test_auto_asks_each_candidate_once_a_tick_when_it_scores_what_was_made():
         unasked.learn(settled, target, before)
         assert [c.asked for c in asked.candidates] == [tick + 1] * 2
         assert asked.errors == unasked.errors
+    asked.learn(settled, target, before)  # nothing proposed since it learnt: asked anew
+    unasked.learn(settled, target, before)
+    assert [c.asked for c in asked.candidates] == [4, 4] and asked.errors == unasked.errors
     asked.propose(Sensing(tick=3, r=2.5, theta=0.0))  # another reading: asked anew
     asked.learn(settled, target, before)
-    assert [c.asked for c in asked.candidates] == [5, 5]
+    assert [c.asked for c in asked.candidates] == [6, 6]
     assert asked.errors[1][-1] == pytest.approx(2.0 + 0.1 - 0.3, abs=1e-12)

@@ -202,7 +202,7 @@ class Auto(Policy):
         # each score's leverage (Policy.leverage) when it was made, aligned with the windows
         self.levels = [deque(maxlen=horizon) for _ in range(len(candidates) + 1)]
         self.scored = [0] * (len(candidates) + 1)  # ticks each was scored on
-        # the last propose()'s reading, leverages and proposals, until the state changes
+        # the last propose()'s reading, leverages and proposals, until learn or skip
         self._asked: tuple[Sensing, list, list] | None = None
 
     def _eligible(self, proposals: list[Proposal | None]) -> list[int]:
@@ -338,16 +338,18 @@ class Auto(Policy):
         return out + [self._blended(pre, out, now)]
 
     def _asked_for(self, pre: Sensing) -> tuple[list, list]:
-        """The leverages and proposals for ``pre``, remembered until the state changes: the
-        candidates are pure until they learn, so scoring the proposals made (``made``) asks
-        for what :meth:`propose` already had."""
-        if self._asked is None or self._asked[0] != pre:
-            now = self._leverages(pre)
-            self._asked = (pre, now, self._proposals(pre, now))
-        return self._asked[1], self._asked[2]
+        """The leverages and proposals for ``pre``: those the last :meth:`propose` had if it
+        was for ``pre`` and nothing was learnt since (the candidates are pure until they
+        learn, so scoring the proposals made, ``made``, need not ask them again)."""
+        if self._asked is not None and self._asked[0] == pre:
+            return self._asked[1], self._asked[2]
+        now = self._leverages(pre)
+        return now, self._proposals(pre, now)
 
     def propose(self, pre: Sensing) -> Proposal:
-        now, proposals = self._asked_for(pre)
+        now = self._leverages(pre)
+        proposals = self._proposals(pre, now)
+        self._asked = (pre, now, proposals)
         if all(p is None for p in proposals):
             raise NotFitted("no candidate of auto is ready")
         ready = self._eligible(proposals)
