@@ -88,7 +88,7 @@ class FormationHealth:
             return
         self.total.add(error)
         self.worst = error if self.worst is None else max(self.worst, error)
-        self.broken += error > self.tolerance
+        self.broken += bool(error > self.tolerance)
 
     def values(self) -> dict:
         """``mean_formation_error``, ``worst_formation_error`` (None before any tick, m) and

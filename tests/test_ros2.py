@@ -54,7 +54,7 @@ def test_data_keys():
         "visualization_msgs::msg::dds_::MarkerArray_")
     assert ros2.ros_type("nav_msgs::msg::dds_::Path_") == "nav_msgs/msg/Path"
     keys = ros2.world_keys(7, 2)
-    assert len(keys) == len(set(keys)) == 3 + 2 * 3 + 3 * 2
+    assert len(keys) == len(set(keys)) == 4 + 2 * 3 + 3 * 2  # run-wide, leader, followers
     assert all(key.startswith("7/") and key.count("/RIHS01_") == 1 for key in keys)
     for bad in ("chatter", "/a//b", "/1a", "/a b", "/"):
         with pytest.raises(ValueError):
