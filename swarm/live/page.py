@@ -332,7 +332,9 @@ def health_html(snap: Snapshot, frame) -> str:
     def metres(x: float | None) -> str:
         return "–" if x is None else f"{x:.3g}"
 
-    lines = ["<table style='border-collapse: collapse'><tr><th>follower</th>"
+    lines = ["<style>table.health td, table.health th {padding: 1px 14px 1px 0; "
+             "text-align: right}</style>"
+             "<table class='health' style='border-collapse: collapse'><tr><th>follower</th>"
              "<th>formation error (m)</th><th>mean</th><th>worst</th>"
              f"<th>broken ticks (beyond {limit})</th></tr>"]
     for k in followers[:MAX_RANGE_PLOTS]:
