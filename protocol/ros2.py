@@ -299,6 +299,9 @@ def parse_attachment(data: bytes) -> tuple[int, int, bytes]:
 CLOCK = ("/clock", "rosgraph_msgs/msg/Clock")
 TF = ("/tf", "tf2_msgs/msg/TFMessage")
 MARKERS = ("/swarm/markers", "visualization_msgs/msg/MarkerArray")
+DIAGNOSTICS = ("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
+"""Every follower's formation health, one ``DiagnosticStatus`` each (docs/ros2.md): on the
+topic ROS 2's diagnostic tools (the aggregator, rqt's monitors, Foxglove's panels) read."""
 AGENT_TOPICS = {  # per agent: name -> (type, leader too)
     "pose": ("geometry_msgs/msg/PoseStamped", True),
     "path": ("nav_msgs/msg/Path", True),
@@ -328,7 +331,7 @@ def run_topics(followers: int, drive: bool = False) -> list[tuple[str, str]]:
     of a teleport run."""
     if isinstance(followers, bool) or not isinstance(followers, int) or followers < 0:
         raise ValueError(f"followers must be a non-negative integer, got {followers!r}")
-    topics = [CLOCK, TF, MARKERS]
+    topics = [CLOCK, TF, MARKERS, DIAGNOSTICS]
     for k in range(followers + 1):
         topics += [(agent_topic(k, name), msgtype)
                    for name, (msgtype, leader) in AGENT_TOPICS.items()

@@ -7,7 +7,8 @@ of :mod:`protocol.messages`, whose field checks serve here too). They carry abso
 coordinates: only observers (the live view) may subscribe to them, never agents (the generated
 access-control rules deny it).
 
-*map*: the run's few settings an observer needs and a coarse height grid (at most
+*map*: the run's few settings an observer needs (``formation_tolerance`` may be absent: a
+map written before it, read back by a replay) and a coarse height grid (at most
 :data:`MAP_CELLS` cells, row-major, ``None`` outside the surface's domain) over the box
 ``[x0, x1, y0, y1]`` the ideal column covers. ``relief`` is ``"dem"`` for elevation-model
 surfaces (drawn with hillshade) and ``"analytic"`` otherwise.
@@ -48,11 +49,18 @@ from protocol.messages import (
 
 VIEW_VERSION = 1
 MAP_FILE = "view_map.json"  # the map, as JSON, in the run folder (for replays)
+COUNT_COLUMNS = ("lost", "missed", "broken_ticks")
+"""The counts that end a view row (0 where a row has none, e.g. the leader's broken ticks)."""
 TICK_COLUMNS = ("agent", "pos_x", "pos_y", "ideal_x", "ideal_y", "est_x", "est_y",
-                "required_range", "stay_range", "persist_range", "formation_error", "lost",
-                "missed")
+                "required_range", "stay_range", "persist_range", "formation_error",
+                "mean_formation_error", "worst_formation_error", *COUNT_COLUMNS)
+"""A view row: the agent, its numbers (None where they do not apply), then
+:data:`COUNT_COLUMNS`. ``mean_formation_error``, ``worst_formation_error`` and
+``broken_ticks`` are a follower's formation health so far (:mod:`protocol.health`)."""
+_NUMBER_COLUMNS = TICK_COLUMNS[1:-len(COUNT_COLUMNS)]
 RELIEFS = ("analytic", "dem")
 _MAP_NUMBERS = ("comm_period", "spacing")
+_MAP_OPTIONAL = ("sensing_range", "formation_tolerance")  # None: infinite, or not sent
 _MAP_COUNTS = ("followers", "ticks", "init_ticks")
 _MAP_TEXTS = ("run_id", "surface", "estimator", "dictionary", "mode")
 _FIELD = "view field"  # how the shared field checks (protocol.messages) name a view's field
@@ -92,7 +100,8 @@ def check_map(body: Any) -> dict:
         out[name] = _number(name, body.get(name))
     for name in _MAP_COUNTS:
         out[name] = _count(name, body.get(name))
-    out["sensing_range"] = _number("sensing_range", body.get("sensing_range"), optional=True)
+    for name in _MAP_OPTIONAL:
+        out[name] = _number(name, body.get(name), optional=True)
     if body.get("relief") not in RELIEFS:
         raise ProtocolError(f"view field 'relief' must be one of {RELIEFS}, "
                             f"got {body.get('relief')!r}")
@@ -131,9 +140,10 @@ def check_tick(body: Any) -> dict:
         agent = _count(f"rows[{i}].agent", row[0])
         if agent >= out["agents"]:
             raise ProtocolError(f"view row {i} names agent {agent} of {out['agents']}")
+        n = len(COUNT_COLUMNS)
         values = [_number(f"rows[{i}].{name}", x, optional=True)
-                  for name, x in zip(TICK_COLUMNS[1:-2], row[1:-2])]
-        flags = [_count(f"rows[{i}].{name}", x) for name, x in zip(TICK_COLUMNS[-2:], row[-2:])]
+                  for name, x in zip(_NUMBER_COLUMNS, row[1:-n])]
+        flags = [_count(f"rows[{i}].{name}", x) for name, x in zip(COUNT_COLUMNS, row[-n:])]
         if values[0] is None or values[1] is None:
             raise ProtocolError(f"view row {i} has no position")
         checked.append([agent, *values, *flags])
@@ -145,8 +155,8 @@ def tick_payloads(rows: list[dict], n_agents: int) -> list[dict]:
     """One tick's ground-truth rows (``WorldSim.finish_tick``) as validated chunks."""
     if not rows:
         raise ValueError("rows must hold at least one agent's row")
-    table = [[row["agent"], *(row.get(c) for c in TICK_COLUMNS[1:-2]),
-              int(row.get("lost") or 0), int(row.get("missed") or 0)] for row in rows]
+    table = [[row["agent"], *(row.get(c) for c in _NUMBER_COLUMNS),
+              *(int(row.get(c) or 0) for c in COUNT_COLUMNS)] for row in rows]
     head = {"v": VIEW_VERSION, "type": "view-tick", "tick": rows[0]["tick"], "t": rows[0]["t"],
             "agents": n_agents}
     return [check_tick({**head, "rows": table[i:i + ROWS_PER_CHUNK]})

@@ -11,7 +11,9 @@ live publisher sends it again, so a player that starts late or seeks still shows
 run's bag also holds each follower's control steps on ``cmd_vel``, one twist per step,
 recorded at the step's time (``controls.csv``'s ``t``). Messages come from
 :class:`world.ros2.RosScene`, the builder the live publisher uses, fed with ``ticks.csv`` and
-``controls.csv`` read back (floats round-trip exactly). The bag is written in a scratch
+``controls.csv`` read back (floats round-trip exactly; each follower's formation health on
+``/diagnostics`` counted again from ``ticks.csv`` by :class:`protocol.health.ColumnHealth`,
+as the world's recorder counted it). The bag is written in a scratch
 folder beside ``BAG_DIR`` and renamed into place when complete.
 
 The container is what rosbag2 Jazzy's MCAP storage plugin writes: each channel's metadata
@@ -36,6 +38,7 @@ import numpy as np
 from protocol import ros2
 from protocol.config import load_config
 from protocol.distribution import version
+from protocol.health import ColumnHealth
 from protocol.record import CONTROLS_FILE, SUMMARY_FILE, TICKS_FILE, read_controls, read_ticks
 
 BAG_VERSION = 9  # rosbag2's metadata version of Jazzy
@@ -227,6 +230,7 @@ def export_run(run_dir: str | Path, out: str | Path | None = None, *,
     drive = config.drives
     controls = _tick_controls(run_dir, len(ticks)) if drive else [[] for _ in ticks]
     scene = RosScene(config, surface)
+    health = ColumnHealth(config.followers, config.formation_tolerance)  # as the world counts
     points = np.array([[r[a], r[b]] for tick in ticks for r in tick
                        for a, b in (("pos_x", "pos_y"), ("ideal_x", "ideal_y"))
                        if r.get(a) is not None])
@@ -251,7 +255,7 @@ def export_run(run_dir: str | Path, out: str | Path | None = None, *,
                 stamp = stamp_ns(tick[0]["t"])
                 if terrain_due(tick[0]["t"]):  # the same message, as live
                     writer.write(connections[markers[0]], stamp, terrain)
-                for topic, msgtype, message in scene.tick_messages(tick):
+                for topic, msgtype, message in scene.tick_messages(health.add_tick(tick)):
                     writer.write(connections[topic], stamp, store.serialize_cdr(message, msgtype))
                 # the tick's control steps, in time order (they fill its comm interval)
                 for topic, msgtype, message, t in sorted(scene.control_messages(steps),

@@ -216,7 +216,11 @@ def test_a_broken_formation_is_a_failure_of_every_command():
                "formation_tolerance": 1.0, "reason": ""}
     assert run_failure(healthy) is None
     broken = {**healthy, "formation_broken": True}
-    assert run_failure(broken) == ("the formation broke: 3 follower-ticks settled beyond "
+    assert run_failure(broken) == ("the formation broke: 3 follower-ticks beyond "
                                    "--formation-tolerance 1 m")
+    stalled = {**broken, "followers": {"1": {"broken_ticks": 95, "missed_ticks": 95},
+                                       "2": {"broken_ticks": 3, "missed_ticks": 0}}}
+    assert run_failure(stalled) == ("the formation broke: 98 follower-ticks beyond "
+                                    "--formation-tolerance 1 m (95 follower-ticks missed)")
     cut = {**broken, "complete": False, "reason": "the leader left the surface's domain"}
     assert run_failure(cut) == "run incomplete: the leader left the surface's domain"

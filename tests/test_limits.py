@@ -31,7 +31,14 @@ from protocol.messages import (
     safe_text,
 )
 from protocol.session import MAX_MESSAGE_SIZE, zenoh_config
-from protocol.view import TICK_COLUMNS, decode_map, decode_tick, encode_map, encode_tick
+from protocol.view import (
+    COUNT_COLUMNS,
+    TICK_COLUMNS,
+    decode_map,
+    decode_tick,
+    encode_map,
+    encode_tick,
+)
 from tests.attacking import run_under_attack, same_results, wait_for_world
 from world.results import _cell
 
@@ -205,13 +212,14 @@ def view_map(**change) -> dict:
     body = {"v": 1, "type": "view-map", "run_id": "view", "surface": "elliptic",
             "estimator": "auto", "dictionary": "poly2", "mode": "lockstep", "followers": 3,
             "ticks": 40, "init_ticks": 4, "comm_period": 1.28, "spacing": 3.0,
-            "sensing_range": None, "relief": "analytic", "box": [0.0, 1.0, 0.0, 1.0],
+            "sensing_range": None, "formation_tolerance": 1.0, "relief": "analytic",
+            "box": [0.0, 1.0, 0.0, 1.0],
             "shape": [ny, nx], "heights": [0.25] * (ny * nx)}
     return {**body, **change}
 
 
 def view_tick(n_rows: int, value: float = 0.5, **change) -> dict:
-    row = [value] * (len(TICK_COLUMNS) - 3) + [1, 0]
+    row = [value] * (len(TICK_COLUMNS) - 1 - len(COUNT_COLUMNS)) + [1, 0, 0]
     return {"v": 1, "type": "view-tick", "tick": 3, "t": 3.84, "agents": n_rows,
             "rows": [[k, *row] for k in range(n_rows)], **change}
 

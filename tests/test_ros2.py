@@ -43,6 +43,8 @@ def test_type_hashes_are_rosbags_rihs01():
     # a known Jazzy value, so a changed definition in rosbags would be noticed
     assert ros2.type_hash("geometry_msgs/msg/PoseStamped") == (
         "RIHS01_10f3786d7d40fd2b54367835614bff85d4ad3b5dab62bf8bca0cc232d73b4cd8")
+    assert ros2.type_hash(ros2.DIAGNOSTICS[1]) == (  # the value other ROS 2 stacks list too
+        "RIHS01_5a8a36efb05fb25070fa0fb3810290c0e6cd4862b54a8fb975a1ee8dc55a333e")
 
 
 def test_data_keys():
@@ -54,7 +56,7 @@ def test_data_keys():
         "visualization_msgs::msg::dds_::MarkerArray_")
     assert ros2.ros_type("nav_msgs::msg::dds_::Path_") == "nav_msgs/msg/Path"
     keys = ros2.world_keys(7, 2)
-    assert len(keys) == len(set(keys)) == 3 + 2 * 3 + 3 * 2
+    assert len(keys) == len(set(keys)) == 4 + 2 * 3 + 3 * 2  # run-wide, leader, followers
     assert all(key.startswith("7/") and key.count("/RIHS01_") == 1 for key in keys)
     for bad in ("chatter", "/a//b", "/1a", "/a b", "/"):
         with pytest.raises(ValueError):

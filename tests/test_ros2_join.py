@@ -22,9 +22,12 @@ import pytest
 import zenoh
 
 from protocol import ros2
+from protocol.config import RunConfig, dump_config
 from protocol.session import free_tcp_endpoint
 from swarm.cli import main
-from swarm.ros2_join import check_ros2_listen, config_override, join_block, reachable
+from swarm.launch import agent_commands, write_briefs
+from swarm.ros2_join import check_ros2_listen
+from world.ros2_join import config_override, join_block, reachable
 
 RUN_ID, DOMAIN = "rosjoin", 23
 INTRUDER = b"intruder"
@@ -54,6 +57,17 @@ def test_join_block_is_the_recipe():
     assert "from other machines" in join_block(7, "tcp/10.1.2.3:7447", "observer", "x")
     with pytest.raises(ValueError, match="password"):
         config_override("tcp/h:1", "observer", "a;b")
+    # no login (a hand-started world's router): no credentials in the override, and the line
+    # says what to add where a router asks for one
+    bare = join_block(7, "tcp/127.0.0.1:7447", listen_flag="--listen").splitlines()
+    assert bare[0].endswith("no login (a router that asks for one: add your observer's "
+                            "transport/auth/usrpwd/user and password to the override)")
+    assert "--listen tcp/0.0.0.0:7447 lets others in" in bare[0]
+    assert ("  export ZENOH_CONFIG_OVERRIDE='mode=\"client\";connect/endpoints="
+            "[\"tcp/127.0.0.1:7447\"]'") in bare
+    assert bare[1:4] == lines[1:4] and bare[5:] == lines[5:]
+    with pytest.raises(ValueError, match="together"):
+        config_override("tcp/h:1", "observer")
 
 
 def test_ros2_listen_refusals(tmp_path, capsys):
@@ -87,14 +101,16 @@ def test_ros2_listen_refusals(tmp_path, capsys):
 
 class LiveRun:
     """``python -m swarm run --ros2 --ros2-listen ENDPOINT`` in realtime (about 5 s of wall
-    time), its standard output read line by line."""
+    time), or the command ``cmd`` listening on ``endpoint``, its standard output read line by
+    line."""
 
-    def __init__(self, out: Path) -> None:
-        self.endpoint = free_tcp_endpoint()
-        cmd = [sys.executable, "-m", "swarm", "run", "--ros2", "--ros-domain", str(DOMAIN),
-               "--ros2-listen", self.endpoint, "--in-process", "--run-id", RUN_ID,
-               "--followers", "2", "--ticks", "40", "--mode", "realtime", "--time-scale",
-               "0.1", "--out", str(out)]
+    def __init__(self, out: Path, cmd: list[str] | None = None,
+                 endpoint: str | None = None) -> None:
+        self.endpoint = endpoint or free_tcp_endpoint()
+        cmd = cmd or [sys.executable, "-m", "swarm", "run", "--ros2", "--ros-domain",
+                      str(DOMAIN), "--ros2-listen", self.endpoint, "--in-process", "--run-id",
+                      RUN_ID, "--followers", "2", "--ticks", "40", "--mode", "realtime",
+                      "--time-scale", "0.1", "--out", str(out)]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
                                      stdin=subprocess.DEVNULL, text=True, cwd=out.parent)
         self.lines: queue.Queue[str | None] = queue.Queue()
@@ -104,6 +120,18 @@ class LiveRun:
         for line in self.proc.stdout:
             self.lines.put(line.rstrip("\n"))
         self.lines.put(None)
+
+    def printed_block(self, timeout: float = 60.0) -> str:
+        """The join block as printed: from its ``ROS 2:`` line through its ``rviz2`` line."""
+        deadline, block = time.monotonic() + timeout, []
+        while time.monotonic() < deadline:
+            line = self.lines.get(timeout=max(0.1, deadline - time.monotonic()))
+            assert line is not None, "the run ended without printing the join block"
+            if line.startswith("ROS 2: ") or block:
+                block.append(line)
+            if block and line.startswith("  rviz2 "):
+                return "\n".join(block)
+        raise AssertionError("no join block within the timeout")
 
     def block(self, timeout: float = 60.0) -> tuple[int, str]:
         """``(ROS_DOMAIN_ID, ZENOH_CONFIG_OVERRIDE)`` as the printed block gives them."""
@@ -219,10 +247,48 @@ def test_a_client_given_only_the_printed_block_reads_and_cannot_write(tmp_path):
             assert not [k for k, *_ in witness_tokens.snapshot() if "intruder" in k]
             for item in keep:
                 item.undeclare()
-        assert run.finish() == 0
+        code = run.finish()
     finally:
         run.close()
-    assert json.loads((tmp_path / "run" / "summary.json").read_text())["complete"] is True
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["complete"] is True
+    # a tick missed under the machine's load may leave a follower out of formation (design §7)
+    assert code == (1 if summary["formation_broken"] else 0)
+
+
+def test_a_hand_started_world_prints_the_same_block(tmp_path):
+    """``python -m world --ros2`` prints the block ``swarm run --ros2`` prints (the one
+    :func:`world.ros2_join.join_block`; no login: a router started by hand asks for none,
+    and ``--listen`` is its flag to let others in), and a Zenoh client made from the printed
+    override alone, as rmw_zenoh_cpp makes it, reads the run's poses."""
+    config = RunConfig(run_id=RUN_ID, followers=2, ticks=20, ros2=True, ros_domain=DOMAIN,
+                       start_timeout=30.0)
+    dump_config(config, tmp_path / "config.toml")
+    endpoint, out = free_tcp_endpoint(), tmp_path / "out"
+    world = LiveRun(out, [sys.executable, "-m", "world", "--config",
+                          str(tmp_path / "config.toml"), "--listen", endpoint, "--out",
+                          str(out)], endpoint)
+    agents: list[subprocess.Popen] = []
+    try:
+        block = world.printed_block()
+        assert block == join_block(DOMAIN, endpoint, listen_flag="--listen")
+        assert "this machine only; --listen tcp/0.0.0.0:7447 lets others in" in block
+        [override] = re.findall(r"ZENOH_CONFIG_OVERRIDE='(.*)'", block)
+        got = Samples()
+        with zenoh.open(rmw_zenoh_config(override)) as reader:
+            subscriber = reader.declare_subscriber(pose_key(DOMAIN, 1), got)
+            agents = [subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                      for cmd in agent_commands(write_briefs(config, tmp_path), endpoint, 2)]
+            got.wait(lambda s: len(s) >= 3)
+            subscriber.undeclare()
+        assert world.finish() == 0
+    finally:
+        world.close()
+        for agent in agents:
+            if agent.poll() is None:
+                agent.kill()
+            agent.wait(10)
+    assert json.loads((out / "summary.json").read_text())["complete"] is True
 
 
 # --- the versions crossed: rmw_zenoh 0.2.5's Zenoh ---------------------------------------------

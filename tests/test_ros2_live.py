@@ -46,14 +46,15 @@ class Listener:
 
 def _ros_run(out: Path, ros: bool, listen: bool, drive: bool = False,
              topics: tuple[str, ...] = ("pose", "required_range"),
-             ) -> tuple[dict, Listener, list[str]]:
-    """A 3-follower wavy run (agents in-process; ``drive``: driving followers); with
-    ``listen``, an observer session subscribed to the domain's ROS 2 data on ``topics`` and a
-    liveliness query of its graph made once the world is up."""
+             keys: tuple[str, ...] = (), **options) -> tuple[dict, Listener, list[str]]:
+    """A 3-follower wavy run (agents in-process; ``drive``: driving followers; ``options``
+    for its config); with ``listen``, an observer session subscribed to the domain's ROS 2
+    data on ``topics`` (and to the key expressions ``keys``) and a liveliness query of its
+    graph made once the world is up."""
     config = RunConfig(run_id=f"ros-live-{int(ros)}", surface="wavy", followers=FOLLOWERS,
                        ticks=TICKS, seed=9,
                        **(DRIVE if drive else {"noise_move": 0.02}),
-                       **({"ros2": True, "ros_domain": DOMAIN} if ros else {}))
+                       **({"ros2": True, "ros_domain": DOMAIN} if ros else {}), **options)
     endpoint = free_tcp_endpoint()
     listener, tokens, sessions = Listener(), [], []
 
@@ -63,8 +64,8 @@ def _ros_run(out: Path, ros: bool, listen: bool, drive: bool = False,
         sessions.append(session)
         # as rmw_zenoh's subscriptions: one key per topic (here with wildcards over the
         # agents and types), and the graph through a liveliness query on the domain
-        for topic in topics:
-            session.declare_subscriber(f"{DOMAIN}/swarm/*/{topic}/**", listener)
+        for key in [f"{DOMAIN}/swarm/*/{topic}/**" for topic in topics] + list(keys):
+            session.declare_subscriber(key, listener)
         tokens.extend(str(r.ok.key_expr) for r in session.liveliness().get(
             ros2.graph_keys(DOMAIN)[1], timeout=10.0) if r.ok is not None)
 
@@ -193,3 +194,72 @@ def test_ros2_topic_echo_receives_a_pose(tmp_path):
     threads[0].join(timeout=90)
     assert result and result[0].returncode == 0, result
     assert "frame_id: map" in result[0].stdout
+
+
+def test_formation_health_agrees_everywhere(tmp_path):
+    """Design §7, one owner (:mod:`protocol.health`): a run whose formation breaks at some
+    ticks (a tolerance below its noisy errors) shows every follower's same mean and worst
+    formation error and broken ticks in ``summary.json``, the console table, the live view
+    (the world's last ``world/view/tick``, and a replay of the folder), and on
+    ``/diagnostics``: live (rmw_zenoh's key, attachment, type hash and GID) and in the
+    exported bag, whose messages are byte-identical to the live ones."""
+    from rosbags.rosbag2 import Reader
+
+    from protocol import keys
+    from protocol.view import TICK_COLUMNS, decode_tick
+    from swarm.cli import format_summary
+    from swarm.grid import table_number
+    from swarm.live.store import load_run
+    from swarm.ros2_export import export_run
+
+    out, tolerance = tmp_path / "run", 0.1
+    topic, msgtype = ros2.DIAGNOSTICS
+    diagnostics = ros2.topic_key(DOMAIN, topic, msgtype, ros2.type_hash(msgtype))
+    view = keys.view("ros-live-1", "tick")
+    summary, listener, tokens = _ros_run(
+        out, ros=True, listen=True, topics=(), keys=(diagnostics, view), noise_range=0.05,
+        noise_bearing=0.03, formation_tolerance=tolerance)
+    health = {k: (s["mean_formation_error"], s["worst_formation_error"], s["broken_ticks"])
+              for k, s in ((int(k), s) for k, s in summary["followers"].items())}
+    assert summary["formation_broken"] and any(b == 0 for _, _, b in health.values()) \
+        and any(0 < b < TICKS for _, _, b in health.values()), health  # OK, WARN and ERROR
+    # the console table: the last three columns of each follower's line
+    lines = format_summary(summary).splitlines()
+    for k, (mean, worst, broken) in health.items():
+        [line] = [line for line in lines if line.split()[:1] == [str(k)]]
+        assert line.split()[-3:] == [table_number(mean), table_number(worst), str(broken)]
+    # the live view: the last tick the world published, and a replay of the folder
+    views = [decode_tick(payload) for key, payload, _ in listener.samples if key == view]
+    last = {row[0]: dict(zip(TICK_COLUMNS, row)) for body in views if body["tick"] == TICKS - 1
+            for row in body["rows"]}
+    replayed = load_run(out).snapshot().frames[-1].rows
+    for shown in (last, replayed):
+        assert {k: (shown[k]["mean_formation_error"], shown[k]["worst_formation_error"],
+                    shown[k]["broken_ticks"]) for k in health} == health
+    # ROS 2, live: one DiagnosticArray per tick, as rmw_zenoh sends it
+    [token] = [t for t in tokens if ros2.parse_token(t).topic == topic]
+    samples = [(payload, ros2.parse_attachment(a)) for key, payload, a in listener.samples
+               if key == diagnostics]
+    assert [(n, gid) for _, (n, _, gid) in samples] == [
+        (n, ros2.gid(token)) for n in range(1, TICKS + 1)]
+    store = ros2.typestore()
+    message = store.deserialize_cdr(samples[-1][0], msgtype)
+    Status = store.types["diagnostic_msgs/msg/DiagnosticStatus"]
+    for k, status in enumerate(message.status, start=1):
+        values = {v.key: v.value for v in status.values}
+        mean, worst, broken = health[k]
+        assert (float(values["mean_formation_error"]), float(values["worst_formation_error"]),
+                int(values["broken_ticks"])) == (mean, worst, broken)
+        assert float(values["formation_tolerance"]) == tolerance
+        error = float(values["formation_error"])
+        assert status.level == (Status.ERROR if error > tolerance else
+                                Status.WARN if broken else Status.OK), (status, error)
+        assert (status.name, status.hardware_id) == (f"swarm_world: agent_{k} formation",
+                                                     f"agent_{k}")
+    assert len(message.status) == FOLLOWERS
+    # ... and in the bag: the same messages, byte for byte
+    with Reader(export_run(out)) as reader:
+        [connection] = [c for c in reader.connections if c.topic == topic]
+        assert (connection.msgtype, connection.digest) == (msgtype, ros2.type_hash(msgtype))
+        recorded = [bytes(raw) for _, _, raw in reader.messages(connections=[connection])]
+    assert recorded == [payload for payload, _ in samples]

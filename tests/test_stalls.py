@@ -20,10 +20,13 @@ from pathlib import Path
 
 import pytest
 
-from protocol.config import load_config
+from protocol.config import RunConfig, dump_config, load_config
 from protocol.record import read_ticks
+from protocol.session import free_tcp_endpoint
+from swarm.launch import agent_commands, write_briefs
 from swarm.local import run_local
 from tests.waiting import children, wait_for
+from world.results import run_failure
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = int(os.environ.get("FAULT_SEED", str(int(time.time()) % 100_000)))
@@ -148,7 +151,7 @@ def test_a_paused_follower_never_makes_its_successor_miss_in_realtime(tmp_path, 
                str(ticks))
     _pause(run, 1, after, seconds)
     code, err = run.finish(timeout=600)
-    assert code == 0, err
+    _assert_formation_broke(run.out, code, err)  # it stood still while the column moved on
     assert REJOINED in (run.out / "logs" / "agent-1.log").read_text()
     missed = _missed(run.out)
     assert len(missed[1]) >= int(LEASE_S / 0.256)  # it did miss while it was paused
@@ -164,10 +167,75 @@ def test_a_killed_follower_is_recorded_and_a_realtime_run_goes_on(tmp_path, runs
     wait_for(lambda: _ticks_done(run.out) >= kill_after, 120, f"tick {kill_after}")
     os.kill(_pid(run.proc, 1), signal.SIGKILL)
     code, err = run.finish(timeout=300)
-    assert code == 0, err
+    _assert_formation_broke(run.out, code, err)  # the run went on, and says the column broke
     assert "agent 1 exited with status -9" in err and "the run goes on without it" in err
     summary = json.loads((run.out / "summary.json").read_text())
     assert summary["complete"] and summary["ticks_completed"] == 60
     missed = _missed(run.out)
     assert set(range(kill_after + 3, 60)) <= missed[1]  # recorded from its death on
     assert not missed[1] & missed[2], f"follower 2 missed {sorted(missed[1] & missed[2])}"
+
+
+def _assert_formation_broke(out: Path, code: int, err: str) -> dict:
+    """The run in ``out`` completed, its stalled follower 1 missed ticks standing out of
+    formation, and the launcher exited 1 with :func:`world.results.run_failure`'s line last."""
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["complete"] and summary["formation_broken"], summary
+    stalled = summary["followers"]["1"]
+    assert stalled["missed_ticks"] > 0 and stalled["broken_ticks"] > 0, stalled
+    line = run_failure(summary)
+    assert line.startswith("the formation broke:") and "follower-ticks missed" in line, line
+    assert code == 1, err
+    assert err.strip().splitlines()[-1] == f"error: {line}", err
+    return summary
+
+
+def _hand_started(folder: Path, config: RunConfig) -> list[subprocess.Popen]:
+    """A world started by hand (``python -m world`` on a free loopback port) and its agents
+    (leader first), as a deployment starts them."""
+    dump_config(config, folder / "config.toml")
+    endpoint = free_tcp_endpoint()
+    world = subprocess.Popen([sys.executable, "-m", "world", "--config",
+                              str(folder / "config.toml"), "--listen", endpoint, "--out",
+                              str(folder / "out")], cwd=ROOT, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, text=True)
+    return [world] + [subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL,
+                                       stderr=subprocess.DEVNULL)
+                      for cmd in agent_commands(write_briefs(config, folder), endpoint,
+                                                config.followers)]
+
+
+@pytest.mark.parametrize("launcher", ["swarm run", "python -m world"])
+def test_a_stalled_follower_is_no_success_in_realtime(tmp_path, runs, launcher):
+    """Design §7: follower 1 stopped (SIGSTOP, shorter than Zenoh's lease) misses ticks while
+    the column moves on; its formation error is measured where it stands, so the run is
+    complete but its formation broke: ``swarm run`` and a hand-started world give the same
+    verdict, last line and status 1."""
+    rng = random.Random(f"{SEED}-stalled-{launcher}")
+    after, seconds = rng.randrange(3, 10), rng.uniform(2.0, 4.0)
+    print(f"FAULT_SEED={SEED}: follower 1 stopped after tick {after} for {seconds:.1f} s")
+    flags = dict(followers=2, ticks=50, mode="realtime", time_scale=0.1, agent_timeout=2.0,
+                 start_timeout=30.0)
+    if launcher == "swarm run":
+        run = runs(tmp_path / "run", *[f"--{k.replace('_', '-')}={v}" for k, v in flags.items()
+                                       if k != "followers"])
+        out, proc, pid = run.out, run.proc, lambda: _pid(run.proc, 1)
+    else:
+        procs = _hand_started(tmp_path, RunConfig(run_id="stalled", **flags))
+        out, proc, pid = tmp_path / "out", procs[0], lambda: procs[2].pid  # world, leader, 1
+    try:
+        wait_for(lambda: _ticks_done(out) >= after, 60, f"tick {after}")
+        os.kill(pid(), signal.SIGSTOP)
+        try:
+            time.sleep(seconds)
+        finally:
+            os.kill(pid(), signal.SIGCONT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if launcher == "python -m world":
+            for p in procs:
+                if p.poll() is None:
+                    p.kill()
+                p.communicate(timeout=10)
+    summary = _assert_formation_broke(out, proc.returncode, err)
+    assert summary["followers"]["1"]["missed_ticks"] >= int(seconds / 0.128) - 3

@@ -33,6 +33,7 @@ from protocol.folder import FolderLock, check_out_dir
 from protocol.session import LOCAL_ROUTER, add_connection_flags, connection_config, open_session
 from world import checkpoint, geometry
 from world.results import run_failure
+from world.ros2_join import join_block
 from world.service import WorldService
 from world.sim import default_max_speed, resolve_leader_start
 from world.surfaces import Surface, make_surface, require_surface_extra
@@ -152,10 +153,25 @@ def ros_options(config: RunConfig, args: argparse.Namespace,
     return config.replace(**{k: given[k] for k in ("ros2", "ros_domain") if k in given})
 
 
+def joins_router(args: argparse.Namespace) -> bool:
+    """Whether a hand-started world joins a router as its client (``--connect`` alone) instead
+    of being the run's router."""
+    return bool(args.connect) and not args.listen
+
+
+def ros2_endpoint(args: argparse.Namespace) -> str:
+    """Where ROS 2 machines reach a hand-started world's topics: the router it joined, else
+    the first TCP endpoint it listens on (else its first)."""
+    if joins_router(args):
+        return args.connect[0]
+    listen = args.listen or list(DEFAULT_LISTEN)
+    return next((e for e in listen if e.startswith("tcp/")), listen[0])
+
+
 def waiting_line(config: RunConfig, args: argparse.Namespace, out: str | Path) -> str:
     """What a hand-started world says once it serves the run: where agents reach it, whom it
     waits for and where the results go."""
-    if args.connect and not args.listen:
+    if joins_router(args):
         where = "joined the router at " + ", ".join(args.connect)
     else:
         where = "listening on " + ", ".join(args.listen or DEFAULT_LISTEN)
@@ -173,10 +189,16 @@ def _serve(args: argparse.Namespace) -> int:
         config = ros_options(config_from_file(file, path), args, file)
         require_extras(config)
         surface = resolve_with_surface(config)[1]  # a surface, raster or start refused here
-        client = bool(args.connect) and not args.listen
+        client = joins_router(args)
         conf = connection_config(args, "client" if client else "router",
                                  default_listen=() if client else DEFAULT_LISTEN)
         out = args.resume or args.out or default_out(config.run_id)
+    def ready(service: WorldService) -> None:
+        print(waiting_line(config, args, out), flush=True)
+        if config.ros2:  # the block swarm run --ros2 prints (design §10)
+            print(join_block(config.ros_domain, ros2_endpoint(args), listen_flag="--listen"),
+                  flush=True)
+
     folder = NewFolder(out, config.run_id)
     with folder.undone_if_refused(), run_failures(out):  # a folder in use or holding results,
         # nothing to resume: refused
@@ -184,8 +206,7 @@ def _serve(args: argparse.Namespace) -> int:
             check_out_dir(out, "--resume" if args.resume else "--out")
         try:
             summary = run_world(config, conf, out, resume=bool(args.resume), force=args.force,
-                                surface=surface, on_ready=lambda service: print(
-                                    waiting_line(config, args, out), flush=True))
+                                surface=surface, on_ready=ready)
         except checkpoint.AlreadyComplete as exc:
             print(str(exc), file=sys.stderr)
             return DONE

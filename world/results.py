@@ -19,6 +19,7 @@ from pathlib import Path
 from protocol.config import RunConfig
 from protocol.distribution import version
 from protocol.folder import AppendFile, write_atomic
+from protocol.health import ColumnHealth, ExactSum
 from protocol.limits import MAX_TEXT
 from protocol.record import (
     CONTROL_COLUMNS,
@@ -39,85 +40,44 @@ RESERVE_FILE = ".summary.reserve"
 
 
 def broken_ticks(summary: dict) -> int:
-    """The follower-ticks of the run ``summary`` describes that settled beyond the formation
-    tolerance, over every follower."""
+    """The follower-ticks of the run ``summary`` describes that stood beyond the formation
+    tolerance, over every follower (missed ticks included: design §7)."""
     return sum(s.get("broken_ticks", 0) for s in summary["followers"].values())
 
 
 def run_failure(summary: dict) -> str | None:
     """Why the run ``summary`` describes is not a success, in one line, or None if it is: it
-    ended incomplete (its reason first), or a follower settled beyond the formation tolerance
-    (design §7: a broken formation is not success). The one verdict of ``swarm run`` and
-    ``python -m world`` (both exit 1 on it)."""
+    ended incomplete (its reason first), or a follower stood beyond the formation tolerance at
+    some tick, settled in time or not (design §7: a broken formation is not success; a
+    follower that missed stands where it stood while the formation moves on). The one verdict
+    of ``swarm run`` and ``python -m world`` (both print it as their last line and exit 1)."""
     if not summary["complete"]:
         return f"run incomplete: {summary['reason']}"
     if summary.get("formation_broken"):
-        return (f"the formation broke: {broken_ticks(summary)} follower-ticks settled beyond "
-                f"--formation-tolerance {summary['formation_tolerance']:g} m")
+        missed = sum(s.get("missed_ticks", 0) for s in summary["followers"].values())
+        return (f"the formation broke: {broken_ticks(summary)} follower-ticks beyond "
+                f"--formation-tolerance {summary['formation_tolerance']:g} m"
+                + (f" ({missed} follower-ticks missed)" if missed else ""))
     return None
-
-
-class ExactSum:
-    """Running sum of floats, rounded exactly like ``math.fsum`` over every value added so far
-    (Shewchuk's partials): the summary, rewritten after every tick, costs O(1) per tick.
-
-    >>> s = ExactSum()
-    >>> for x in (1e100, 1.0, -1e100, 0.1):
-    ...     s.add(x)
-    >>> s.value() == math.fsum([1e100, 1.0, -1e100, 0.1])
-    True
-    """
-
-    def __init__(self) -> None:
-        self._partials: list[float] = []
-        self.count = 0
-
-    def add(self, x: float) -> None:
-        partials, i = self._partials, 0
-        for y in partials:
-            if abs(x) < abs(y):
-                x, y = y, x
-            hi = x + y
-            lo = y - (hi - x)
-            if lo:
-                partials[i] = lo
-                i += 1
-            x = hi
-        partials[i:] = [x]
-        self.count += 1
-
-    def value(self) -> float:
-        return math.fsum(self._partials)
-
-    def mean(self) -> float | None:
-        return self.value() / self.count if self.count else None
 
 
 class _FollowerMetrics:
     """One follower's running totals for ``summary.json``."""
 
-    def __init__(self, tolerance: float = math.inf) -> None:
-        self.tolerance = tolerance
-        self.worst: float | None = None
-        self.broken = 0
+    def __init__(self) -> None:
         self.required, self.squares = ExactSum(), ExactSum()
         self.stay, self.persist, self.persist_noise_free = ExactSum(), ExactSum(), ExactSum()
-        self.floor, self.formation = ExactSum(), ExactSum()
+        self.floor = ExactSum()
         self.reach, self.snap, self.path = ExactSum(), ExactSum(), ExactSum()
         self.lost = self.missed = self.fallback = self.saturated = 0
         self.followed: dict[str, int] = {}
 
-    def add_row(self, row: dict, cut: bool = False) -> None:
-        """Count one row; ``cut``: the column was cut ahead of (or at) this follower in this
-        tick (a missed agent), so its formation error is no broken tick nor its worst."""
+    def add_row(self, row: dict) -> None:
+        """Count one row (its formation health: :class:`protocol.health.ColumnHealth`)."""
         self.lost += row.get("lost") or 0
         self.missed += row.get("missed") or 0
         self.saturated += row.get("saturated_steps") or 0
-        error = row.get("formation_error")
-        if error is not None and not cut:
-            self.worst = error if self.worst is None else max(self.worst, error)
-            self.broken += error > self.tolerance
-        for total, name in ((self.formation, "formation_error"), (self.reach, "reach_error"),
+        for total, name in ((self.reach, "reach_error"),
                             (self.snap, "snap_error"), (self.path, "path_length")):
             if row.get(name) is not None:
                 total.add(row[name])
@@ -148,9 +108,6 @@ class _FollowerMetrics:
             "estimated_ticks": n - self.fallback,
             "fallback_ticks": self.fallback,
             "followed": _shares(self.followed),
-            "mean_formation_error": self.formation.mean(),
-            "worst_formation_error": self.worst,
-            "broken_ticks": self.broken,
         }
 
     def drive_summary(self) -> dict:
@@ -183,8 +140,8 @@ class RunRecorder:
         self.out_dir = None if out_dir is None else Path(out_dir)
         self.config = config
         self.ticks_done = 0
-        self._metrics = {k: _FollowerMetrics(config.formation_tolerance)
-                         for k in range(1, config.followers + 1)}
+        self._metrics = {k: _FollowerMetrics() for k in range(1, config.followers + 1)}
+        self.health = ColumnHealth(config.followers, config.formation_tolerance)
         self._files: dict[str, AppendFile] = {}
         self._tables = {TICKS_FILE: TICK_COLUMNS, OBS_FILE: OBS_COLUMNS}
         if config.drives:
@@ -267,16 +224,14 @@ class RunRecorder:
         """Byte length of each CSV file after the last complete tick."""
         return {name: fh.size for name, fh in self._files.items()}
 
-    def _count_rows(self, rows: list[dict]) -> None:
-        """Count one tick's rows (in agent order). From the first agent that missed the tick
-        on, the column was cut: those followers' formation errors count towards no broken
-        tick (the missed ticks are counted as such)."""
-        cut = False
+    def _count_rows(self, rows: list[dict]) -> list[dict]:
+        """Count one tick's rows (in agent order); return them with each follower's formation
+        health so far (:meth:`protocol.health.ColumnHealth.add_tick`)."""
         for row in rows:
-            cut = cut or bool(row.get("missed"))
             if row["agent"] in self._metrics:
-                self._metrics[row["agent"]].add_row(row, cut)
+                self._metrics[row["agent"]].add_row(row)
             self.ticks_done = max(self.ticks_done, row["tick"] + 1)
+        return self.health.add_tick(rows)
 
     def _count_observation(self, row: dict) -> None:
         m = self._metrics.get(row["agent"])
@@ -284,11 +239,12 @@ class RunRecorder:
             m.add_observation(row)
 
     def add_tick(self, rows: list[dict], observations: list[tuple[int, object]] = (),
-                 controls: list[dict] = ()) -> None:
+                 controls: list[dict] = ()) -> list[dict]:
         """Record one complete tick: its rows (``WorldSim.finish_tick``), the followers'
         observations of that tick as ``(agent, Observation)`` pairs, in agent order, and in a
         drive run its control steps (``WorldSim.control_rows``). With a folder the tick is
-        written whole to every file before it counts, or not at all."""
+        written whole to every file before it counts, or not at all. Returns the rows with
+        each follower's formation health so far (what the live view and ROS 2 show)."""
         if controls and CONTROLS_FILE not in self._tables:
             raise ValueError("controls are recorded in drive runs only (motion 'drive')")
         obs_rows = [observation_row(agent, msg) for agent, msg in observations]
@@ -303,16 +259,18 @@ class RunRecorder:
                 for name, size in before.items():
                     self._files[name].cut(size)
                 raise
-        self._count_rows(rows)
+        shown = self._count_rows(rows)
         for row in obs_rows:
             self._count_observation(row)
+        return shown
 
     def summary(self, *, complete: bool, reason: str = "", wall_time: float = 0.0) -> dict:
         """The ``summary.json`` content (design §7)."""
         cfg = self.config
         drive = cfg.drives
         return {
-            "followers": {str(k): {**m.summary(), **(m.drive_summary() if drive else {})}
+            "followers": {str(k): {**m.summary(), **self.health.followers[k].values(),
+                                   **(m.drive_summary() if drive else {})}
                           for k, m in self._metrics.items()},
             "version": version(),
             "run_id": cfg.run_id,
@@ -328,7 +286,7 @@ class RunRecorder:
             "complete": complete,
             "reason": reason,
             "formation_tolerance": cfg.formation_tolerance,
-            "formation_broken": any(m.broken for m in self._metrics.values()),
+            "formation_broken": self.health.broken(),
             "wall_time": wall_time,
         }
 

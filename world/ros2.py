@@ -26,6 +26,7 @@ import numpy as np
 import zenoh
 
 from protocol import ros2
+from protocol.health import HEALTH_COLUMNS
 from protocol.session import undeclare_all
 from world import geometry
 from world.surfaces import Surface
@@ -225,7 +226,9 @@ class RosScene:
         """``(topic, type, message)`` of one tick (rows in agent order), in the order of
         :func:`protocol.ros2.run_topics`, markers included: ``/clock`` and ``/tf`` once;
         per agent its pose and path, for a follower its ideal position, and on estimated
-        ticks its estimate and required range; ``/swarm/markers`` with the agents and rods."""
+        ticks its estimate and required range; ``/swarm/markers`` with the agents and rods;
+        last ``/diagnostics`` (:meth:`diagnostics`: the rows carry each follower's formation
+        health so far, :meth:`protocol.health.ColumnHealth.add_tick`)."""
         if len(rows) != self.n_agents or [r["agent"] for r in rows] != list(range(self.n_agents)):
             raise ValueError(f"a tick needs one row per agent 0..{self.n_agents - 1} in order")
         T = self.types
@@ -262,7 +265,49 @@ class RosScene:
                             ros2.AGENT_TOPICS["required_range"][0],
                             T["std_msgs/msg/Float64"](data=float(row["required_range"]))))
         out.append((*ros2.MARKERS, markers))
+        out.append((*ros2.DIAGNOSTICS, self.diagnostics(rows, header)))
         return out
+
+    def diagnostics(self, rows: Sequence[dict], header):
+        """The ``/diagnostics`` message of one tick: per follower a ``DiagnosticStatus``
+        named ``swarm_world: agent_<k> formation`` (hardware id ``agent_<k>``) whose values are
+        the tick's formation error and the follower's :data:`protocol.health.HEALTH_COLUMNS`
+        so far (the rows must carry them: :meth:`protocol.health.ColumnHealth.add_tick`), each
+        as ``repr`` of the number (a float64 round trip; empty for none), with the tolerance
+        and whether it missed the tick. Level ``ERROR`` while it stands beyond the tolerance,
+        ``WARN`` once back within it after a broken tick (the run's verdict is failed
+        already), ``OK`` while no tick broke, ``STALE`` at a tick without a formation error
+        (a pose the surface refuses)."""
+        T = self.types
+        Status, KeyValue = T["diagnostic_msgs/msg/DiagnosticStatus"], T[
+            "diagnostic_msgs/msg/KeyValue"]
+        tolerance = self.config.formation_tolerance
+        statuses = []
+        for row in rows[1:]:
+            missing = [name for name in HEALTH_COLUMNS if name not in row]
+            if missing:
+                raise ValueError(f"agent {row['agent']}'s row has no {', '.join(missing)}: "
+                                 "count the tick with protocol.health.ColumnHealth.add_tick")
+            error, broken = row.get("formation_error"), row["broken_ticks"]
+            if error is None:
+                level, message = Status.STALE, "no formation error at this tick"
+            elif error > tolerance:
+                level = Status.ERROR
+                message = f"{error:.3g} m from its place, beyond {tolerance:g} m"
+            elif broken:
+                level, message = Status.WARN, (f"within {tolerance:g} m; the formation broke at "
+                                               f"{broken} of its ticks")
+            else:
+                level, message = Status.OK, f"within {tolerance:g} m"
+            if row.get("missed"):
+                message += " (missed this tick)"
+            values = {"formation_error": error, **{n: row[n] for n in HEALTH_COLUMNS},
+                      "formation_tolerance": tolerance, "missed": int(row.get("missed") or 0)}
+            statuses.append(Status(
+                level=level, name=f"{ros2.NODE_NAME}: agent_{row['agent']} formation",
+                message=message, hardware_id=f"agent_{row['agent']}",
+                values=[KeyValue(key=key, value=_text(value)) for key, value in values.items()]))
+        return T[ros2.DIAGNOSTICS[1]](header=header, status=statuses)
 
     def control_messages(self, controls: Sequence[dict]) -> list[tuple[str, str, object, float]]:
         """``(topic, type, message, stamp)`` of one tick's control steps (``controls.csv``
@@ -337,6 +382,20 @@ class RosScene:
         return self.types["visualization_msgs/msg/MarkerArray"](markers=[marker])
 
 
+def _text(value: float | int | None) -> str:
+    """A diagnostic value: an integer as such, a number as the ``repr`` of its float64 (read
+    back exactly with ``float``), none as empty.
+
+    >>> [_text(3), _text(np.float64(0.1)), _text(None)]
+    ['3', '0.1', '']
+    """
+    if value is None:
+        return ""
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        return str(int(value))
+    return repr(float(value))
+
+
 class Ros2Publisher:
     """Publishes a run's ROS 2 topics on an open Zenoh session, as rmw_zenoh would: one node
     ``/swarm_world`` (entity 0) with one publisher per topic (entities 1, 2, … in the order of
@@ -383,7 +442,8 @@ class Ros2Publisher:
         sequence[0] += 1
 
     def publish_tick(self, rows: Sequence[dict], controls: Sequence[dict] = ()) -> None:
-        """Publish one completed tick (ticks in order) from what it recorded: its rows, then
+        """Publish one completed tick (ticks in order) from what it recorded: its rows (with
+        the formation health the recorder counted, ``RunRecorder.add_tick``), then
         its control steps (``cmd_vel``, each robot's in step order); and the terrain when it
         is due."""
         if self._terrain_due(time.monotonic()):

@@ -412,17 +412,17 @@ class WorldService:
     def _complete_tick(self, tick: int) -> list[dict]:
         """(Lock held.) Every agent is through ``tick``: append its rows, observations and
         control steps in agent order, then checkpoint (the checkpoint only ever describes
-        complete ticks); then publish what was recorded."""
+        complete ticks); then publish what was recorded, with the formation health it counted."""
         rows = self.sim.finish_tick(tick)
         controls = self.sim.control_rows(tick)
-        self.recorder.add_tick(rows, sorted(self._obs.pop(tick, {}).items()), controls)
+        shown = self.recorder.add_tick(rows, sorted(self._obs.pop(tick, {}).items()), controls)
         self._rods.pop(tick, None)
         wall = self._wall()  # the checkpoint and the summary tell the same time
         self._save_state(wall)
         self.recorder.write_summary(complete=False, reason="running", wall_time=wall)
-        self.view.publish_tick(rows)
+        self.view.publish_tick(shown)
         if self.ros2 is not None:
-            self.ros2.publish_tick(rows, controls)
+            self.ros2.publish_tick(shown, controls)
         return rows
 
     def _stalled(self) -> str:

@@ -110,6 +110,8 @@ def map_payload(config: RunConfig, surface: Surface, ideal: np.ndarray) -> dict:
         "followers": config.followers, "ticks": config.ticks, "init_ticks": config.init_ticks,
         "comm_period": config.comm_period, "spacing": config.spacing,
         "sensing_range": config.sensing_range if math.isfinite(config.sensing_range) else None,
+        "formation_tolerance": (config.formation_tolerance
+                                if math.isfinite(config.formation_tolerance) else None),
         "box": [float(low[0]), float(high[0]), float(low[1]), float(high[1])],
         "shape": list(shape),
         # 7 significant digits: what the wire's 32-bit floats carry, and a compact JSON file
@@ -150,7 +152,8 @@ class ViewPublisher:
             self._map_sent = now
 
     def publish_tick(self, rows: list[dict]) -> None:
-        """Publish one tick's rows (``WorldSim.finish_tick``), then the map if it is due."""
+        """Publish one tick's rows (``WorldSim.finish_tick``, with the followers' formation
+        health: ``RunRecorder.add_tick``), then the map if it is due."""
         for chunk in tick_payloads(rows, self._n_agents):
             self._tick_pub.put(encode_tick(chunk, check=False))  # built validated
         self.publish_map()

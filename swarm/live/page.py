@@ -97,6 +97,7 @@ class Page:
         self.view: tuple[float, float, float, float] | None = None
         self.status = Div(text=WAITING_HINT, name="status",
                           css_classes=["swarm-status"], styles={"font-size": "16px"})
+        self.health = Div(text="", name="health", css_classes=["swarm-health"])
         self.sources = {name: ColumnDataSource(name=f"{name}-source", data=data)
                         for name, data in empty_map_columns().items()}
         self.map = self._map_figure()
@@ -121,7 +122,7 @@ class Page:
         self.play = Toggle(label="play", name="play", width=90, visible=replay)
         self.play.on_change("active", lambda attr, old, new: self._on_play(new))
         self.slider.on_change("value", lambda attr, old, new: self.refresh(force=True))
-        doc.add_root(column(self.status, row(self.slider, self.play),
+        doc.add_root(column(self.status, self.health, row(self.slider, self.play),
                             row(self.map, column(self.range_column, self.choice_plot))))
         doc.title = "swarm replay" if replay else "swarm live"
         doc.add_periodic_callback(self.on_timer, REFRESH_MS)
@@ -294,6 +295,7 @@ class Page:
     def _draw_tick(self, snap: Snapshot) -> None:
         if not snap.frames:
             self.status.text = status_text(snap, None)
+            self.health.text = health_html(snap, None)
             return
         frames = {f.tick: f for f in snap.frames}
         want = int(self.slider.value) if self.replay else snap.frames[-1].tick
@@ -312,6 +314,45 @@ class Page:
                 cursor.location = tick
             self.drawn_tick = tick
         self.status.text = status_text(snap, frames[tick])
+        self.health.text = health_html(snap, frames[tick])
+
+
+def health_html(snap: Snapshot, frame) -> str:
+    """Each follower's formation health at ``frame``'s tick (the world's running values,
+    :mod:`protocol.health`) as an HTML table: the tick's formation error, the mean and worst
+    so far and the broken ticks (beyond the map's ``formation_tolerance``), a follower with
+    broken ticks in red. The first :data:`MAX_RANGE_PLOTS` followers get a row, the others
+    one line together. Empty before the first tick."""
+    if frame is None:
+        return ""
+    followers = sorted(k for k in frame.rows if k > 0)
+    tolerance = snap.map.get("formation_tolerance") if snap.map else None
+    limit = f"{tolerance:g} m" if tolerance is not None else "the tolerance"
+
+    def metres(x: float | None) -> str:
+        return "–" if x is None else f"{x:.3g}"
+
+    lines = ["<style>table.health td, table.health th {padding: 1px 14px 1px 0; "
+             "text-align: right}</style>"
+             "<table class='health' style='border-collapse: collapse'><tr><th>follower</th>"
+             "<th>formation error (m)</th><th>mean</th><th>worst</th>"
+             f"<th>broken ticks (beyond {limit})</th></tr>"]
+    for k in followers[:MAX_RANGE_PLOTS]:
+        r = frame.rows[k]
+        style = " style='color: #c00000; font-weight: bold'" if r["broken_ticks"] else ""
+        missed = " (missed)" if r["missed"] else ""
+        lines.append(f"<tr{style}><td>{k}</td><td>{metres(r['formation_error'])}{missed}</td>"
+                     f"<td>{metres(r['mean_formation_error'])}</td>"
+                     f"<td>{metres(r['worst_formation_error'])}</td>"
+                     f"<td>{r['broken_ticks']}</td></tr>")
+    lines.append("</table>")
+    rest = followers[MAX_RANGE_PLOTS:]
+    if rest:
+        worst = [w for k in rest if (w := frame.rows[k]["worst_formation_error"]) is not None]
+        lines.append(f"followers {rest[0]}–{rest[-1]}: "
+                     f"{sum(frame.rows[k]['broken_ticks'] for k in rest)} broken ticks, worst "
+                     f"{metres(max(worst, default=None))} m")
+    return "".join(lines)
 
 
 def status_text(snap: Snapshot, frame) -> str:

@@ -7,11 +7,13 @@ fill from Zenoh's threads while pages read it.
 from __future__ import annotations
 
 import json
+import math
 import threading
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 
+from protocol.health import ColumnHealth
 from protocol.record import OBS_FILE, SUMMARY_FILE, TICKS_FILE, read_observations, read_ticks
 from protocol.view import MAP_FILE, TICK_COLUMNS, check_map, tick_payloads
 
@@ -142,7 +144,8 @@ def load_run(run_dir: str | Path) -> RunStore:
     """A store holding a finished (or interrupted) run, read from its folder alone.
 
     Reads ``view_map.json``, ``ticks.csv``, ``observations.csv`` and ``summary.json``
-    (ValueError naming what is missing or malformed).
+    (ValueError naming what is missing or malformed); each follower's formation health is
+    counted from ``ticks.csv`` with ``summary.json``'s tolerance (:mod:`protocol.health`).
     """
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -158,8 +161,11 @@ def load_run(run_dir: str | Path) -> RunStore:
         by_tick: dict[int, list[dict]] = {}
         for row in ticks:
             by_tick.setdefault(row["tick"], []).append(_row(row))
+        # each follower's formation health so far, counted as the world's recorder counts it
+        health = ColumnHealth(view_map["followers"],
+                              summary.get("formation_tolerance") or math.inf)
         for rows in by_tick.values():  # in chunks, as the world publishes them
-            for chunk in tick_payloads(rows, view_map["followers"] + 1):
+            for chunk in tick_payloads(health.add_tick(rows), view_map["followers"] + 1):
                 store.add_tick(chunk)
     except (OSError, ValueError) as exc:
         raise ValueError(f"cannot replay {run_dir}: {exc}") from None
@@ -173,7 +179,9 @@ def load_run(run_dir: str | Path) -> RunStore:
 
 def _row(row: dict) -> dict:
     """A row of :func:`protocol.record.read_ticks` with the view's columns, as
-    ``WorldSim.finish_tick`` gives it (``missed`` is 0 where the file has no such column)."""
+    ``WorldSim.finish_tick`` gives it (``missed`` is 0 where the file has no such column;
+    the formation health, which the file has not, is counted by
+    :class:`protocol.health.ColumnHealth`)."""
     view = {"tick": row["tick"], "t": row["t"]}
     for name in TICK_COLUMNS:
         value = row.get(name)
