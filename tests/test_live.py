@@ -976,3 +976,20 @@ def test_page_shows_each_followers_formation_health_as_the_summary_counts_it(tmp
     assert {s["broken_ticks"] > 0 for s in summary["followers"].values()} == {True, False}
     page.slider.value = 0
     assert "#c00000" not in page.health.text
+
+
+def test_a_complete_run_whose_formation_broke_says_so_in_its_status():
+    from types import SimpleNamespace
+
+    from swarm.live.page import status_text
+
+    store = RunStore()
+    store.finish(True)
+
+    def frame(broken):
+        rows = {0: {"broken_ticks": None}, 1: {"broken_ticks": 0}, 2: {"broken_ticks": broken}}
+        return SimpleNamespace(tick=9, t=11.52, rows=rows)
+
+    assert status_text(store.snapshot(), frame(0)).endswith("· complete")
+    text = status_text(store.snapshot(), frame(3))
+    assert "formation broken: 3 follower-ticks" in text and not text.endswith("· complete")

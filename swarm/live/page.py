@@ -356,9 +356,14 @@ def health_html(snap: Snapshot, frame) -> str:
 
 
 def status_text(snap: Snapshot, frame) -> str:
-    """``tick j of n · t = … · status`` (the last tick is ``ticks − 1``)."""
+    """``tick j of n · t = … · status`` (the last tick is ``ticks − 1``); a complete run says
+    how many follower-ticks broke the formation up to ``frame``'s tick, if any did."""
     if snap.status == COMPLETE:
-        state = "complete"
+        broken = 0 if frame is None else sum(
+            row.get("broken_ticks") or 0 for row in frame.rows.values())
+        # a broken formation is no success (design §7), whatever the run's end says
+        state = (f"complete, formation broken: {broken} follower-ticks beyond the tolerance"
+                 if broken else "complete")
     elif snap.status == INCOMPLETE:
         state = f"incomplete: {snap.reason}" if snap.reason else "incomplete"
     elif snap.status == WAITING:
