@@ -294,7 +294,8 @@ class Track:
         prior = wrap(last.heading + wrap(angle - last.chord))
         spread = last.variance + 2.0 * self.chord_variance_angle() + TRANSPORT**2 * length
         gain = 1.0 if noise == 0.0 else spread / (spread + noise)  # 0 for an infinite noise
-        return Settled(wrap(prior + gain * wrap(path - prior)), (1.0 - gain) * spread, angle)
+        heading = path if gain == 1.0 else wrap(prior + gain * wrap(path - prior))
+        return Settled(heading, (1.0 - gain) * spread, angle)
 
     def displacements(self) -> tuple[np.ndarray, ...]:
         return tuple(self.steps)
