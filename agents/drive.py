@@ -44,6 +44,7 @@ variance; it starts every tick from the ``pre`` compass reading.
 """
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -190,19 +191,42 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
     for step in reversed(track):
         positions.insert(0, positions[0] - step)
     points = np.array(positions + [chord])  # at t = -len(track) ... 0, 1
-    times = np.arange(-len(track), 2, dtype=float)
-    degree = min(DEGREE + 1, len(times) - 1)
-    basis = np.stack([times**n for n in range(degree + 1)], axis=1)
-    coef, *_ = np.linalg.lstsq(basis, points, rcond=None)
-    if degree > DEGREE:  # the top term, as much as it stands out of the points' noise
-        top = coef[degree]
-        spread = 0.5 * variance * float(np.linalg.inv(basis.T @ basis)[degree, degree])
-        kept = _weight(float(top @ top), 9.0 * 2.0 * spread) * top
-        rest, *_ = np.linalg.lstsq(basis[:, :degree], points - np.outer(times**degree, kept),
-                                   rcond=None)
-        coef = np.vstack([rest, kept])
-    tangent = sum(n * coef[n] for n in range(1, degree + 1))  # d/dt at t = 1
+    fit = _fit(len(track))
+    if fit.top is None:
+        tangent = fit.tangent @ points
+    else:  # the top term, as much as it stands out of the points' noise
+        top = fit.top @ points
+        kept = _weight(float(top @ top), 9.0 * variance * fit.top_variance) * top
+        tangent = fit.tangent @ points + fit.kept * kept
     return wrap(heading + weight * wrap(forward(tangent) - heading))
+
+
+class _Fit:
+    """The linear maps of :func:`goal_heading`'s fit over ``track`` ticks, from the points
+    (one a row, at ``t = -track … 0, 1``) to the tangent at ``t = 1``: with a top term (a fit of
+    degree ``DEGREE + 1``), ``tangent`` is the lower-degree refit's after the kept top term is
+    taken out, ``kept`` what the kept term adds, ``top`` the map to the top coefficient and
+    ``top_variance`` its variance per unit of the points' (both coordinates together)."""
+
+    def __init__(self, track: int) -> None:
+        times = np.arange(-track, 2, dtype=float)
+        degree = min(DEGREE + 1, len(times) - 1)
+        basis = np.stack([times**n for n in range(degree + 1)], axis=1)
+        derivative = np.arange(degree + 1, dtype=float)  # d/dt of t**n at t = 1
+        if degree <= DEGREE:
+            self.tangent, self.top = derivative @ np.linalg.pinv(basis), None
+            self.kept = self.top_variance = 0.0
+            return
+        lower = derivative[:degree] @ np.linalg.pinv(basis[:, :degree])
+        self.tangent = lower
+        self.kept = degree - float(lower @ times**degree)
+        self.top = np.linalg.pinv(basis)[degree]
+        self.top_variance = float(np.linalg.inv(basis.T @ basis)[degree, degree])
+
+
+@functools.cache
+def _fit(track: int) -> _Fit:
+    return _Fit(track)
 
 
 @dataclass(frozen=True)
