@@ -1,0 +1,113 @@
+"""Where a driving column's heading errors come from (issue #30's open cells):
+``python bench/bench_drive_heading.py [--surface wavy] [--followers 5] [--noise 0/0]``.
+
+1. **The settled rods.** One in-process drive run (:mod:`swarm.local`, persist): at every
+   tick, the angle (chart, rad) from the end tangent of agent ``k−1``'s actual rod (the world's
+   geometry, from its settled pose) to the rod follower ``k`` settled with. Its mean and rms
+   per follower is the heading error the follower passes down the column (``d ×`` it at the
+   next rod end); with no noise it is the goal heading's own error (the fit's lag), since the
+   robot executes its heading exactly.
+2. **Rules on the ideal column** (no robot): along the ideal formation of the same surface,
+   the error of two estimates of a rod's end tangent ``u`` from what a follower at the rod end
+   could know — the chord alone (``χ``, the direction from the rod's start to its end) and the
+   circular-arc rule ``2χ − n`` (``n`` the rod's start direction). A goal heading built on a
+   rule inherits its error at every follower, noise-free.
+
+Figures depend on nothing but the configuration; nothing here is asserted.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from protocol.config import RunConfig  # noqa: E402
+from swarm.local import run_local  # noqa: E402
+from world import geometry  # noqa: E402
+from world.surfaces import make_surface, surface_leader_start  # noqa: E402
+
+
+def _angle(v: np.ndarray) -> float:
+    return math.atan2(v[1], v[0])
+
+
+def _wrap(a: float) -> float:
+    return math.atan2(math.sin(a), math.cos(a))
+
+
+def settled_rod_errors(config: RunConfig) -> dict[int, np.ndarray]:
+    """Per follower, the chart angle from its predecessor's actual rod end tangent to its own
+    settled rod, one per tick (initial ticks included)."""
+    _, rows = run_local(config)
+    surface = make_surface(config.surface)
+    pose = {(r["tick"], r["agent"]): (np.array([r["pos_x"], r["pos_y"]]),
+                                      np.array([r["heading_x"], r["heading_y"]]))
+            for r in rows}
+    ticks = sorted({t for t, _ in pose})
+    errors: dict[int, np.ndarray] = {}
+    for k in range(1, config.followers + 1):
+        series = []
+        for j in ticks:
+            (p0, h0), (p1, h1) = pose[j, k - 1], pose[j, k]
+            _, u = geometry.rod_end(surface, p0, h0, config.spacing, config.side_sign)
+            n = geometry.rod_normal(surface, p1, h1, config.side_sign)
+            series.append(_wrap(_angle(n) - _angle(u)))
+        errors[k] = np.array(series)
+    return errors
+
+
+def rule_errors(name: str, followers: int, ticks: int, spacing: float,
+                comm_period: float) -> dict[str, np.ndarray]:
+    """On the ideal column: the errors of the chord and of the circular-arc rule as estimates
+    of the rod end tangent, over every rod and every other tick."""
+    surface = make_surface(name)
+    start = np.asarray(surface_leader_start(surface), dtype=float)
+    chord, arc = [], []
+    for j in range(0, ticks, 2):
+        try:
+            p, v = geometry.integrate_geodesic(surface, start[:2], start[2:], j * comm_period)
+            positions, headings = geometry.column(surface, p, v, followers, spacing)
+        except geometry.SurfaceDomainError:
+            break
+        for k in range(followers):
+            n = geometry.rod_normal(surface, positions[k], headings[k])
+            end, u = geometry.rod_end(surface, positions[k], headings[k], spacing)
+            chi = _angle(end - positions[k])
+            chord.append(_wrap(chi - _angle(u)))
+            arc.append(_wrap(2.0 * chi - _angle(n) - _angle(u)))
+    return {"chord": np.array(chord), "arc rule": np.array(arc)}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--surface", default="wavy")
+    p.add_argument("--followers", type=int, default=5)
+    p.add_argument("--noise", default="0/0", help="σ_r/σ_θ")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--ticks", type=int, default=150)
+    args = p.parse_args()
+    sigma_r, sigma_t = (float(x) for x in args.noise.split("/"))
+    config = RunConfig(run_id="heading", surface=args.surface, followers=args.followers,
+                       ticks=args.ticks, seed=args.seed, noise_range=sigma_r,
+                       noise_bearing=sigma_t, estimator="persist", motion="drive")
+    print(f"{args.surface}, {args.followers} followers, σ {args.noise}, seed {args.seed}: "
+          "settled rod vs its predecessor's end tangent (rad), estimated ticks")
+    print("| follower | mean | rms | worst |\n|---|---|---|---|")
+    for k, e in settled_rod_errors(config).items():
+        e = e[config.init_ticks:]
+        print(f"| {k} | {e.mean():+.4f} | {math.sqrt((e * e).mean()):.4f} | "
+              f"{np.abs(e).max():.4f} |")
+    print(f"\nrules on the ideal {args.surface} column (rad)")
+    print("| rule | mean abs | worst |\n|---|---|---|")
+    for rule, e in rule_errors(args.surface, args.followers, args.ticks, config.spacing,
+                               config.comm_period).items():
+        print(f"| {rule} | {np.abs(e).mean():.4f} | {np.abs(e).max():.4f} |")
+
+
+if __name__ == "__main__":
+    main()
