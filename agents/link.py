@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from dataclasses import replace
 
 import zenoh
 
@@ -129,6 +130,7 @@ class AgentLink:
         self._world_seen = False
         self._cuts = 0  # how often the world's token went away since it was first seen
         self._joined_at = 0  # the value of _cuts when this agent last joined
+        self._epoch = 0  # the world's number of that join, which its requests carry
         self._declared = []
         if token_live(session, keys.alive(run_id, agent_id)):
             raise AgentAbort(f"agent id {agent_id} is already live in run {run_id}: "
@@ -325,6 +327,8 @@ class AgentLink:
                 failure = (f"the world did not answer {request.TYPE} at tick "
                            f"{request.tick}: {problem}")
                 break
+            if error.code == "stale":  # the world has it joined again since (design §8)
+                raise Rejoin(f"agent {self.agent_id}: {error.error}: joining again")
             if error.code == "missed":
                 raise MarkedMissed(error.error)
             if error.code == "ended":
@@ -374,6 +378,7 @@ class AgentLink:
                 continue
             break
         with self._cond:
+            self._epoch = joined.epoch
             if joined.world < before:
                 # a world started again with --resume, behind what the earlier one announced
                 # (a stalled world never goes back): those later ticks no longer stand, only
@@ -390,12 +395,13 @@ class AgentLink:
         """The pre-move sensing of ``tick`` (once per tick, before any action); ``look``: it
         carries the rod end, if in range, and the distance from which the follower looked
         counts in the tick's required range (design §4, §5)."""
-        return self._query(self._sense_key, SenseRequest(tick=tick, look=look), Sensing)
+        return self._query(self._sense_key,
+                           SenseRequest(tick=tick, look=look, epoch=self._epoch), Sensing)
 
     def act(self, request: Drive | Move | Snap | Control) -> ActResult | ActSensing:
         """Ask the world to act; a move, control step or snap is answered with the sensing
-        after it."""
-        return self._query(self._act_key, request,
+        after it. The request is sent numbered with this agent's latest join."""
+        return self._query(self._act_key, replace(request, epoch=self._epoch),
                            ActResult if isinstance(request, Drive) else ActSensing)
 
     def publish_rod(self, tick: int, length: float, side: int) -> None:
