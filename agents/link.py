@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from dataclasses import replace
 
 import zenoh
 
@@ -58,6 +59,9 @@ WORLD_RETURN_S = 3.0
 """The least time an agent whose session to the world was cut waits for the world's token to
 come back before it asks once more and, if no world answers, concludes that the world process
 has gone (an agent of a run waits its ``start_timeout``, :meth:`AgentLink.for_agent`)."""
+RELEASE_S = 10.0
+"""The most time :meth:`AgentLink.close` waits for Zenoh to let go of the link's callbacks
+(it takes milliseconds; a loaded machine may take longer)."""
 
 
 class AgentAbort(RuntimeError):
@@ -129,7 +133,9 @@ class AgentLink:
         self._world_seen = False
         self._cuts = 0  # how often the world's token went away since it was first seen
         self._joined_at = 0  # the value of _cuts when this agent last joined
+        self._epoch = 0  # the world's number of that join, which its requests carry
         self._declared = []
+        self._watching = False  # the world-liveliness subscriber is declared
         if token_live(session, keys.alive(run_id, agent_id)):
             raise AgentAbort(f"agent id {agent_id} is already live in run {run_id}: "
                              "refusing to start")
@@ -146,6 +152,7 @@ class AgentLink:
         self._declared.append(session.liveliness().declare_subscriber(
             keys.alive(run_id, "world"),
             zenoh.handlers.Callback(self._on_world_liveliness, self._on_closed), history=True))
+        self._watching = True  # its drop callback (_on_closed) is due when it goes
         self._sense_key = keys.sense(run_id, agent_id)
         self._act_key = keys.act(run_id, agent_id)
         # BLOCK: a rod or observation is never dropped when a link is congested (a peer may
@@ -160,8 +167,20 @@ class AgentLink:
         self._declared.append(self._token)
 
     def close(self) -> None:
-        """Undeclare everything (the session itself stays open)."""
+        """Undeclare everything (the session itself stays open), then wait until Zenoh has let
+        go of this link's callbacks: the world-liveliness subscriber's drop callback, the last
+        one Zenoh calls, runs on a Zenoh thread after the undeclaration (or the session's
+        closing) returns. An agent thread of an in-process run ends only after it, so no
+        Zenoh thread calls into the interpreter once the launcher has joined its agents
+        (one that did while the interpreter finalises aborts the process). The wait is
+        bounded (:data:`RELEASE_S`); past it a warning says so."""
         undeclare_all(self._declared)
+        with self._cond:
+            released = self._cond.wait_for(lambda: self._closed or not self._watching,
+                                           RELEASE_S)
+        if not released:
+            log.warning("agent %d: Zenoh did not release its callbacks within %g s",
+                        self.agent_id, RELEASE_S)
 
     # --- callbacks -----------------------------------------------------------------------------
 
@@ -325,6 +344,8 @@ class AgentLink:
                 failure = (f"the world did not answer {request.TYPE} at tick "
                            f"{request.tick}: {problem}")
                 break
+            if error.code == "stale":  # the world has it joined again since (design §8)
+                raise Rejoin(f"agent {self.agent_id}: {error.error}: joining again")
             if error.code == "missed":
                 raise MarkedMissed(error.error)
             if error.code == "ended":
@@ -374,6 +395,7 @@ class AgentLink:
                 continue
             break
         with self._cond:
+            self._epoch = joined.epoch
             if joined.world < before:
                 # a world started again with --resume, behind what the earlier one announced
                 # (a stalled world never goes back): those later ticks no longer stand, only
@@ -390,12 +412,13 @@ class AgentLink:
         """The pre-move sensing of ``tick`` (once per tick, before any action); ``look``: it
         carries the rod end, if in range, and the distance from which the follower looked
         counts in the tick's required range (design §4, §5)."""
-        return self._query(self._sense_key, SenseRequest(tick=tick, look=look), Sensing)
+        return self._query(self._sense_key,
+                           SenseRequest(tick=tick, look=look, epoch=self._epoch), Sensing)
 
     def act(self, request: Drive | Move | Snap | Control) -> ActResult | ActSensing:
         """Ask the world to act; a move, control step or snap is answered with the sensing
-        after it."""
-        return self._query(self._act_key, request,
+        after it. The request is sent numbered with this agent's latest join."""
+        return self._query(self._act_key, replace(request, epoch=self._epoch),
                            ActResult if isinstance(request, Drive) else ActSensing)
 
     def publish_rod(self, tick: int, length: float, side: int) -> None:

@@ -168,19 +168,20 @@ _KINDS = {
     "vec2?": _optional(_vector(2)),
     "vec3?": _optional(_vector(3)),
     "vec?": _optional(_vector(None)),
-    "error-code": _choice("bad-request", "missed", "ended", "wait"),
+    "error-code": _choice("bad-request", "missed", "ended", "wait", "stale"),
 }
 
 
-def _kind(name: str, default: Any = ..., optional: bool = False) -> Any:
+def _kind(name: str, default: Any = ..., optional: bool = False, compare: bool = True) -> Any:
     """A message field of kind ``name`` (a key of the checks), with ``default`` if given;
-    ``optional``: a decoder fills in the default when a sender omits the field."""
+    ``optional``: a decoder fills in the default when a sender omits the field; ``compare``:
+    whether the field counts when two messages are compared (``==``)."""
     if name not in _KINDS:
         raise ValueError(f"unknown field kind {name!r}")
     metadata = {"kind": name, "optional": True} if optional else {"kind": name}
     if default is ...:
-        return field(metadata=metadata)
-    return field(default=default, metadata=metadata)
+        return field(metadata=metadata, compare=compare)
+    return field(default=default, metadata=metadata, compare=compare)
 
 
 # --- messages ----------------------------------------------------------------------------------
@@ -203,7 +204,21 @@ class TickStart(Message):
 
 
 @dataclass(frozen=True)
-class SenseRequest(Message):
+class Request(Message):
+    """Base of an agent's requests to the world (:class:`SenseRequest` and the actions).
+
+    ``epoch`` is the number of the agent's latest join (:attr:`Joined.epoch`): a request sent
+    before a join that reaches the world after it (it was in flight when the session was cut)
+    carries an older one, and the world refuses it unread with code ``stale`` (design §8).
+    0, the default, is an unnumbered request (optional on the wire: older senders omit it),
+    which the world takes as it comes. Two requests that differ only in their epoch are equal
+    (``==``): a tick redone after a join repeats the undone attempt's requests (design §5)."""
+
+    epoch: int = _kind("count", 0, optional=True, compare=False)
+
+
+@dataclass(frozen=True)
+class SenseRequest(Request):
     """Query to ``world/sense/<id>``: the follower's pre-move sensing at ``tick``, served once,
     before any action (the readings after its move and after it settled are the replies to
     those actions, :class:`ActSensing`; design §5). ``look``: it looks for its rod end from
@@ -248,7 +263,7 @@ class Sensing(Message):
 
 
 @dataclass(frozen=True)
-class Drive(Message):
+class Drive(Request):
     """Query to ``world/act/0``: the leader follows its geodesic to time ``t``; the reply is
     :class:`ActResult`."""
 
@@ -257,7 +272,7 @@ class Drive(Message):
 
 
 @dataclass(frozen=True)
-class Move(Message):
+class Move(Request):
     """Query to ``world/act/<id>`` (followers): move by the xy ``offset`` in the local frame,
     keeping the heading; the reply is :class:`ActSensing` with the ``moved`` sensing."""
 
@@ -266,7 +281,7 @@ class Move(Message):
 
 
 @dataclass(frozen=True)
-class Snap(Message):
+class Snap(Request):
     """Query to ``world/act/<id>`` (followers): move onto the leader's rod end if it is visible
     and take the §3 heading; the reply is :class:`ActSensing` with the ``settled`` sensing.
     With ``--motion drive`` it ends the tick instead: the follower settles where its control
@@ -276,7 +291,7 @@ class Snap(Message):
 
 
 @dataclass(frozen=True)
-class Control(Message):
+class Control(Request):
     """Query to ``world/act/<id>`` (followers, ``--motion drive``): drive at forward speed
     ``speed`` (v: m of arc per time unit along the surface, negative reversing) turning at
     ``turn`` (ω: rad per time unit, in the metric, positive to the left) for control step
@@ -319,7 +334,9 @@ class Joined(Message):
     started; ``start``: the run's start nonce, which the agent's state file must carry;
     ``max_speed``: a ``--motion drive`` run's top speed as the world resolved it (its default
     is twice the leader's speed on the hidden surface, which no agent can work out), else
-    None (optional on the wire)."""
+    None (optional on the wire); ``epoch``: the number of this join (1 for an agent's first,
+    counted by the world), which the agent's requests carry until it joins again
+    (:attr:`Request.epoch`; optional on the wire, 0 from an older world: unnumbered)."""
 
     TYPE: ClassVar[str] = "joined"
     settled: bool = _kind("flag", False)
@@ -328,6 +345,7 @@ class Joined(Message):
     world: int = _kind("count", 0)
     start: str = _kind("text", "")
     max_speed: float | None = _kind("limit?", None, optional=True)
+    epoch: int = _kind("count", 0, optional=True)
 
     @property
     def through(self) -> int:
@@ -410,7 +428,8 @@ class Done(Message):
 class ErrorReply(Message):
     """Error reply of a queryable: ``error`` names the problem; ``code`` classifies it
     (``bad-request``, ``missed``: the agent missed this tick, ``ended``: the run is over,
-    ``wait``: not yet, ask again shortly)."""
+    ``wait``: not yet, ask again shortly, ``stale``: the request was sent before the agent's
+    latest join and was not read; :attr:`Request.epoch`)."""
 
     TYPE: ClassVar[str] = "error"
     error: str = _kind("text", "")

@@ -47,6 +47,15 @@ from world.surfaces import Surface
 log = logging.getLogger(__name__)
 
 POLL_S = 0.2
+STOP_S = 30.0
+"""The least time :meth:`_ThreadAgents.stop` waits for the agent threads once their sessions
+are closed (at least the run's ``start_timeout``, which bounds a session still opening) before
+it gives up on them with :class:`AgentThreadsStuck`; they end in milliseconds."""
+
+
+class AgentThreadsStuck(RuntimeError):
+    """In-process agent threads did not end once their sessions were closed: the interpreter
+    must not finalise with one inside Zenoh, which would abort the process."""
 
 
 def write_briefs(config: RunConfig, folder: Path) -> Path:
@@ -216,6 +225,9 @@ class _ThreadAgents:
         self.credentials = credentials
         self.threads: list[threading.Thread] = []
         self.sessions: dict[int, zenoh.Session] = {}
+        self._lock = threading.Lock()  # guards sessions and _stopping
+        self._stopping = False
+        self.settings: AgentSettings | None = None  # set by start
 
     def start(self, service: WorldService) -> None:
         # what the world resolved (e.g. a drive run's default top speed), as the processes
@@ -240,7 +252,10 @@ class _ThreadAgents:
                                          password=self.credentials.passwords[user],
                                          connect_timeout=self.settings.start_timeout / 2)
                             ) as session:
-                self.sessions[k] = session
+                with self._lock:
+                    self.sessions[k] = session
+                    if self._stopping:  # stopped while the session opened: nothing to do
+                        return
                 body(session)
         except RunFinished:
             return
@@ -253,18 +268,39 @@ class _ThreadAgents:
                              if self.settings.followers + 1 > SESSIONS_PER_PROCESS else ""))
 
     def stop(self, timeout: float = 10.0) -> None:
-        """Wait up to ``timeout`` s for the agents to end; close the session of any still
-        running, which ends it (its link stops waiting). No agent thread outlives this: one
-        still in Zenoh's native code when the interpreter exits would abort the process as it
-        tries to take the GIL back."""
+        """Wait up to ``timeout`` s for the agents to end by themselves; then close the session
+        of every one still running, which ends it (every wait of its link ends when its session
+        goes, and a session still opening is closed as soon as it opens); then wait for every
+        agent thread to end, up to :data:`STOP_S` (at least the run's ``start_timeout``).
+
+        No agent thread outlives this: one still in Zenoh's native code when the interpreter
+        finalises would abort the process as it takes the GIL back. Each ends only once Zenoh
+        has let go of its link's callbacks (:meth:`agents.link.AgentLink.close`), so no Zenoh
+        thread calls into the interpreter after it either.
+
+        Raises
+        ------
+        AgentThreadsStuck
+            If a thread is still running after that wait (never expected: a Zenoh bug).
+        """
         deadline = time.monotonic() + timeout
         for thread in self.threads:
-            thread.join(max(0.1, deadline - time.monotonic()))
-        for k, thread in enumerate(self.threads):
-            if thread.is_alive() and k in self.sessions:
-                with contextlib.suppress(zenoh.ZError):
-                    self.sessions[k].close()
-                thread.join(5.0)
+            thread.join(max(0.0, deadline - time.monotonic()))
+        with self._lock:
+            self._stopping = True
+            running = [self.sessions[k] for k, thread in enumerate(self.threads)
+                       if thread.is_alive() and k in self.sessions]
+        for session in running:
+            with contextlib.suppress(zenoh.ZError):
+                session.close()
+        limit = max(STOP_S, self.settings.start_timeout if self.settings is not None else 0.0)
+        deadline = time.monotonic() + limit
+        for thread in self.threads:
+            thread.join(max(0.0, deadline - time.monotonic()))
+        stuck = [thread.name for thread in self.threads if thread.is_alive()]
+        if stuck:
+            raise AgentThreadsStuck(f"in-process agent thread(s) {', '.join(stuck)} still "
+                                    f"running {limit:g} s after their sessions were closed")
 
 
 def new_run_id() -> str:
@@ -340,7 +376,10 @@ def _launch(config: RunConfig, out_dir: Path, in_process: bool,
                             out_dir, on_tick=on_tick, on_ready=ready, force=force,
                             lock=lock, surface=surface)
     except BaseException:  # Ctrl-C or a failure: end every agent now
-        agents.stop(timeout=1.0)
+        try:
+            agents.stop(timeout=1.0)
+        except AgentThreadsStuck as stuck:  # the failure's own reason is the one to tell
+            log.error("%s", stuck)
         raise
     # a run that ended incomplete has no world left for its agents to wait for
     agents.stop(timeout=10.0 if summary["complete"] else 1.0)

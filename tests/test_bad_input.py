@@ -12,14 +12,17 @@ import zenoh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from agents.link import AgentLink, Rejoin
 from protocol import keys
 from protocol.config import RunConfig
 from protocol.messages import (
     MESSAGE_TYPES,
+    ActSensing,
     Drive,
     ErrorReply,
     Joined,
     JoinRequest,
+    Message,
     ProtocolError,
     Rod,
     SenseRequest,
@@ -158,6 +161,60 @@ def test_a_reading_asked_again_or_out_of_order_is_refused_over_zenoh(world):
         assert "each reading comes once" in _ask(client, keys.sense("bad", 1),
                                                  encode(SenseRequest(tick=0, look=look)))
     assert service.rejected == before + 2
+
+
+def _reply(client, key, request) -> ErrorReply | Message:
+    """The world's one reply to ``request``: the message if answered, else the refusal."""
+    replies = list(client.get(key, payload=encode(request), timeout=5.0))
+    assert len(replies) == 1
+    if replies[0].ok is not None:
+        return decode(replies[0].ok.payload.to_bytes(), (Sensing, ActSensing))
+    return decode(replies[0].err.payload.to_bytes(), ErrorReply)
+
+
+def test_a_request_sent_before_a_join_is_not_read_after_it(world):
+    """The race of a paused world (design §8): a follower's pre-move sensing query, sent before
+    its session was cut, reaches the world after the follower joined again. The world refuses
+    it unread (code ``stale``), so the redo's own request gets the tick's one pre-move reading;
+    a re-ask within the latest join is still refused, and so is any act of the earlier join."""
+    service, client = world
+    sense, act = keys.sense("bad", 1), keys.act("bad", 1)
+    first = _joined(client, 1)
+    assert first.epoch >= 1
+    in_flight = SenseRequest(tick=0, look=True, epoch=first.epoch)  # sent, not yet arrived
+    again = _joined(client, 1)  # the cut: it joins again and gives the query up
+    assert again.epoch == first.epoch + 1
+    before = service.rejected
+    stale = _reply(client, sense, in_flight)  # ...which reaches the world only now
+    assert isinstance(stale, ErrorReply) and stale.code == "stale", stale
+    assert f"join {first.epoch} came after its join {again.epoch}" in stale.error
+    redo = _reply(client, sense, SenseRequest(tick=0, look=True, epoch=again.epoch))
+    assert isinstance(redo, Sensing) and redo.rod is not None, redo
+    ask = _reply(client, sense, SenseRequest(tick=0, look=True, epoch=again.epoch))
+    assert isinstance(ask, ErrorReply) and "each reading comes once" in ask.error
+    late = _reply(client, act, Snap(tick=0, epoch=first.epoch))
+    assert isinstance(late, ErrorReply) and late.code == "stale", late
+    ahead = _reply(client, sense, SenseRequest(tick=0, look=True, epoch=again.epoch + 1))
+    assert isinstance(ahead, ErrorReply) and ahead.code == "stale", ahead
+    settled = _reply(client, act, Snap(tick=0, epoch=again.epoch))
+    assert isinstance(settled, ActSensing) and settled.moved, settled
+    assert service.rejected == before + 1  # the re-ask; stale leftovers are not refusals
+
+
+def test_a_link_told_its_request_is_stale_joins_again(world):
+    """An agent whose request the world calls stale (it has the agent joined again since, as a
+    world started again with --resume would) joins again instead of stopping."""
+    _, client = world
+    link = AgentLink(client, "bad", 1, 0, query_timeout=5.0)
+    try:
+        assert link.join(5.0).epoch >= 1
+        _joined(client, 1)  # a join this link has not seen
+        with pytest.raises(Rejoin, match="came after its join"):
+            link.sense(0, look=True)
+        link.join(5.0)
+        assert link.sense(0, look=True).rod is not None
+    finally:
+        link.close()
 
 
 def test_a_follower_ahead_of_its_predecessor_is_told_to_wait(world):

@@ -56,3 +56,36 @@ def test_a_zenoh_error_reply_is_not_reported_as_the_worlds_refusal(world_dies):
     else:
         assert message == "the world did not answer move at tick 3: Timeout"
     assert len(asked) == 1  # never asked twice: the world may have acted on it
+
+
+class _Noting(AgentLink):
+    """A link that notes when Zenoh calls its world-liveliness subscriber's drop callback."""
+
+    released = False
+
+    def _on_closed(self) -> None:
+        super()._on_closed()
+        self.released = True
+
+
+@pytest.mark.parametrize("session_closed", [False, True], ids=["undeclared", "session-closed"])
+def test_a_closed_link_is_let_go_of_by_zenoh_before_close_returns(session_closed):
+    """Zenoh calls the drop callback on a thread of its own, after the undeclaration (or the
+    session's closing, as a launcher ending its in-process agents does) returns: ``close``
+    waits for it, so an agent thread ends only once no Zenoh thread will call into Python for
+    it (one doing so while the interpreter finalises aborts the process)."""
+    endpoint = free_tcp_endpoint()
+    with zenoh.open(zenoh_config("peer", listen=[endpoint])) as world:
+        token = world.liveliness().declare_token(keys.alive(RUN, "world"))
+        agent = zenoh.open(zenoh_config("client", connect=[endpoint]))
+        try:
+            links = [_Noting(agent, RUN, k, follow=k - 1, query_timeout=5.0) for k in (1, 2, 3)]
+            wait_for(lambda: all(link._world_alive for link in links), 10, "the world's token")
+            if session_closed:
+                agent.close()
+            for link in links:
+                link.close()
+                assert link.released
+        finally:
+            agent.close()
+        token.undeclare()

@@ -10,6 +10,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import zenoh
@@ -78,6 +79,13 @@ class NotYet(RequestError):
     code ``wait``, the follower asks again."""
 
 
+class Stale(RequestError):
+    """A request of an agent's join other than its latest (:attr:`protocol.messages.Request.epoch`):
+    sent before the agent joined again, it reached the world after (it was in flight when the
+    session was cut). Answered with code ``stale`` and not read: the agent gave it up when it
+    joined again, and its redo asks anew."""
+
+
 class WorldService:
     """One run's world on an open Zenoh session.
 
@@ -115,6 +123,8 @@ class WorldService:
         self._progress = time.monotonic()  # when some agent last got through a tick
         self._tick_started = 0.0
         self._alive: set[int] = set()
+        # per agent, the number of its latest join (its requests carry it, design §8)
+        self._epochs = [0] * self.sim.n_agents
         self._ended: str | None = None
         self._finished: bytes | None = None  # the world/done message, once published
         self._rejected = 0
@@ -194,6 +204,10 @@ class WorldService:
         except NotYet as exc:  # not a refusal: the agent asks again
             query.reply_err(error_payload(self.sim.tick, str(exc), "wait"))
             return
+        except Stale as exc:  # a leftover of an earlier join, nobody waits for its answer
+            log.info("world: ignored %s: %s", query.key_expr, exc)
+            query.reply_err(error_payload(self.sim.tick, str(exc), "stale"))
+            return
         except (ProtocolError, RequestError, ValueError) as exc:
             problem = str(exc)
         except RunEnded as exc:  # the run ends before this tick (WorldSim.end_tick)
@@ -220,10 +234,20 @@ class WorldService:
             raise NotYet(f"the world has not begun tick {tick} yet" if tick > self.sim.tick
                          else f"agent {agent - 1} is not through tick {tick} yet")
 
+    def _check_epoch(self, agent: int, epoch: int) -> None:
+        """(Lock held.) Refuse, unread, a request numbered with a join of ``agent`` other than
+        its latest (:class:`Stale`); an unnumbered one (0, an older sender) is taken as it
+        comes. Nothing of the tick is used up, so the redo after the join reads what the
+        undone attempt read (design §5)."""
+        if epoch and 0 <= agent < self.sim.n_agents and epoch != self._epochs[agent]:
+            raise Stale(f"agent {agent}'s request of its join {epoch} came after its join "
+                        f"{self._epochs[agent]}: not read")
+
     def _on_sense(self, query: zenoh.Query) -> None:
         def handle(agent: int, payload: bytes) -> bytes:
             req = decode(payload, SenseRequest)
             with self._cond:
+                self._check_epoch(agent, req.epoch)
                 self._check_turn(agent, req.tick)
                 # the agent validates it on decode; its numbers are the world's own
                 return encode(self.sim.sense(agent, req.tick, req.look), check=False)
@@ -253,12 +277,16 @@ class WorldService:
                     if self._finished is not None:  # an agent restarted after the end
                         self._done_pub.put(self._finished)
                     joined = self._joined(agent)
+                    # what it sent before is void: a request of an earlier join is stale
+                    self._epochs[agent] += 1
+                    joined = replace(joined, epoch=self._epochs[agent])
                     if self.config.mode == "lockstep":
                         # it starts again from what the world has it through: whatever it did
                         # since (before a stall cut its session, say) is void (in realtime
                         # the tick it vanished in was marked missed)
                         self._roll_back(agent)
                     return encode(joined)
+                self._check_epoch(agent, req.epoch)
                 self._check_turn(agent, req.tick)
                 # the agent validates the reply on decode; its numbers are the world's own
                 return encode(self.sim.act(agent, req), check=False)
