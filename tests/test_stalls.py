@@ -120,6 +120,7 @@ def test_a_paused_follower_rejoins_and_lockstep_numbers_do_not_change(tmp_path, 
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(700)  # the run (up to 600 s) and its reference; under load 50-130 s
 def test_a_paused_world_is_waited_for_and_lockstep_numbers_do_not_change(tmp_path, runs):
     """The world (the run's router too) paused beyond the lease: every agent's session is cut,
     the agents wait for the world (their start timeout) instead of concluding it died, and join
