@@ -22,7 +22,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,7 +42,7 @@ from agents.policies import (
     reading_variance,
     relative,
 )
-from protocol.cli import program
+from protocol.cli import exit_process, program
 from protocol.config import AgentSettings
 from protocol.messages import Move, Observation, Sensing, Snap
 
@@ -289,5 +288,10 @@ def main(argv: list[str] | None = None) -> int:
         session, brief.settings, brief.agent, state))
 
 
+def console() -> None:
+    """The installed script's entry: :func:`main`, then :func:`protocol.cli.exit_process`."""
+    exit_process(main())
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console()

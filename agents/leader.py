@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import logging
-import sys
 
 import zenoh
 
 from agents.cli import parser, run_cli
 from agents.link import AgentLink, MarkedMissed, Rejoin
-from protocol.cli import program
+from protocol.cli import exit_process, program
 from protocol.config import AgentSettings
 from protocol.messages import Drive
 
@@ -48,5 +47,10 @@ def main(argv: list[str] | None = None) -> int:
     return run_cli(args, 0, lambda session, brief: run_leader(session, brief.settings))
 
 
+def console() -> None:
+    """The installed script's entry: :func:`main`, then :func:`protocol.cli.exit_process`."""
+    exit_process(main())
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console()

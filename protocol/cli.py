@@ -64,6 +64,21 @@ def ends_with(status: int, *kinds: type[BaseException]) -> Iterator[None]:
         raise CommandError(describe(exc), status) from None
 
 
+def exit_process(status: int) -> NoReturn:
+    """End this process with ``status`` once its command is over (every entry point's last
+    step), without the interpreter's finalisation: Zenoh's runtime threads outlive the
+    sessions a command closed, and one that drops a closed session's Python callback while the
+    interpreter finalises takes the GIL too late and aborts the process ("FATAL: exception not
+    rethrown", status -6) after the command has reported its result (seen under load after a
+    full disk ended an in-process run). By then every file the command wrote is closed and every
+    child process ended (each command does so itself); stdio and logging are flushed here."""
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(status)
+
+
 def run_command(command: Callable[[], int | None]) -> int:
     """Run a command's body and return its exit status: its own (None is 0), or for a
     :class:`CommandError` the error's, printed as one line (a missing extra is refused, 2);

@@ -1,5 +1,3 @@
-import sys
+from swarm.cli import console
 
-from swarm.cli import main
-
-sys.exit(main())
+console()

@@ -18,6 +18,7 @@ from protocol.cli import (
     add_results_flags,
     default_out,
     ends_with,
+    exit_process,
     program,
     quantity,
     refuse,
@@ -842,3 +843,8 @@ def add_live_port(parser: argparse.ArgumentParser) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     return run_command(lambda: args.func(args))
+
+
+def console() -> None:
+    """The installed script's entry: :func:`main`, then :func:`protocol.cli.exit_process`."""
+    exit_process(main())

@@ -24,8 +24,8 @@ ROOT = Path(__file__).resolve().parents[1]
 PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]
 HILLS = ROOT / "tests" / "data" / "hills.tif"
 HEAVY = ("bokeh", "rasterio", "distributed", "dask", "cryptography", "rosbags", "mcap")
-SCRIPTS = {"swarm": "swarm.cli:main", "swarm-world": "world.main:main",
-           "swarm-leader": "agents.leader:main", "swarm-follower": "agents.follower:main"}
+SCRIPTS = {"swarm": "swarm.cli:console", "swarm-world": "world.main:console",
+           "swarm-leader": "agents.leader:console", "swarm-follower": "agents.follower:console"}
 TIMEOUT_S = 120
 
 
@@ -162,13 +162,28 @@ def test_a_feature_without_its_extra_is_refused_in_one_line(core_env, tmp_path, 
 
 
 def test_console_scripts_are_declared_and_start():
-    """[project.scripts] names the four commands; each one's function shows its help."""
+    """[project.scripts] names the four commands; each one's function shows its help, in a
+    process of its own (it ends the process, :func:`protocol.cli.exit_process`)."""
     assert PROJECT["scripts"] == SCRIPTS
     for name, target in SCRIPTS.items():
-        main = metadata.EntryPoint(name, target, "console_scripts").load()
-        with pytest.raises(SystemExit) as stop:
-            main(["--help"])
-        assert stop.value.code == 0, name
+        module, function = target.split(":")
+        script = (f"import sys; sys.argv = [{name!r}, '--help']; "
+                  f"from {module} import {function}; {function}()")
+        proc = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True,
+                              text=True, timeout=TIMEOUT_S)
+        assert proc.returncode == 0 and "usage:" in proc.stdout, (name, proc.stderr)
+
+
+def test_a_command_ends_its_process_with_its_status_and_flushed_output():
+    """exit_process: the status given, what was printed and logged is out, and nothing after
+    it runs (no interpreter finalisation, where a Zenoh thread could abort the process)."""
+    script = ("import logging, sys; from protocol.cli import exit_process; "
+              "logging.basicConfig(stream=sys.stderr); print('result', end=''); "
+              "logging.getLogger('x').warning('logged'); exit_process(3); print('not ended')")
+    proc = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True,
+                          text=True, timeout=TIMEOUT_S)
+    assert (proc.returncode, proc.stdout) == (3, "result")
+    assert "logged" in proc.stderr
 
 
 def _installed_from_this_checkout() -> metadata.Distribution | None:

@@ -1,5 +1,3 @@
-import sys
+from world.main import console
 
-from world.main import main
-
-sys.exit(main())
+console()

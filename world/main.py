@@ -20,6 +20,7 @@ from protocol.cli import (
     add_results_flags,
     default_out,
     ends_with,
+    exit_process,
     fail,
     program,
     quantity,
@@ -213,3 +214,8 @@ def _serve(args: argparse.Namespace) -> int:
     if (failure := run_failure(summary)) is not None:
         fail(failure)
     return DONE
+
+
+def console() -> None:
+    """The installed script's entry: :func:`main`, then :func:`protocol.cli.exit_process`."""
+    exit_process(main())
