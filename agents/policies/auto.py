@@ -69,6 +69,12 @@ def _weighted(pre: Sensing, proposals: list[Proposal | None], weights: dict[int,
     return Proposal(offset, tuple(float(v) for v in relative(pre) - offset), followed=followed)
 
 
+def _exact(losses: dict[int, float]) -> dict[int, float]:
+    """Equal weights (summing to 1) over the candidates, by index, whose loss is nil."""
+    exact = [i for i, loss in losses.items() if loss == 0.0]
+    return {i: 1.0 / len(exact) for i in exact}
+
+
 class Auto(Policy):
     """Follow the candidates by their recent one-step errors (design §6); with ``blend=True`` the
     candidates include their own *blend*: the weighted mean of their proposals with weights
@@ -281,8 +287,7 @@ class Auto(Policy):
         mse = self._mse(ready, now)
         best = min(ready, key=lambda i: (mse[i], i))
         if mse[best] == 0.0:
-            exact = [i for i in ready if mse[i] == 0.0]
-            return {i: 1.0 / len(exact) for i in exact}
+            return _exact(mse)
         inverse = {i: mse[best] / mse[i] for i in ready}  # in (0, 1], 1 for the best
         total = math.fsum(inverse.values())
         return {i: w / total for i, w in inverse.items()}
@@ -303,8 +308,7 @@ class Auto(Policy):
         losses = {i: self._loss(i, now) for i in ready}
         lowest = min(losses.values())
         if lowest == 0.0:
-            exact = [i for i in ready if losses[i] == 0.0]
-            return {i: 1.0 / len(exact) for i in exact}
+            return _exact(losses)
         raw = {i: math.exp(-self.sharpness * (loss - lowest) / lowest)
                for i, loss in losses.items()}
         total = math.fsum(raw.values())
