@@ -299,8 +299,13 @@ class Auto(Policy):
             return self.loss[i]
         loss = None
         for e in self._adjusted(i, now):
-            loss = e * e if loss is None else self.memory * loss + (1.0 - self.memory) * e * e
+            loss = self._discounted(loss, e)
         return loss
+
+    def _discounted(self, loss: float | None, error: float) -> float:
+        """A discounted loss after one more ``error`` (its square alone for the first)."""
+        return error * error if loss is None else (
+            self.memory * loss + (1.0 - self.memory) * error * error)
 
     def mixture(self, ready: list[int],
                 now: list[float | None] | None = None) -> dict[int, float]:
@@ -397,9 +402,7 @@ class Auto(Policy):
                         error = float(np.hypot(*(proposal.offset - target)))
                         self.errors[i].append(error)
                         self.levels[i].append(now[i])
-                        last = self.loss[i]
-                        self.loss[i] = error * error if last is None else (
-                            self.memory * last + (1.0 - self.memory) * error * error)
+                        self.loss[i] = self._discounted(self.loss[i], error)
         self._asked = None
         measured = [cand.learn(settled, target, before) for cand in self.candidates]
         return measured[0]
