@@ -55,6 +55,7 @@ from agents.policies import move_variance, reading_variance
 from agents.policies.base import polar
 from protocol.config import AgentSettings
 from protocol.messages import ActSensing, Control, Sensing
+from protocol.sensing import reading_variance as sensor_variance
 
 MIN_CHORD = 1e-6
 """A chord (m) shorter than this, relative to the rod's length, says nothing of a direction."""
@@ -115,8 +116,9 @@ class Limits:
 
 def point_variance(sigma_range: float, sigma_bearing: float, distance: float) -> float:
     """The declared variance of a range/bearing reading of a point ``distance`` away, both
-    coordinates together."""
-    return sigma_range**2 + (distance * sigma_bearing) ** 2
+    coordinates together: twice the per-coordinate one of the sensor model (exact: a halving
+    and a doubling)."""
+    return 2.0 * sensor_variance(distance, sigma_range, sigma_bearing)
 
 
 def chord_variance(settings: AgentSettings) -> float:
