@@ -145,6 +145,13 @@ def _weight(square: float, scale: float) -> float:
     return 0.0 if square == 0.0 else square / (square + scale)
 
 
+def beyond_noise(vector: np.ndarray, variance: float) -> np.ndarray:
+    """``vector`` (shape (2,)) weighted ``|v|² / (|v|² + 9 variance)`` by its declared
+    ``variance`` (both coordinates together): kept whole well above its noise, nothing of it
+    within the noise (a shift by it would only add that noise); without noise, whole."""
+    return _weight(float(vector @ vector), 9.0 * variance) * vector
+
+
 def _trust(square: float, floor: float) -> float:
     """``1 − floor / square`` above ``floor``, 0 below: how much a vector of squared length
     ``square`` says of its direction when its noise has squared spread ``floor`` (continuous,
@@ -250,8 +257,8 @@ class Track:
     ends it drove onto, in the local compass frame (axes parallel to the world's, so they add
     up across ticks). A tick's step is its odometry's per-tick reading (design §5) times
     ``T_c``, from where it settled to where it settled, plus the change in where it read its
-    rod end from there (the settled sensing's rod reading, weighted ``|e|² / (|e|² + 9 var)`` by
-    its declared variance as :func:`agents.follower.at_rod_end` weighs its shift): where it
+    rod end from there (the settled sensing's rod reading, weighted by its declared variance
+    as :func:`agents.follower.at_rod_end` weighs its shift, :func:`beyond_noise`): where it
     landed off its rod end is its own error, which the path of its rod ends does not carry, so
     the goal heading fitted to it (:func:`goal_heading`) does not pass it down the column. A
     tick it missed breaks the track. It learns from the settled sensing as a policy does
@@ -291,9 +298,8 @@ class Track:
         landed = np.zeros(2)
         if settled.rod is not None:
             landed = np.asarray(settled.rod, dtype=float)
-            square = float(landed @ landed)
-            variance = point_variance(self.sigma_range, self.sigma_bearing, math.sqrt(square))
-            landed = landed * _weight(square, 9.0 * variance)
+            landed = beyond_noise(landed, point_variance(
+                self.sigma_range, self.sigma_bearing, math.sqrt(float(landed @ landed))))
         step = (self.comm_period * np.asarray(settled.velocity, dtype=float)
                 + landed - self.landed)
         if settled.compass is not None and settled.rod is not None:
