@@ -363,7 +363,7 @@ class HeadingFilter:
         self.variance += (TURN_SLIP * turn) ** 2 + (TRANSPORT * moved) ** 2
         self._update(compass, limits.sigma_bearing**2)
         odometry_variance = limits.odometry_variance[step] if limits.odometry_variance else 0.0
-        if speed != 0.0 and moved * moved > 9.0 * odometry_variance and moved > 0.0:
+        if speed != 0.0 and moved * moved > 9.0 * odometry_variance:  # so moved > 0
             direction = math.atan2(odometry[1], odometry[0]) + (0.0 if speed > 0 else math.pi)
             self._update(wrap(direction + 0.5 * turn),
                          odometry_variance / (moved * moved) + (0.25 * turn) ** 2
