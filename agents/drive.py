@@ -52,7 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agents.policies import move_variance, reading_variance
-from agents.policies.base import polar
+from agents.policies.base import polar, relative
 from protocol.config import AgentSettings
 from protocol.messages import ActSensing, Control, Sensing
 from protocol.sensing import reading_variance as sensor_variance
@@ -130,10 +130,6 @@ def chord_variance(settings: AgentSettings) -> float:
 def wrap(angle: float) -> float:
     """``angle`` wrapped to ``(−π, π]``."""
     return math.atan2(math.sin(angle), math.cos(angle))
-
-
-def _unit(angle: float) -> np.ndarray:
-    return np.array([math.cos(angle), math.sin(angle)])
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> float:
@@ -303,7 +299,7 @@ class Track:
         step = (self.comm_period * np.asarray(settled.velocity, dtype=float)
                 + landed - self.landed)
         if settled.compass is not None and settled.rod is not None:
-            chord = -polar(settled.r, settled.theta)  # from the leader to the rod end
+            chord = -relative(settled)  # from the leader to the rod end
             self.settled = self.heading(settled.compass, step, chord, tuple(self.steps))
         self.steps.append(step)
         self.landed = landed
@@ -445,7 +441,7 @@ def step_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: 
     end = len(limits.durations) if end is None else max(end, step + 1)
     time = sum(limits.durations[step:])  # to the tick's end
     offset = goal - position
-    axis = _unit(goal_heading)
+    axis = polar(1.0, goal_heading)
     along, aside = float(offset @ axis), _cross(axis, offset)
     line = goal_heading if along >= 0.0 else goal_heading + math.pi
     if along < 0.0:
@@ -479,7 +475,7 @@ def metric_angle(slope: np.ndarray, start: float, end: float) -> float:
     """The signed angle, in the metric ``g = I + s sᵀ`` of the slope ``s``, from the chart
     direction ``start`` to the chart direction ``end`` (rad; the chart turn from one to the
     other, taken in ``(−π, π]``, fixes the way round)."""
-    a, b = _unit(start), _unit(end)
+    a, b = polar(1.0, start), polar(1.0, end)
     sa, sb = float(slope @ a), float(slope @ b)
     dot = float(a @ b) + sa * sb
     cross = _cross(a, b) * math.sqrt(1.0 + float(slope @ slope))
@@ -493,7 +489,7 @@ def metric_angle(slope: np.ndarray, start: float, end: float) -> float:
 def chart_turn(slope: np.ndarray, start: float, angle: float) -> float:
     """The chart turn from the chart direction ``start`` that is the metric angle ``angle``
     (|angle| < π; the inverse of :func:`metric_angle`)."""
-    a = _unit(start)
+    a = polar(1.0, start)
     g = np.eye(2) + np.outer(slope, slope)
     b = np.array([-a[1], a[0]])  # a chart normal, then made g-orthogonal to a, g-unit
     b = b - (a @ g @ b) / (a @ g @ a) * a
@@ -569,7 +565,7 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
     target, spread = np.asarray(goal, dtype=float), math.sqrt(0.5 * limits.chord_variance)
 
     leader = _Fixed(limits)
-    leader.add(np.zeros(2), polar(pre.r, pre.theta))
+    leader.add(np.zeros(2), relative(pre))
 
     def heading_at(point: np.ndarray) -> float:
         if track is None:
@@ -597,7 +593,7 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
         if step >= settings.control_steps - 1 and moved.rod is not None:
             if reply.rod is not None:
                 rod.add(position, np.asarray(reply.rod))
-                leader.add(position, polar(reply.r, reply.theta))
+                leader.add(position, relative(reply))
             target, spread = rod.estimate()
         wanted = heading_at(target)
     if moved.rod is None or not rod.points:
