@@ -290,12 +290,13 @@ class RodTracker(Policy):
                 if moved.rod is not None:
                     mean, cov = self._reading(mean, cov, np.asarray(moved.rod), rod=True)
             if target is not None:  # it snapped onto the rod end it read
-                mean, cov = self._move(mean, cov, self._snap(moved, target, offset))
+                snap = self._snap(moved, target, offset)
+                mean, cov = self._move(mean, cov, snap)
         mean, cov = self._reading(mean, cov, relative(settled), rod=False)
         if settled.rod is not None:
             mean, cov = self._reading(mean, cov, np.asarray(settled.rod), rod=True)
         if before is not None and target is not None:
-            mean, cov = self._odometry(mean, cov, settled, before, target)
+            mean, cov = self._odometry(mean, cov, settled, offset + snap)
         self.mean, self.cov = mean, cov
         self.scores = self.memory * self.scores + self._evidence
         self._forget()
@@ -310,13 +311,12 @@ class RodTracker(Policy):
             return np.asarray(moved.rod, dtype=float)
         return np.asarray(target, dtype=float) - offset
 
-    def _odometry(self, mean, cov, settled: Sensing, before: Before, target: np.ndarray):
-        """The odometry of the interval read the actuation error ``D`` of this tick's moves."""
+    def _odometry(self, mean, cov, settled: Sensing, commanded: np.ndarray):
+        """The odometry of the interval read the actuation error ``D`` of this tick's moves
+        (``commanded``: the move and the snap, (2,))."""
         if (self.odometry_variance is None or not self.move_variance
                 or settled.velocity is None):
             return mean, cov
-        offset = np.asarray(before.offset, dtype=float)
-        commanded = offset + self._snap(before.moved, target, offset)
         z = np.asarray(settled.velocity, dtype=float) * self.comm_period - commanded
         return self._update(mean, cov, ACTUATION, z, (self.odometry_variance + JITTER) * EYE2)
 
