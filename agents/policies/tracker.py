@@ -188,6 +188,13 @@ class RodTracker(Policy):
         noise = reading_covariance(r, math.atan2(z[1], z[0]), self.sigma_r, self.sigma_theta)
         return self._update(mean, cov, ROD_END if rod else LEADER, z, noise + JITTER * EYE2)
 
+    def _sensed(self, mean, cov, sensing: Sensing):
+        """Update with a sensing's leader reading, then its rod end's if it carries one."""
+        mean, cov = self._reading(mean, cov, relative(sensing), rod=False)
+        if sensing.rod is not None:
+            mean, cov = self._reading(mean, cov, np.asarray(sensing.rod), rod=True)
+        return mean, cov
+
     def _move(self, mean, cov, u: np.ndarray):
         """The follower moved by ``u`` (2,) with the declared actuation variance."""
         mean = mean.copy()
@@ -286,15 +293,11 @@ class RodTracker(Policy):
             mean, cov = self._move(mean, cov, offset)
             moved = before.moved
             if moved is not None:
-                mean, cov = self._reading(mean, cov, relative(moved), rod=False)
-                if moved.rod is not None:
-                    mean, cov = self._reading(mean, cov, np.asarray(moved.rod), rod=True)
+                mean, cov = self._sensed(mean, cov, moved)
             if target is not None:  # it snapped onto the rod end it read
                 snap = self._snap(moved, target, offset)
                 mean, cov = self._move(mean, cov, snap)
-        mean, cov = self._reading(mean, cov, relative(settled), rod=False)
-        if settled.rod is not None:
-            mean, cov = self._reading(mean, cov, np.asarray(settled.rod), rod=True)
+        mean, cov = self._sensed(mean, cov, settled)
         if before is not None and target is not None:
             mean, cov = self._odometry(mean, cov, settled, offset + snap)
         self.mean, self.cov = mean, cov
