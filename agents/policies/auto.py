@@ -12,7 +12,7 @@ from statistics import NormalDist
 import numpy as np
 
 from agents.estimators import NotFitted
-from agents.policies.base import Before, Policy, Proposal, reconstructed_pre, relative
+from agents.policies.base import Before, LearnsTick, Policy, Proposal, reconstructed_pre, relative
 from protocol.config import AUTO
 from protocol.messages import Sensing
 
@@ -75,7 +75,7 @@ def _exact(losses: dict[int, float]) -> dict[int, float]:
     return {i: 1.0 / len(exact) for i in exact}
 
 
-class Auto(Policy):
+class Auto(LearnsTick):
     """Follow the candidates by their recent one-step errors (design §6); with ``blend=True`` the
     candidates include their own *blend*: the weighted mean of their proposals with weights
     inversely proportional to their mean squared errors over the window (Bates and Granger's
@@ -382,9 +382,6 @@ class Auto(Policy):
             if len(weights) > 1:
                 return _weighted(pre, proposals, weights, self._name(top))
         return dataclasses.replace(proposals[top], followed=self._name(top))
-
-    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
-        return self.learn(settled, target)
 
     def learn(self, settled: Sensing, target: np.ndarray | None,
               before: Before | None = None) -> tuple[float, ...]:

@@ -46,7 +46,7 @@ from itertools import product
 import numpy as np
 
 from agents.estimators import NotFitted
-from agents.policies.base import Before, Policy, Proposal, relative
+from agents.policies.base import Before, LearnsTick, Proposal, relative
 from protocol.messages import Sensing
 from protocol.sensing import reading_covariance
 
@@ -85,7 +85,7 @@ def _observed(x: np.ndarray, blocks: tuple[slice, ...], axis: int = 1) -> np.nda
     return total
 
 
-class RodTracker(Policy):
+class RodTracker(LearnsTick):
     """``ekf``: the extended Kalman filters of the module docstring, one per (jerk, landing,
     turn) triple, and their likelihood-weighted mixture.
 
@@ -273,9 +273,6 @@ class RodTracker(Policy):
         mean, _, _ = self._before_move(pre)
         e = self._rod_end(mean)
         return Proposal(e, (float(e[0]), float(e[1])))
-
-    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
-        return self.learn(settled, target)
 
     def learn(self, settled: Sensing, target: np.ndarray | None,
               before: Before | None = None) -> tuple[float, ...]:
