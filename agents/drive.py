@@ -287,7 +287,7 @@ class Track:
         self.landed = np.zeros(2)
         self.settled = None
 
-    def record(self, settled: Sensing, target: np.ndarray | None) -> None:
+    def record(self, settled: Sensing) -> None:
         if settled.velocity is None:
             self.skip()
             return

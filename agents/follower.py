@@ -137,7 +137,7 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
                     offset=(float(offset[0]), float(offset[1])))
     measurement = policy.learn(settled, target, before)
     if track is not None:
-        track.record(settled, target)
+        track.record(settled)
     observation = Observation(tick=tick, estimator=policy.name, measurement=measurement,
                               prediction=prediction, lost=lost, followed=followed,
                               fallback=fallback)
@@ -151,7 +151,7 @@ def _replay_track(track: Track, entries: list[Entry]) -> None:
         if entry.skips or entry.settled is None:
             track.skip()
         if entry.settled is not None:
-            track.record(entry.settled, None)
+            track.record(entry.settled)
 
 
 def _join(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Policy, last: int,
