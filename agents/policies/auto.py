@@ -5,6 +5,7 @@ paper)."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections import deque
 from statistics import NormalDist
@@ -42,6 +43,7 @@ def student_within(t: float, dof: int) -> float:
     return sine * total
 
 
+@functools.cache  # a bisection; auto asks it every tick with a handful of arguments
 def family_threshold(z: float, tests: int, dof: int) -> float:
     """The one-sided threshold of a paired t-test with ``dof`` degrees of freedom that keeps
     the chance of any of ``tests`` false alarms at that of one normal test at ``z`` standard
