@@ -575,7 +575,7 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
                              previous).heading
 
     wanted = heading_at(target)
-    moved, travelled, reply = pre, np.zeros(2), None
+    moved, travelled = pre, np.zeros(2)
     reserve = settings.control_steps + settings.snap_steps // 2  # the move phase's end
     for step in range(settings.tick_steps):
         v, omega, turn = step_command(position, filtered.heading, slope, target, wanted,
