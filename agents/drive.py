@@ -52,9 +52,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from agents.policies import move_variance, reading_variance
-from agents.policies.base import polar
+from agents.policies.base import polar, relative
 from protocol.config import AgentSettings
 from protocol.messages import ActSensing, Control, Sensing
+from protocol.sensing import reading_variance as sensor_variance
 
 MIN_CHORD = 1e-6
 """A chord (m) shorter than this, relative to the rod's length, says nothing of a direction."""
@@ -115,8 +116,9 @@ class Limits:
 
 def point_variance(sigma_range: float, sigma_bearing: float, distance: float) -> float:
     """The declared variance of a range/bearing reading of a point ``distance`` away, both
-    coordinates together."""
-    return sigma_range**2 + (distance * sigma_bearing) ** 2
+    coordinates together: twice the per-coordinate one of the sensor model (exact: a halving
+    and a doubling)."""
+    return 2.0 * sensor_variance(distance, sigma_range, sigma_bearing)
 
 
 def chord_variance(settings: AgentSettings) -> float:
@@ -130,10 +132,6 @@ def wrap(angle: float) -> float:
     return math.atan2(math.sin(angle), math.cos(angle))
 
 
-def _unit(angle: float) -> np.ndarray:
-    return np.array([math.cos(angle), math.sin(angle)])
-
-
 def _cross(a: np.ndarray, b: np.ndarray) -> float:
     return float(a[0] * b[1] - a[1] * b[0])
 
@@ -141,6 +139,13 @@ def _cross(a: np.ndarray, b: np.ndarray) -> float:
 def _weight(square: float, scale: float) -> float:
     """``square / (square + scale)``: 0 for nothing, 1 without noise (no singular branch)."""
     return 0.0 if square == 0.0 else square / (square + scale)
+
+
+def beyond_noise(vector: np.ndarray, variance: float) -> np.ndarray:
+    """``vector`` (shape (2,)) weighted ``|v|² / (|v|² + 9 variance)`` by its declared
+    ``variance`` (both coordinates together): kept whole well above its noise, nothing of it
+    within the noise (a shift by it would only add that noise); without noise, whole."""
+    return _weight(float(vector @ vector), 9.0 * variance) * vector
 
 
 def _trust(square: float, floor: float) -> float:
@@ -248,8 +253,8 @@ class Track:
     ends it drove onto, in the local compass frame (axes parallel to the world's, so they add
     up across ticks). A tick's step is its odometry's per-tick reading (design §5) times
     ``T_c``, from where it settled to where it settled, plus the change in where it read its
-    rod end from there (the settled sensing's rod reading, weighted ``|e|² / (|e|² + 9 var)`` by
-    its declared variance as :func:`agents.follower.at_rod_end` weighs its shift): where it
+    rod end from there (the settled sensing's rod reading, weighted by its declared variance
+    as :func:`agents.follower.at_rod_end` weighs its shift, :func:`beyond_noise`): where it
     landed off its rod end is its own error, which the path of its rod ends does not carry, so
     the goal heading fitted to it (:func:`goal_heading`) does not pass it down the column. A
     tick it missed breaks the track. It learns from the settled sensing as a policy does
@@ -282,20 +287,19 @@ class Track:
         self.landed = np.zeros(2)
         self.settled = None
 
-    def record(self, settled: Sensing, target: np.ndarray | None) -> None:
+    def record(self, settled: Sensing) -> None:
         if settled.velocity is None:
             self.skip()
             return
         landed = np.zeros(2)
         if settled.rod is not None:
             landed = np.asarray(settled.rod, dtype=float)
-            square = float(landed @ landed)
-            variance = point_variance(self.sigma_range, self.sigma_bearing, math.sqrt(square))
-            landed = landed * _weight(square, 9.0 * variance)
+            landed = beyond_noise(landed, point_variance(
+                self.sigma_range, self.sigma_bearing, math.sqrt(float(landed @ landed))))
         step = (self.comm_period * np.asarray(settled.velocity, dtype=float)
                 + landed - self.landed)
         if settled.compass is not None and settled.rod is not None:
-            chord = -polar(settled.r, settled.theta)  # from the leader to the rod end
+            chord = -relative(settled)  # from the leader to the rod end
             self.settled = self.heading(settled.compass, step, chord, tuple(self.steps))
         self.steps.append(step)
         self.landed = landed
@@ -355,7 +359,7 @@ class HeadingFilter:
         self.variance += (TURN_SLIP * turn) ** 2 + (TRANSPORT * moved) ** 2
         self._update(compass, limits.sigma_bearing**2)
         odometry_variance = limits.odometry_variance[step] if limits.odometry_variance else 0.0
-        if speed != 0.0 and moved * moved > 9.0 * odometry_variance and moved > 0.0:
+        if speed != 0.0 and moved * moved > 9.0 * odometry_variance:  # so moved > 0
             direction = math.atan2(odometry[1], odometry[0]) + (0.0 if speed > 0 else math.pi)
             self._update(wrap(direction + 0.5 * turn),
                          odometry_variance / (moved * moved) + (0.25 * turn) ** 2
@@ -437,7 +441,7 @@ def step_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: 
     end = len(limits.durations) if end is None else max(end, step + 1)
     time = sum(limits.durations[step:])  # to the tick's end
     offset = goal - position
-    axis = _unit(goal_heading)
+    axis = polar(1.0, goal_heading)
     along, aside = float(offset @ axis), _cross(axis, offset)
     line = goal_heading if along >= 0.0 else goal_heading + math.pi
     if along < 0.0:
@@ -471,7 +475,7 @@ def metric_angle(slope: np.ndarray, start: float, end: float) -> float:
     """The signed angle, in the metric ``g = I + s sᵀ`` of the slope ``s``, from the chart
     direction ``start`` to the chart direction ``end`` (rad; the chart turn from one to the
     other, taken in ``(−π, π]``, fixes the way round)."""
-    a, b = _unit(start), _unit(end)
+    a, b = polar(1.0, start), polar(1.0, end)
     sa, sb = float(slope @ a), float(slope @ b)
     dot = float(a @ b) + sa * sb
     cross = _cross(a, b) * math.sqrt(1.0 + float(slope @ slope))
@@ -485,7 +489,7 @@ def metric_angle(slope: np.ndarray, start: float, end: float) -> float:
 def chart_turn(slope: np.ndarray, start: float, angle: float) -> float:
     """The chart turn from the chart direction ``start`` that is the metric angle ``angle``
     (|angle| < π; the inverse of :func:`metric_angle`)."""
-    a = _unit(start)
+    a = polar(1.0, start)
     g = np.eye(2) + np.outer(slope, slope)
     b = np.array([-a[1], a[0]])  # a chart normal, then made g-orthogonal to a, g-unit
     b = b - (a @ g @ b) / (a @ g @ a) * a
@@ -561,7 +565,7 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
     target, spread = np.asarray(goal, dtype=float), math.sqrt(0.5 * limits.chord_variance)
 
     leader = _Fixed(limits)
-    leader.add(np.zeros(2), polar(pre.r, pre.theta))
+    leader.add(np.zeros(2), relative(pre))
 
     def heading_at(point: np.ndarray) -> float:
         if track is None:
@@ -571,7 +575,7 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
                              previous).heading
 
     wanted = heading_at(target)
-    moved, travelled, reply = pre, np.zeros(2), None
+    moved, travelled = pre, np.zeros(2)
     reserve = settings.control_steps + settings.snap_steps // 2  # the move phase's end
     for step in range(settings.tick_steps):
         v, omega, turn = step_command(position, filtered.heading, slope, target, wanted,
@@ -589,7 +593,7 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
         if step >= settings.control_steps - 1 and moved.rod is not None:
             if reply.rod is not None:
                 rod.add(position, np.asarray(reply.rod))
-                leader.add(position, polar(reply.r, reply.theta))
+                leader.add(position, relative(reply))
             target, spread = rod.estimate()
         wanted = heading_at(target)
     if moved.rod is None or not rod.points:

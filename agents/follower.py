@@ -30,7 +30,7 @@ import zenoh
 
 from agents.checkpoint import Entry, StateLog, replay
 from agents.cli import parser, run_cli
-from agents.drive import Driven, Limits, Track, drive_tick
+from agents.drive import Driven, Limits, Track, beyond_noise, drive_tick
 from agents.link import AgentAbort, AgentLink, MarkedMissed, Rejoin, RunFinished
 from agents.policies import (
     Before,
@@ -87,7 +87,8 @@ def displacement(offset: np.ndarray, pre: Sensing, moved: Sensing,
 def at_rod_end(settled: Sensing, driven: Driven) -> Sensing:
     """The settled sensing of a driving follower as seen from the rod end it drove onto: the
     leader reading shifted by the follower's best estimate of the rod end's offset
-    (:class:`agents.drive.Driven`), weighted ``|e|² / (|e|² + 9 var)`` by its declared variance.
+    (:class:`agents.drive.Driven`), weighted ``|e|² / (|e|² + 9 var)`` by its declared variance
+    (:func:`agents.drive.beyond_noise`).
 
     A follower that settled off its rod end would otherwise give its estimator a relative
     position the formation never had; its estimator learns the formation's relative motion
@@ -98,9 +99,7 @@ def at_rod_end(settled: Sensing, driven: Driven) -> Sensing:
     residual = driven.residual
     if residual is None:
         return settled
-    square = float(residual @ residual)
-    weight = 0.0 if square == 0.0 else square / (square + 9.0 * driven.residual_variance)
-    x, y = relative(settled) - weight * residual
+    x, y = relative(settled) - beyond_noise(residual, driven.residual_variance)
     return dataclasses.replace(settled, r=math.hypot(x, y), theta=math.atan2(y, x))
 
 
@@ -137,7 +136,7 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
                     offset=(float(offset[0]), float(offset[1])))
     measurement = policy.learn(settled, target, before)
     if track is not None:
-        track.record(settled, target)
+        track.record(settled)
     observation = Observation(tick=tick, estimator=policy.name, measurement=measurement,
                               prediction=prediction, lost=lost, followed=followed,
                               fallback=fallback)
@@ -151,7 +150,7 @@ def _replay_track(track: Track, entries: list[Entry]) -> None:
         if entry.skips or entry.settled is None:
             track.skip()
         if entry.settled is not None:
-            track.record(entry.settled, None)
+            track.record(entry.settled)
 
 
 def _join(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Policy, last: int,

@@ -247,8 +247,8 @@ def test_where_a_follower_landed_off_its_rod_end_does_not_enter_its_track():
     for tick in range(6):
         step = np.array([1.2, 0.1 * tick])
         error = rng.normal(0.0, 0.05, 2)
-        on.record(_settled(tick, step, np.zeros(2), comm_period), None)
-        off.record(_settled(tick, step + error - landed, -error, comm_period), None)
+        on.record(_settled(tick, step, np.zeros(2), comm_period))
+        off.record(_settled(tick, step + error - landed, -error, comm_period))
         landed = error
     np.testing.assert_allclose(np.array(off.displacements()), np.array(on.displacements()),
                                atol=1e-12)

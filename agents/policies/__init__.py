@@ -49,7 +49,8 @@ __all__ = ["ARX", "Auto", "Before", "ConstantVelocity", "EDMDPolicy", "FallbackT
            "RatioGP", "RodTracker", "Stay", "Unwrapper", "auto_candidates",
            "classical", "estimator_settings", "load_estimator", "looks_before_moving",
            "make_auto", "make_dictionary", "make_policy", "model_based", "move_variance",
-           "paper_edmd", "polar", "reading_variance", "reconstructed_pre", "relative"]
+           "odometry_variance", "paper_edmd", "polar", "reading_variance", "reconstructed_pre",
+           "relative"]
 
 
 def reading_variance(settings: AgentSettings) -> float:
@@ -64,8 +65,14 @@ def move_variance(settings: AgentSettings) -> float:
     over its move phase, ``(noise_velocity · T_c)²`` (see ``world.sim.WorldSim.control``; the
     tick's correction steps add ``snap_steps / control_steps`` of that, not declared here)."""
     if settings.drives:
-        return (settings.noise_velocity * settings.comm_period) ** 2
+        return odometry_variance(settings)
     return settings.noise_move**2
+
+
+def odometry_variance(settings: AgentSettings) -> float:
+    """The declared variance per xy coordinate of the odometry's displacement over one comm
+    interval, ``(noise_velocity · T_c)²``."""
+    return (settings.noise_velocity * settings.comm_period) ** 2
 
 
 def classical(name: str, settings: AgentSettings) -> Policy:
@@ -103,7 +110,7 @@ def model_based(name: str, settings: AgentSettings) -> Policy:
     (a driving follower reckons its moves with the odometry: it tells nothing more)."""
     if name != "ekf":
         raise ValueError(f"unknown model-based estimator {name!r}")
-    odometry = None if settings.drives else (settings.noise_velocity * settings.comm_period) ** 2
+    odometry = None if settings.drives else odometry_variance(settings)
     landing = settings.noise_range**2 + move_variance(settings)
     return RodTracker(settings.noise_range, settings.noise_bearing, move_variance(settings),
                       odometry, settings.comm_period, settings.spacing, jerks=EKF_JERKS,

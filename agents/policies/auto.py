@@ -5,6 +5,7 @@ paper)."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections import deque
 from statistics import NormalDist
@@ -12,7 +13,7 @@ from statistics import NormalDist
 import numpy as np
 
 from agents.estimators import NotFitted
-from agents.policies.base import Before, Policy, Proposal, reconstructed_pre, relative
+from agents.policies.base import Before, LearnsTick, Policy, Proposal, reconstructed_pre, relative
 from protocol.config import AUTO
 from protocol.messages import Sensing
 
@@ -42,6 +43,7 @@ def student_within(t: float, dof: int) -> float:
     return sine * total
 
 
+@functools.cache  # a bisection; auto asks it every tick with a handful of arguments
 def family_threshold(z: float, tests: int, dof: int) -> float:
     """The one-sided threshold of a paired t-test with ``dof`` degrees of freedom that keeps
     the chance of any of ``tests`` false alarms at that of one normal test at ``z`` standard
@@ -69,7 +71,13 @@ def _weighted(pre: Sensing, proposals: list[Proposal | None], weights: dict[int,
     return Proposal(offset, tuple(float(v) for v in relative(pre) - offset), followed=followed)
 
 
-class Auto(Policy):
+def _exact(losses: dict[int, float]) -> dict[int, float]:
+    """Equal weights (summing to 1) over the candidates, by index, whose loss is nil."""
+    exact = [i for i, loss in losses.items() if loss == 0.0]
+    return {i: 1.0 / len(exact) for i in exact}
+
+
+class Auto(LearnsTick):
     """Follow the candidates by their recent one-step errors (design §6); with ``blend=True`` the
     candidates include their own *blend*: the weighted mean of their proposals with weights
     inversely proportional to their mean squared errors over the window (Bates and Granger's
@@ -281,8 +289,7 @@ class Auto(Policy):
         mse = self._mse(ready, now)
         best = min(ready, key=lambda i: (mse[i], i))
         if mse[best] == 0.0:
-            exact = [i for i in ready if mse[i] == 0.0]
-            return {i: 1.0 / len(exact) for i in exact}
+            return _exact(mse)
         inverse = {i: mse[best] / mse[i] for i in ready}  # in (0, 1], 1 for the best
         total = math.fsum(inverse.values())
         return {i: w / total for i, w in inverse.items()}
@@ -294,8 +301,13 @@ class Auto(Policy):
             return self.loss[i]
         loss = None
         for e in self._adjusted(i, now):
-            loss = e * e if loss is None else self.memory * loss + (1.0 - self.memory) * e * e
+            loss = self._discounted(loss, e)
         return loss
+
+    def _discounted(self, loss: float | None, error: float) -> float:
+        """A discounted loss after one more ``error`` (its square alone for the first)."""
+        return error * error if loss is None else (
+            self.memory * loss + (1.0 - self.memory) * error * error)
 
     def mixture(self, ready: list[int],
                 now: list[float | None] | None = None) -> dict[int, float]:
@@ -303,8 +315,7 @@ class Auto(Policy):
         losses = {i: self._loss(i, now) for i in ready}
         lowest = min(losses.values())
         if lowest == 0.0:
-            exact = [i for i in ready if losses[i] == 0.0]
-            return {i: 1.0 / len(exact) for i in exact}
+            return _exact(losses)
         raw = {i: math.exp(-self.sharpness * (loss - lowest) / lowest)
                for i, loss in losses.items()}
         total = math.fsum(raw.values())
@@ -374,9 +385,6 @@ class Auto(Policy):
                 return _weighted(pre, proposals, weights, self._name(top))
         return dataclasses.replace(proposals[top], followed=self._name(top))
 
-    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
-        return self.learn(settled, target)
-
     def learn(self, settled: Sensing, target: np.ndarray | None,
               before: Before | None = None) -> tuple[float, ...]:
         """Score every candidate on the tick (from :func:`reconstructed_pre`, or with ``made``
@@ -393,9 +401,7 @@ class Auto(Policy):
                         error = float(np.hypot(*(proposal.offset - target)))
                         self.errors[i].append(error)
                         self.levels[i].append(now[i])
-                        last = self.loss[i]
-                        self.loss[i] = error * error if last is None else (
-                            self.memory * last + (1.0 - self.memory) * error * error)
+                        self.loss[i] = self._discounted(self.loss[i], error)
         self._asked = None
         measured = [cand.learn(settled, target, before) for cand in self.candidates]
         return measured[0]

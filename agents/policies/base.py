@@ -12,7 +12,8 @@ the follower loop calls
    to where the follower stood before moving (None when it lost the rod), and ``before``, what
    the follower sensed and did earlier in the tick (:class:`Before`): the policy learns. Its
    default is :meth:`Policy.record` ``(settled, target)``, which is what most policies (and
-   plug-ins) implement; a policy that uses the tick's earlier readings overrides ``learn``;
+   plug-ins) implement; a policy that uses the tick's earlier readings overrides ``learn``
+   (:class:`LearnsTick`);
 3. :meth:`Policy.skip` for a tick it did not take part in.
 
 State changes only in ``learn`` (``record``) and ``skip``, and a policy is a deterministic
@@ -181,6 +182,14 @@ class Policy:
         return None
 
 
+class LearnsTick(Policy):
+    """Base of a policy that implements :meth:`Policy.learn` (it uses the tick's earlier
+    readings): its :meth:`record` is ``learn`` without them."""
+
+    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
+        return self.learn(settled, target)
+
+
 class Stay(Policy):
     """No estimation: wait where the last tick ended (the paper's "without EDMD")."""
 
@@ -217,7 +226,7 @@ class Persist(Policy):
         return self.last
 
 
-class FallbackToPersist(Policy):
+class FallbackToPersist(LearnsTick):
     """``policy``, or ``persist``'s proposal (flagged ``fallback``) while it is not ready.
 
     The ticks a policy could not predict are then neither silent ``stay`` ticks nor reported as
@@ -239,9 +248,6 @@ class FallbackToPersist(Policy):
         if proposal.followed:
             return proposal
         return dataclasses.replace(proposal, followed=self.policy.name)
-
-    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
-        return self.learn(settled, target)
 
     def learn(self, settled: Sensing, target: np.ndarray | None,
               before: Before | None = None) -> tuple[float, ...]:

@@ -46,7 +46,7 @@ from itertools import product
 import numpy as np
 
 from agents.estimators import NotFitted
-from agents.policies.base import Before, Policy, Proposal, relative
+from agents.policies.base import Before, LearnsTick, Proposal, relative
 from protocol.messages import Sensing
 from protocol.sensing import reading_covariance
 
@@ -85,7 +85,7 @@ def _observed(x: np.ndarray, blocks: tuple[slice, ...], axis: int = 1) -> np.nda
     return total
 
 
-class RodTracker(Policy):
+class RodTracker(LearnsTick):
     """``ekf``: the extended Kalman filters of the module docstring, one per (jerk, landing,
     turn) triple, and their likelihood-weighted mixture.
 
@@ -188,6 +188,13 @@ class RodTracker(Policy):
         noise = reading_covariance(r, math.atan2(z[1], z[0]), self.sigma_r, self.sigma_theta)
         return self._update(mean, cov, ROD_END if rod else LEADER, z, noise + JITTER * EYE2)
 
+    def _sensed(self, mean, cov, sensing: Sensing):
+        """Update with a sensing's leader reading, then its rod end's if it carries one."""
+        mean, cov = self._reading(mean, cov, relative(sensing), rod=False)
+        if sensing.rod is not None:
+            mean, cov = self._reading(mean, cov, np.asarray(sensing.rod), rod=True)
+        return mean, cov
+
     def _move(self, mean, cov, u: np.ndarray):
         """The follower moved by ``u`` (2,) with the declared actuation variance."""
         mean = mean.copy()
@@ -267,9 +274,6 @@ class RodTracker(Policy):
         e = self._rod_end(mean)
         return Proposal(e, (float(e[0]), float(e[1])))
 
-    def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
-        return self.learn(settled, target)
-
     def learn(self, settled: Sensing, target: np.ndarray | None,
               before: Before | None = None) -> tuple[float, ...]:
         self._evidence = np.zeros(self.members)
@@ -286,16 +290,13 @@ class RodTracker(Policy):
             mean, cov = self._move(mean, cov, offset)
             moved = before.moved
             if moved is not None:
-                mean, cov = self._reading(mean, cov, relative(moved), rod=False)
-                if moved.rod is not None:
-                    mean, cov = self._reading(mean, cov, np.asarray(moved.rod), rod=True)
+                mean, cov = self._sensed(mean, cov, moved)
             if target is not None:  # it snapped onto the rod end it read
-                mean, cov = self._move(mean, cov, self._snap(moved, target, offset))
-        mean, cov = self._reading(mean, cov, relative(settled), rod=False)
-        if settled.rod is not None:
-            mean, cov = self._reading(mean, cov, np.asarray(settled.rod), rod=True)
+                snap = self._snap(moved, target, offset)
+                mean, cov = self._move(mean, cov, snap)
+        mean, cov = self._sensed(mean, cov, settled)
         if before is not None and target is not None:
-            mean, cov = self._odometry(mean, cov, settled, before, target)
+            mean, cov = self._odometry(mean, cov, settled, offset + snap)
         self.mean, self.cov = mean, cov
         self.scores = self.memory * self.scores + self._evidence
         self._forget()
@@ -310,13 +311,12 @@ class RodTracker(Policy):
             return np.asarray(moved.rod, dtype=float)
         return np.asarray(target, dtype=float) - offset
 
-    def _odometry(self, mean, cov, settled: Sensing, before: Before, target: np.ndarray):
-        """The odometry of the interval read the actuation error ``D`` of this tick's moves."""
+    def _odometry(self, mean, cov, settled: Sensing, commanded: np.ndarray):
+        """The odometry of the interval read the actuation error ``D`` of this tick's moves
+        (``commanded``: the move and the snap, (2,))."""
         if (self.odometry_variance is None or not self.move_variance
                 or settled.velocity is None):
             return mean, cov
-        offset = np.asarray(before.offset, dtype=float)
-        commanded = offset + self._snap(before.moved, target, offset)
         z = np.asarray(settled.velocity, dtype=float) * self.comm_period - commanded
         return self._update(mean, cov, ACTUATION, z, (self.odometry_variance + JITTER) * EYE2)
 
