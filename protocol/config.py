@@ -36,6 +36,19 @@ from protocol.ros2 import DOMAIN_RANGE, domain_from_env
 
 CLASSICAL = ("cv", "kalman", "arx", "gp")  # the classical tracking baselines (design §6)
 FILTERS = ("ekf",)  # model-based trackers of the leader and its rod (auto's with noise only)
+
+
+def filterable(sigma_range: float, sigma_bearing: float) -> bool:
+    """Whether the model-based filters (:data:`FILTERS`) can take a sensor of these σ: noisy
+    on both axes, or exact on both. Exact on one axis only, a reading's covariance is rank one,
+    and against the filters' diffuse start their update loses positive-definiteness in floating
+    point (NaN predictions, seen in driving columns): ``auto`` then leaves them out, and
+    ``--estimator ekf`` is refused.
+
+    >>> filterable(0.02, 0.01), filterable(0.0, 0.0), filterable(0.02, 0.0)
+    (True, True, False)
+    """
+    return (sigma_range > 0.0) == (sigma_bearing > 0.0)
 OWN_MOTION = ("gp-motion", "gp-ratio")  # extrapolations of the follower's own displacement
 AUTO = ("auto", "auto-mix")  # candidates side by side: the lowest score, or their mixture
 ESTIMATORS = ("edmd", "stay", "persist", *AUTO, *CLASSICAL, *FILTERS, *OWN_MOTION)
@@ -295,6 +308,11 @@ class RunConfig:
                              f"({self.ticks}): raise ticks or lower init_ticks")
         if self.estimator == "edmd" and self.dictionary in GPS_DICTIONARIES and not self.gps:
             raise ValueError(f"dictionary {self.dictionary!r} uses absolute positions: enable gps")
+        if self.estimator in FILTERS and not filterable(self.noise_range, self.noise_bearing):
+            raise ValueError(f"estimator {self.estimator!r} models a range/bearing sensor noisy on "
+                             "both axes or on neither: set noise_range and noise_bearing both "
+                             f"above 0 or both 0, got {self.noise_range:g} and "
+                             f"{self.noise_bearing:g}")
         if self.leader_start is not None:
             if not isinstance(self.leader_start, (tuple, list)) or len(self.leader_start) != 4:
                 raise ValueError(f"leader_start must be X,Y,VX,VY, got {_show(self.leader_start)}")

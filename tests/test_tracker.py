@@ -233,3 +233,22 @@ def test_ekf_learns_the_same_whether_or_not_it_was_asked():
         assert asked.learn(*args) == unasked.learn(*args)
         assert asked.state() == unasked.state()
     assert sum(kind == "propose" for kind, _ in log.calls) == 10
+
+
+
+@pytest.mark.parametrize("sigma_r, sigma_theta", [(0.02, 0.0), (0.0, 0.01)])
+def test_a_sensor_exact_on_one_axis_keeps_the_filter_out(sigma_r, sigma_theta):
+    """A range or a bearing declared exact (the other not) gives a rank-one reading covariance,
+    which made ekf's update indefinite and a driving column's predictions NaN (the run stopped):
+    ``--estimator ekf`` is refused, and ``auto`` runs without it, to the end, every number
+    finite."""
+    noise = dict(noise_range=sigma_r, noise_bearing=sigma_theta)
+    with pytest.raises(ValueError, match="both axes or on neither"):
+        RunConfig(estimator="ekf", **noise)
+    config = RunConfig(estimator="auto", surface="wavy", followers=3, ticks=40, seed=1,
+                       motion="drive", **noise)
+    assert "ekf" not in [c.name for c in make_auto(AgentSettings.from_config(config)).candidates]
+    summary, _ = run_local(config)
+    assert summary["complete"], summary.get("reason")
+    for follower in summary["followers"].values():
+        assert math.isfinite(follower["mean_required_range"])

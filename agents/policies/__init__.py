@@ -41,7 +41,7 @@ from agents.policies.dictionaries import (
 from agents.policies.motion import MotionGP, RatioGP
 from agents.policies.plugin import load_estimator
 from agents.policies.tracker import RodTracker
-from protocol.config import AUTO, CLASSICAL, FILTERS, OWN_MOTION, AgentSettings
+from protocol.config import AUTO, CLASSICAL, FILTERS, OWN_MOTION, AgentSettings, filterable
 from protocol.sensing import reading_variance as sensor_variance
 
 __all__ = ["ARX", "Auto", "Before", "ConstantVelocity", "EDMDPolicy", "FallbackToPersist",
@@ -142,7 +142,8 @@ def auto_candidates(settings: AgentSettings) -> list[Policy]:
     The model-based filters (``ekf``) enter only when the run declares sensor noise: they
     exist to average the readings' noise with a motion model, and with exact readings the
     model-free candidates already fit the last readings exactly (noise-free runs keep their
-    candidates, and so their numbers).
+    candidates, and so their numbers); and only for a sensor noisy on both axes
+    (:func:`protocol.config.filterable`).
     """
     tc = settings.comm_period
     return [
@@ -156,7 +157,9 @@ def auto_candidates(settings: AgentSettings) -> list[Policy]:
         EDMDPolicy(RelativeCartesian(), delays=1, affine=True, window=8),
         *(classical(name, settings) for name in CLASSICAL),
         *(own_motion(name, settings) for name in OWN_MOTION),
-        *(model_based(name, settings) for name in FILTERS if reading_variance(settings) > 0),
+        *(model_based(name, settings) for name in FILTERS
+          if reading_variance(settings) > 0 and filterable(settings.noise_range,
+                                                           settings.noise_bearing)),
     ]
 
 
