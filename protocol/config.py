@@ -289,9 +289,10 @@ class RunConfig:
                                      "period, top speed from rest in a quarter comm period",
                                      value_type=float, unit=ACCEL, low=0.0, high=math.inf,
                                      low_open=True, agents=True, needs=("motion", "drive"))
-    formation_tolerance: float = option(FORMATION_TOLERANCE, "how far a follower may settle "
-                                        "from its place in the ideal formation before the tick "
-                                        "counts as broken formation (a run with one fails)",
+    formation_tolerance: float = option(FORMATION_TOLERANCE, "how far a follower may stand "
+                                        "from its place in the ideal formation, settled in time "
+                                        "or not, before the tick counts as broken formation (a "
+                                        "run with one fails)",
                                         unit=LENGTH, low=0.0, high=math.inf, low_open=True)
 
     def __post_init__(self) -> None:
