@@ -129,7 +129,7 @@ class Sensors:
                 sensed.rod_error = self._rod_error(agent, tick, n, offset)
                 sensed.events.append(floor.range_bearing(sensed.rod_error, offset,
                                                          cfg.noise_range, cfg.noise_bearing))
-                rod = _tup(offset + sensed.rod_error)
+                rod = as_pair(offset + sensed.rod_error)
         fields: dict = {"tick": tick, "r": r, "theta": theta, "rod": rod}
         if cfg.gps:
             gps = self._gps(agent, tick, n, "gps", truth.own)
@@ -140,7 +140,7 @@ class Sensors:
         if truth.oracle is not None:
             noise = reading_noise(cfg.seed, agent, tick, n, "oracle-velocity",
                                   cfg.noise_velocity, 2)
-            fields["oracle_velocity"] = _tup(truth.oracle + noise)
+            fields["oracle_velocity"] = as_pair(truth.oracle + noise)
             sensed.events.append(floor.read(cfg.comm_period * noise,
                                             (cfg.noise_velocity * cfg.comm_period)**2 * np.eye(2)))
         if truth.heading is not None:
@@ -174,7 +174,7 @@ class Sensors:
             cfg.seed, agent, tick, n, "compass", sigma)
         tilt = np.arctan(np.asarray(self.surface.gradient(truth.own), dtype=float))
         tilt = tilt + reading_noise(cfg.seed, agent, tick, n, "slope", sigma, 2)
-        return math.atan2(math.sin(angle), math.cos(angle)), _tup(np.tan(tilt))
+        return math.atan2(math.sin(angle), math.cos(angle)), as_pair(np.tan(tilt))
 
 
 def _error(offset: np.ndarray, n_r: float, n_theta: float) -> np.ndarray:
@@ -191,5 +191,6 @@ def _polar(r: float, theta: float) -> np.ndarray:
     return np.array([r * math.cos(theta), r * math.sin(theta)])
 
 
-def _tup(v: np.ndarray | None) -> tuple[float, float] | None:
+def as_pair(v: np.ndarray | None) -> tuple[float, float] | None:
+    """The xy vector ``v`` (2,) as a message's pair of floats (None stays None)."""
     return None if v is None else (float(v[0]), float(v[1]))

@@ -36,7 +36,7 @@ from protocol.config import RunConfig
 from protocol.messages import ActResult, ActSensing, Control, Drive, Message, Move, Sensing, Snap
 from world import floor, geometry, motion
 from world.noise import gaussian, gaussian_scalar
-from world.sensing import Sensors, TickSensing, Truth
+from world.sensing import Sensors, TickSensing, Truth, as_pair
 from world.surfaces import Surface, surface_leader_start
 
 MAX_OFFSET = 1e6
@@ -720,7 +720,7 @@ class WorldSim:
             if tick >= cfg.init_ticks:
                 drive.reach_error = _dist(pos, drive.goal)
             drive.sees_rod = readings["rod"] is not None
-        return Sensing(**readings, odometry=_tup(pos - start + error))
+        return Sensing(**readings, odometry=as_pair(pos - start + error))
 
     def _settle_driven(self, agent: int, tick: int) -> bool:
         """A driving follower ends its tick where its control steps took it, keeping its own
@@ -837,7 +837,7 @@ class WorldSim:
             v = v + state.odometry_errors[last] / cfg.comm_period
         elif cfg.noise_velocity != 0:
             v = v + self._velocity_noise(agent, last)
-        return _tup(v)
+        return as_pair(v)
 
 
 def _settled_reading(state: AgentState, tick: int) -> list[float] | None:
@@ -852,10 +852,6 @@ def _drop_ticks_before(by_tick: dict, first: int) -> None:
         del by_tick[old]
 
 
-def _polar(r: float, theta: float) -> np.ndarray:
-    return np.array([r * math.cos(theta), r * math.sin(theta)])
-
-
 def _norm(v: np.ndarray) -> float:
     return math.hypot(float(v[0]), float(v[1]))
 
@@ -866,7 +862,3 @@ def _dist(a: np.ndarray, b: np.ndarray) -> float:
 
 def _finite_or_none(x: float) -> float | None:
     return x if math.isfinite(x) else None
-
-
-def _tup(v: np.ndarray | None) -> tuple[float, float] | None:
-    return None if v is None else (float(v[0]), float(v[1]))
