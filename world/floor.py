@@ -132,7 +132,8 @@ class FloorFilter:
 
     def tick(self, events: list[FloorEvent]) -> float:
         """Apply one tick's ``events`` in order; return the floor of the tick: ``|ŝ − s|`` at
-        its :data:`DECISION` (at the tick's start if it has none: it missed before it)."""
+        its :data:`DECISION` (after all of them if it has none: it missed before deciding,
+        or a driving follower skipped its pre-move sensing)."""
         decided = None
         # while w is known to be 0 (no odometered actuation noise since the interval began:
         # exact moves) a reading of s is a 2-D update, done in floats
