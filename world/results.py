@@ -73,7 +73,8 @@ class _FollowerMetrics:
         self.followed: dict[str, int] = {}
 
     def add_row(self, row: dict) -> None:
-        """Count one row (its formation health: :class:`protocol.health.ColumnHealth`)."""
+        """Count one row (its formation health is counted by
+        :class:`protocol.health.ColumnHealth`, not here)."""
         self.lost += row.get("lost") or 0
         self.missed += row.get("missed") or 0
         self.saturated += row.get("saturated_steps") or 0
