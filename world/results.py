@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 import json
 import math
 import os
@@ -171,8 +172,8 @@ class RunRecorder:
             else:
                 self._files[name].cut(resume_offsets[name])
         if resume_offsets is not None:
-            for tick in _by_tick(ticks):
-                self._count_rows(tick)
+            for _, tick in itertools.groupby(ticks, key=lambda row: row["tick"]):
+                self._count_rows(list(tick))
             for row in observations:
                 self._count_observation(row)
         write_atomic(self.out_dir / RESERVE_FILE, bytes(self.reserve_bytes()))
@@ -301,16 +302,6 @@ class RunRecorder:
             (self.out_dir / RESERVE_FILE).unlink(missing_ok=True)
         summary = self.summary(complete=complete, reason=reason, wall_time=wall_time)
         write_atomic(self.out_dir / SUMMARY_FILE, json.dumps(summary, indent=2) + "\n")
-
-
-def _by_tick(rows: list[dict]) -> list[list[dict]]:
-    """``rows`` (in tick, then agent order) grouped by tick."""
-    groups: list[list[dict]] = []
-    for row in rows:
-        if not groups or groups[-1][0]["tick"] != row["tick"]:
-            groups.append([])
-        groups[-1].append(row)
-    return groups
 
 
 def observation_row(agent: int, msg) -> dict:
