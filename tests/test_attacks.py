@@ -24,6 +24,7 @@ from protocol.record import read_observations, read_ticks
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.launch import RunCredentials, agent_commands, launch, write_briefs
 from tests.attacking import run_under_attack, same_results, wait_for_world
+from tests.waiting import ticks_done, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -129,11 +130,7 @@ def test_a_dead_follower_never_makes_its_successors_miss(tmp_path):
     procs += [subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
               for cmd in agent_commands(write_briefs(cfg, folder), endpoint, 3)]
     try:
-        deadline = time.monotonic() + 60
-        while not (out / "summary.json").exists() or \
-                json.loads((out / "summary.json").read_text())["ticks_completed"] < 4:
-            assert time.monotonic() < deadline, "the run did not reach tick 4"
-            time.sleep(0.02)
+        wait_for(lambda: ticks_done(out) >= 4, 60, "tick 4")
         procs[2].send_signal(signal.SIGKILL)  # follower 1
         procs[2].wait(timeout=10)
         procs[0].wait(timeout=120)

@@ -25,20 +25,13 @@ from protocol.record import read_ticks
 from protocol.session import free_tcp_endpoint
 from swarm.launch import agent_commands, write_briefs
 from swarm.local import run_local
-from tests.waiting import children, wait_for
+from tests.waiting import children, ticks_done, wait_for
 from world.results import run_failure
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = int(os.environ.get("FAULT_SEED", str(int(time.time()) % 100_000)))
 LEASE_S = 10.0  # Zenoh's default lease: a pause longer than this cuts the session
 REJOINED = "its session to the world was cut and is back"
-
-
-def _ticks_done(out: Path) -> int:
-    try:
-        return json.loads((out / "summary.json").read_text())["ticks_completed"]
-    except (OSError, ValueError, KeyError):
-        return 0
 
 
 def _pid(swarm: subprocess.Popen, agent: int | None) -> int:
@@ -88,7 +81,7 @@ def runs():
 def _pause(run: SwarmRun, agent: int | None, after: int, seconds: float) -> None:
     """SIGSTOP follower ``agent`` (the world: None) once the run has recorded ``after`` ticks,
     SIGCONT it ``seconds`` later."""
-    wait_for(lambda: _ticks_done(run.out) >= after, 120, f"tick {after}")
+    wait_for(lambda: ticks_done(run.out) >= after, 120, f"tick {after}")
     pid = _pid(run.proc, agent)
     os.kill(pid, signal.SIGSTOP)
     try:
@@ -165,7 +158,7 @@ def test_a_killed_follower_is_recorded_and_a_realtime_run_goes_on(tmp_path, runs
     kill_after = random.Random(f"{SEED}-kill").randrange(5, 20)
     print(f"FAULT_SEED={SEED}: follower 1 killed after tick {kill_after}")
     run = runs(tmp_path / "run", "--mode", "realtime", "--time-scale", "0.2", "--ticks", "60")
-    wait_for(lambda: _ticks_done(run.out) >= kill_after, 120, f"tick {kill_after}")
+    wait_for(lambda: ticks_done(run.out) >= kill_after, 120, f"tick {kill_after}")
     os.kill(_pid(run.proc, 1), signal.SIGKILL)
     code, err = run.finish(timeout=300)
     _assert_formation_broke(run.out, code, err)  # the run went on, and says the column broke
@@ -225,7 +218,7 @@ def test_a_stalled_follower_is_no_success_in_realtime(tmp_path, runs, launcher):
         procs = _hand_started(tmp_path, RunConfig(run_id="stalled", **flags))
         out, proc, pid = tmp_path / "out", procs[0], lambda: procs[2].pid  # world, leader, 1
     try:
-        wait_for(lambda: _ticks_done(out) >= after, 60, f"tick {after}")
+        wait_for(lambda: ticks_done(out) >= after, 60, f"tick {after}")
         os.kill(pid(), signal.SIGSTOP)
         try:
             time.sleep(seconds)
