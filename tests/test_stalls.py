@@ -20,11 +20,10 @@ from pathlib import Path
 
 import pytest
 
-from protocol.config import RunConfig, dump_config, load_config
+from protocol.config import RunConfig, load_config
 from protocol.record import read_ticks
-from protocol.session import free_tcp_endpoint
-from swarm.launch import agent_commands, write_briefs
 from swarm.local import run_local
+from tests.deployment import hand_started
 from tests.waiting import children, ticks_done, wait_for
 from world.results import run_failure
 
@@ -184,21 +183,6 @@ def _assert_formation_broke(out: Path, code: int, err: str) -> dict:
     return summary
 
 
-def _hand_started(folder: Path, config: RunConfig) -> list[subprocess.Popen]:
-    """A world started by hand (``python -m world`` on a free loopback port) and its agents
-    (leader first), as a deployment starts them."""
-    dump_config(config, folder / "config.toml")
-    endpoint = free_tcp_endpoint()
-    world = subprocess.Popen([sys.executable, "-m", "world", "--config",
-                              str(folder / "config.toml"), "--listen", endpoint, "--out",
-                              str(folder / "out")], cwd=ROOT, stdout=subprocess.DEVNULL,
-                             stderr=subprocess.PIPE, text=True)
-    return [world] + [subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL,
-                                       stderr=subprocess.DEVNULL)
-                      for cmd in agent_commands(write_briefs(config, folder), endpoint,
-                                                config.followers)]
-
-
 @pytest.mark.parametrize("launcher", ["swarm run", "python -m world"])
 def test_a_stalled_follower_is_no_success_in_realtime(tmp_path, runs, launcher):
     """Design §7: follower 1 stopped (SIGSTOP, shorter than Zenoh's lease) misses ticks while
@@ -215,7 +199,7 @@ def test_a_stalled_follower_is_no_success_in_realtime(tmp_path, runs, launcher):
                                        if k != "followers"])
         out, proc, pid = run.out, run.proc, lambda: _pid(run.proc, 1)
     else:
-        procs = _hand_started(tmp_path, RunConfig(run_id="stalled", **flags))
+        procs = hand_started(tmp_path, RunConfig(run_id="stalled", **flags))
         out, proc, pid = tmp_path / "out", procs[0], lambda: procs[2].pid  # world, leader, 1
     try:
         wait_for(lambda: ticks_done(out) >= after, 60, f"tick {after}")
