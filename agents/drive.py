@@ -574,10 +574,10 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
         return track.heading(pre.compass, point - landed, point - leader.estimate()[0],
                              previous).heading
 
-    wanted = heading_at(target)
     moved, travelled = pre, np.zeros(2)
     reserve = settings.control_steps + settings.snap_steps // 2  # the move phase's end
     for step in range(settings.tick_steps):
+        wanted = heading_at(target)
         v, omega, turn = step_command(position, filtered.heading, slope, target, wanted,
                                       spread, speed, step, limits,
                                       reserve if step < settings.control_steps else None)
@@ -595,7 +595,6 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
                 rod.add(position, np.asarray(reply.rod))
                 leader.add(position, relative(reply))
             target, spread = rod.estimate()
-        wanted = heading_at(target)
     if moved.rod is None or not rod.points:
         return Driven(moved, travelled)
     best, sigma = rod.estimate()

@@ -135,7 +135,6 @@ class AgentLink:
         self._joined_at = 0  # the value of _cuts when this agent last joined
         self._epoch = 0  # the world's number of that join, which its requests carry
         self._declared = []
-        self._watching = False  # the world-liveliness subscriber is declared
         if token_live(session, keys.alive(run_id, agent_id)):
             raise AgentAbort(f"agent id {agent_id} is already live in run {run_id}: "
                              "refusing to start")
@@ -152,7 +151,6 @@ class AgentLink:
         self._declared.append(session.liveliness().declare_subscriber(
             keys.alive(run_id, "world"),
             zenoh.handlers.Callback(self._on_world_liveliness, self._on_closed), history=True))
-        self._watching = True  # its drop callback (_on_closed) is due when it goes
         self._sense_key = keys.sense(run_id, agent_id)
         self._act_key = keys.act(run_id, agent_id)
         # BLOCK: a rod or observation is never dropped when a link is congested (a peer may
@@ -176,8 +174,7 @@ class AgentLink:
         bounded (:data:`RELEASE_S`); past it a warning says so."""
         undeclare_all(self._declared)
         with self._cond:
-            released = self._cond.wait_for(lambda: self._closed or not self._watching,
-                                           RELEASE_S)
+            released = self._cond.wait_for(lambda: self._closed, RELEASE_S)
         if not released:
             log.warning("agent %d: Zenoh did not release its callbacks within %g s",
                         self.agent_id, RELEASE_S)

@@ -18,8 +18,10 @@ from pathlib import Path
 import yaml
 import zenoh
 
-from protocol.session import free_port, zenoh_config
+from protocol.config import RunConfig, dump_config
+from protocol.session import free_port, free_tcp_endpoint, zenoh_config
 from swarm.cli import main as swarm_main
+from swarm.launch import agent_commands, write_briefs
 from tests import waiting
 
 ROUTER_IN_COMPOSE = "tls/zenoh:7447"
@@ -204,3 +206,19 @@ def replies(session: zenoh.Session, key: str, timeout: float = 1.0) -> list[tupl
                           consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout)
     return [(True, r.ok.payload.to_bytes()) if r.ok is not None
             else (False, r.err.payload.to_bytes()) for r in answers]
+
+
+def hand_started(folder: Path, config: RunConfig) -> list[subprocess.Popen]:
+    """A world started by hand (``python -m world`` on a free loopback port) and its agents
+    (leader first), as a deployment starts them: its results go to ``folder / "out"``; the
+    world's stderr is piped (text), the rest discarded. The caller ends them."""
+    dump_config(config, folder / "config.toml")
+    endpoint = free_tcp_endpoint()
+    world = subprocess.Popen([sys.executable, "-m", "world", "--config",
+                              str(folder / "config.toml"), "--listen", endpoint, "--out",
+                              str(folder / "out")], cwd=waiting.ROOT,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    return [world] + [subprocess.Popen(cmd, cwd=waiting.ROOT, stdout=subprocess.DEVNULL,
+                                       stderr=subprocess.DEVNULL)
+                      for cmd in agent_commands(write_briefs(config, folder), endpoint,
+                                                config.followers)]

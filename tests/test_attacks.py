@@ -22,8 +22,10 @@ from protocol.config import RunConfig, dump_config
 from protocol.messages import Observation, Rod, encode
 from protocol.record import read_observations, read_ticks
 from protocol.session import free_tcp_endpoint, zenoh_config
-from swarm.launch import RunCredentials, agent_commands, launch, write_briefs
+from swarm.launch import RunCredentials, launch
 from tests.attacking import run_under_attack, same_results, wait_for_world
+from tests.deployment import hand_started
+from tests.waiting import ticks_done, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -119,21 +121,10 @@ def test_a_dead_follower_never_makes_its_successors_miss(tmp_path):
     folder.mkdir()
     cfg = RunConfig(run_id="cascade", followers=3, ticks=30, mode="realtime", time_scale=0.08,
                     agent_timeout=2.0, start_timeout=30.0)
-    dump_config(cfg, folder / "config.toml")
-    endpoint = free_tcp_endpoint()
     out = folder / "out"
-    procs = [subprocess.Popen([sys.executable, "-m", "world", "--config",
-                               str(folder / "config.toml"), "--listen", endpoint,
-                               "--out", str(out)],
-                              cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)]
-    procs += [subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-              for cmd in agent_commands(write_briefs(cfg, folder), endpoint, 3)]
+    procs = hand_started(folder, cfg)
     try:
-        deadline = time.monotonic() + 60
-        while not (out / "summary.json").exists() or \
-                json.loads((out / "summary.json").read_text())["ticks_completed"] < 4:
-            assert time.monotonic() < deadline, "the run did not reach tick 4"
-            time.sleep(0.02)
+        wait_for(lambda: ticks_done(out) >= 4, 60, "tick 4")
         procs[2].send_signal(signal.SIGKILL)  # follower 1
         procs[2].wait(timeout=10)
         procs[0].wait(timeout=120)

@@ -24,6 +24,7 @@ from protocol.messages import Control, Move, Snap
 from protocol.record import read_controls, read_ticks
 from swarm.cli import main as swarm_main
 from swarm.local import LocalLink, run_local
+from tests.driving import drive_world
 from tests.make_dem_data import HILLS, HILLS_LEADER_START
 from world import geometry, motion
 from world.main import resolve_with_surface
@@ -174,16 +175,8 @@ def test_the_heading_filter_averages_the_compass():
 # --- the protocol at the world -----------------------------------------------------------------
 
 
-def _drive_world(**options) -> tuple[WorldSim, RunConfig]:
-    config, surface = resolve_with_surface(RunConfig(motion="drive", **options))
-    sim = WorldSim(config, surface)
-    sim.start_tick(0)
-    sim.drive(0, 0, 0.0)
-    return sim, config
-
-
 def test_control_steps_are_validated():
-    sim, config = _drive_world()
+    sim, config = drive_world()
     with pytest.raises(RequestError, match="goal is given with the first"):
         sim.act(1, Control(tick=0, step=0, speed=0.0, turn=0.0))
     with pytest.raises(RequestError, match="out of order"):

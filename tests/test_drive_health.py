@@ -13,8 +13,8 @@ from protocol.config import AgentSettings, RunConfig, estimator_options
 from protocol.messages import Control, Sensing, Snap
 from swarm.cli import main as swarm_main
 from swarm.local import run_local
+from tests.driving import drive_world
 from world.main import resolve_with_surface
-from world.sim import WorldSim
 
 
 def _worst(rows: list[dict]) -> dict[int, float]:
@@ -85,18 +85,10 @@ def test_a_ticks_steps_fill_its_comm_period():
         RunConfig(motion="drive").step_duration(12)
 
 
-def _world(**options) -> tuple[WorldSim, RunConfig]:
-    config, surface = resolve_with_surface(RunConfig(motion="drive", surface="wavy", **options))
-    sim = WorldSim(config, surface)
-    sim.start_tick(0)
-    sim.drive(0, 0, 0.0)
-    return sim, config
-
-
 def test_executed_speed_and_turn_never_exceed_their_limits():
     """Full-limit commands with large actuation noise: what the world drives is clipped to the
     limits, and every such step counts as saturated."""
-    sim, config = _world(noise_speed=0.5, noise_turn=0.5, max_accel=1e6)
+    sim, config = drive_world(surface="wavy", noise_speed=0.5, noise_turn=0.5, max_accel=1e6)
     for step in range(config.tick_steps):
         speed = config.max_speed if step < config.tick_steps - 1 else 0.0
         sim.act(1, Control(tick=0, step=step, speed=speed, turn=config.max_turn,
@@ -111,7 +103,7 @@ def test_executed_speed_and_turn_never_exceed_their_limits():
 def test_a_robot_cannot_reverse_in_one_step():
     """The acceleration limit: from rest the speed grows by at most ``a δ`` a step, a full
     reversal takes several steps, and the robot is at rest when the tick settles."""
-    sim, config = _world()
+    sim, config = drive_world(surface="wavy")
     accel = config.accel_limit
     assert accel == pytest.approx(4 * config.max_speed / config.comm_period)
     commands = [config.max_speed] * 4 + [-config.max_speed] * (config.tick_steps - 4)
@@ -132,7 +124,7 @@ def test_the_odometrys_declared_variance_is_the_one_drawn():
     ``noise_velocity`` per coordinate: the declared one (it was 1.48x in variance)."""
     sigma, errors = 0.05, []
     for seed in range(300):
-        sim, config = _world(noise_velocity=sigma, seed=seed)
+        sim, config = drive_world(surface="wavy", noise_velocity=sigma, seed=seed)
         for step in range(config.tick_steps):
             sim.act(1, Control(tick=0, step=step, speed=0.0, turn=0.0,
                                goal=(0.0, 0.0) if step == 0 else None))

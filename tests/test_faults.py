@@ -18,7 +18,7 @@ from protocol.record import read_ticks
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.launch import agent_commands, launch, write_briefs
 from swarm.local import run_local
-from tests.waiting import Procs, children, running, signalled, wait_for
+from tests.waiting import Procs, children, running, signalled, ticks_done, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -33,13 +33,6 @@ def procs():
 def _world_cmd(config: Path, endpoint: str, out: Path, *extra: str) -> list[str]:
     return [sys.executable, "-m", "world", "--config", str(config), "--listen", endpoint,
             "--out", str(out), *extra]
-
-
-def _ticks_done(out: Path) -> int:
-    try:
-        return json.loads((out / "summary.json").read_text())["ticks_completed"]
-    except (OSError, ValueError, KeyError):
-        return 0
 
 
 def test_realtime_without_pressure_matches_lockstep(tmp_path):
@@ -106,7 +99,7 @@ def test_agents_exit_when_the_world_vanishes_and_resume_continues(tmp_path, proc
     world = procs.start(_world_cmd(out / "config.toml", endpoint, out))
     briefs = write_briefs(cfg, out)  # and the followers' state beside them, in out/state
     agents = [procs.start(cmd) for cmd in agent_commands(briefs, endpoint, 2)]
-    wait_for(lambda: _ticks_done(out) >= 10, 60, "tick 10")
+    wait_for(lambda: ticks_done(out) >= 10, 60, "tick 10")
     world.send_signal(signal.SIGKILL)
     assert world.wait(timeout=10) == -signal.SIGKILL
     for proc in agents:
@@ -144,7 +137,7 @@ def test_ctrl_c_stops_everything_and_leaves_a_partial_result(tmp_path, stop):
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "TMPDIR": str(scratch)})
     try:
-        wait_for(lambda: _ticks_done(out) >= 2, 60, "two ticks")
+        wait_for(lambda: ticks_done(out) >= 2, 60, "two ticks")
         agents = children(proc.pid)
         assert len(agents) == 3
         assert len(_credentials(scratch)) == 1

@@ -64,8 +64,8 @@ class _Noting(AgentLink):
     released = False
 
     def _on_closed(self) -> None:
+        self.released = True  # before close's wait can end (it ends on what super() sets)
         super()._on_closed()
-        self.released = True
 
 
 @pytest.mark.parametrize("session_closed", [False, True], ids=["undeclared", "session-closed"])

@@ -20,25 +20,17 @@ from pathlib import Path
 
 import pytest
 
-from protocol.config import RunConfig, dump_config, load_config
+from protocol.config import RunConfig, load_config
 from protocol.record import read_ticks
-from protocol.session import free_tcp_endpoint
-from swarm.launch import agent_commands, write_briefs
 from swarm.local import run_local
-from tests.waiting import children, wait_for
+from tests.deployment import hand_started
+from tests.waiting import children, ticks_done, wait_for
 from world.results import run_failure
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = int(os.environ.get("FAULT_SEED", str(int(time.time()) % 100_000)))
 LEASE_S = 10.0  # Zenoh's default lease: a pause longer than this cuts the session
 REJOINED = "its session to the world was cut and is back"
-
-
-def _ticks_done(out: Path) -> int:
-    try:
-        return json.loads((out / "summary.json").read_text())["ticks_completed"]
-    except (OSError, ValueError, KeyError):
-        return 0
 
 
 def _pid(swarm: subprocess.Popen, agent: int | None) -> int:
@@ -88,7 +80,7 @@ def runs():
 def _pause(run: SwarmRun, agent: int | None, after: int, seconds: float) -> None:
     """SIGSTOP follower ``agent`` (the world: None) once the run has recorded ``after`` ticks,
     SIGCONT it ``seconds`` later."""
-    wait_for(lambda: _ticks_done(run.out) >= after, 120, f"tick {after}")
+    wait_for(lambda: ticks_done(run.out) >= after, 120, f"tick {after}")
     pid = _pid(run.proc, agent)
     os.kill(pid, signal.SIGSTOP)
     try:
@@ -165,7 +157,7 @@ def test_a_killed_follower_is_recorded_and_a_realtime_run_goes_on(tmp_path, runs
     kill_after = random.Random(f"{SEED}-kill").randrange(5, 20)
     print(f"FAULT_SEED={SEED}: follower 1 killed after tick {kill_after}")
     run = runs(tmp_path / "run", "--mode", "realtime", "--time-scale", "0.2", "--ticks", "60")
-    wait_for(lambda: _ticks_done(run.out) >= kill_after, 120, f"tick {kill_after}")
+    wait_for(lambda: ticks_done(run.out) >= kill_after, 120, f"tick {kill_after}")
     os.kill(_pid(run.proc, 1), signal.SIGKILL)
     code, err = run.finish(timeout=300)
     _assert_formation_broke(run.out, code, err)  # the run went on, and says the column broke
@@ -191,21 +183,6 @@ def _assert_formation_broke(out: Path, code: int, err: str) -> dict:
     return summary
 
 
-def _hand_started(folder: Path, config: RunConfig) -> list[subprocess.Popen]:
-    """A world started by hand (``python -m world`` on a free loopback port) and its agents
-    (leader first), as a deployment starts them."""
-    dump_config(config, folder / "config.toml")
-    endpoint = free_tcp_endpoint()
-    world = subprocess.Popen([sys.executable, "-m", "world", "--config",
-                              str(folder / "config.toml"), "--listen", endpoint, "--out",
-                              str(folder / "out")], cwd=ROOT, stdout=subprocess.DEVNULL,
-                             stderr=subprocess.PIPE, text=True)
-    return [world] + [subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL,
-                                       stderr=subprocess.DEVNULL)
-                      for cmd in agent_commands(write_briefs(config, folder), endpoint,
-                                                config.followers)]
-
-
 @pytest.mark.parametrize("launcher", ["swarm run", "python -m world"])
 def test_a_stalled_follower_is_no_success_in_realtime(tmp_path, runs, launcher):
     """Design §7: follower 1 stopped (SIGSTOP, shorter than Zenoh's lease) misses ticks while
@@ -222,10 +199,10 @@ def test_a_stalled_follower_is_no_success_in_realtime(tmp_path, runs, launcher):
                                        if k != "followers"])
         out, proc, pid = run.out, run.proc, lambda: _pid(run.proc, 1)
     else:
-        procs = _hand_started(tmp_path, RunConfig(run_id="stalled", **flags))
+        procs = hand_started(tmp_path, RunConfig(run_id="stalled", **flags))
         out, proc, pid = tmp_path / "out", procs[0], lambda: procs[2].pid  # world, leader, 1
     try:
-        wait_for(lambda: _ticks_done(out) >= after, 60, f"tick {after}")
+        wait_for(lambda: ticks_done(out) >= after, 60, f"tick {after}")
         os.kill(pid(), signal.SIGSTOP)
         try:
             time.sleep(seconds)

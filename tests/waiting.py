@@ -3,6 +3,7 @@ something to happen polls with a deadline, so a test that waits for what never c
 instead of hanging."""
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import time
@@ -27,6 +28,15 @@ def wait_for(condition: Callable[[], object], timeout: float, what: str) -> None
     """:func:`until`, failing the test (naming ``what``) when ``timeout`` passes first."""
     if not until(condition, timeout):
         raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def ticks_done(out: Path) -> int:
+    """The ticks the summary in results folder ``out`` says are complete (0 while it is
+    missing or being written)."""
+    try:
+        return json.loads((out / "summary.json").read_text())["ticks_completed"]
+    except (OSError, ValueError, KeyError):
+        return 0
 
 
 def stat_fields(pid: int) -> list[str] | None:

@@ -232,7 +232,8 @@ class RodTracker(LearnsTick):
 
     def _advanced(self):
         """The filters at the start of the coming tick, before its readings (remembered until
-        the state changes: ``auto`` asks for two proposals a tick before the policy learns)."""
+        the state changes: the tick's proposals, one per reading asked about, and its
+        learning all start from it)."""
         if self._ahead is None:
             self._ahead = self._start() if self.mean is None else self._advance(self.mean,
                                                                                   self.cov)
@@ -240,9 +241,10 @@ class RodTracker(LearnsTick):
 
     def _before_move(self, pre: Sensing):
         """The filters at this tick after its ``pre`` reading, and that reading's evidence
-        (members,), remembered for the last ``pre`` until the state changes: ``auto`` asks
-        for two proposals a tick from the same reading before the policy learns it, and
-        learning starts from it again. Read-only: copy before changing them."""
+        (members,), remembered for the last ``pre`` until the state changes: learning
+        starts again from the reading the tick's proposal was made from (``auto`` keeps the
+        proposals it made, :meth:`Auto._asked_for`, so it does not ask twice from one
+        reading). Read-only: copy before changing them."""
         if self._pre is None or self._pre[0] != pre:
             kept, self._evidence = self._evidence, np.zeros(self.members)
             mean, cov = self._advanced()
