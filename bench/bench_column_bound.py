@@ -35,12 +35,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents.policies import Policy, make_policy, relative  # noqa: E402
 from protocol.config import RunConfig  # noqa: E402
+from swarm.drive_study import NOISE_LEVELS  # noqa: E402
 from swarm.local import run_local  # noqa: E402
 from world import ideal_formation  # noqa: E402
 from world.surfaces import make_surface  # noqa: E402
 
-FOLLOWERS, SEEDS, LEVEL, LAGS = 10, (0, 1, 2), (0.02, 0.01), (1, 2, 3)
-TICKS, SPACING, COMM_PERIOD = 40, 3.57, 1.28  # the paper's defaults (RunConfig's)
+FOLLOWERS, SEEDS, LEVEL, LAGS = 10, (0, 1, 2), NOISE_LEVELS["mid"], (1, 2, 3)
+_DEFAULTS = RunConfig()  # the paper's ticks, spacing and comm period, as the runs use them
+TICKS, SPACING, COMM_PERIOD = _DEFAULTS.ticks, _DEFAULTS.spacing, _DEFAULTS.comm_period
 
 
 class Recorded(Policy):

@@ -42,13 +42,12 @@ def _run(job: tuple) -> tuple[tuple, dict]:
     config = RunConfig(run_id="health", surface=surface, followers=followers, ticks=ticks,
                        seed=seed, noise_range=sigma_r, noise_bearing=sigma_t,
                        **estimator_options(estimator), **extra)
-    summary, rows = run_local(config)
-    errors: dict[int, list[float]] = {}
-    for row in rows:
-        if row["agent"] > 0 and row.get("formation_error") is not None:
-            errors.setdefault(row["agent"], []).append(row["formation_error"])
-    means = [sum(errors[k]) / len(errors[k]) for k in sorted(errors)]
-    worst = max(max(e) for e in errors.values())
+    summary, _ = run_local(config)
+    # each follower's mean and worst as the world counted them (protocol.health), follower 1 first
+    followers = [f for k in sorted(summary["followers"], key=int)
+                 if (f := summary["followers"][k])["worst_formation_error"] is not None]
+    means = [f["mean_formation_error"] for f in followers]
+    worst = max(f["worst_formation_error"] for f in followers)
     return job, {"first": means[0], "last": means[-1], "worst": worst,
                  "broken": worst > BROKEN, "complete": bool(summary["complete"])}
 

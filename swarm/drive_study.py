@@ -115,11 +115,10 @@ def _leader_speed(options: dict) -> float:
     return leader_speed(config, surface)
 
 
-def _base_drive(spec: DriveStudySpec, max_speed: float) -> dict:
-    """The default robot's drive options (``spec.base_steps`` control steps, half as many
-    correction steps) at the top speed ``max_speed``."""
-    return {"control_steps": spec.base_steps, "snap_steps": max(1, spec.base_steps // 2),
-            "max_speed": max_speed}
+def _drive(steps: int, max_speed: float) -> dict:
+    """A driving robot's options: ``steps`` control steps, half as many correction steps, at
+    the top speed ``max_speed`` (the default robot has ``spec.base_steps``)."""
+    return {"control_steps": steps, "snap_steps": max(1, steps // 2), "max_speed": max_speed}
 
 
 def study_runs(spec: DriveStudySpec) -> list[StudyRun]:
@@ -129,11 +128,9 @@ def study_runs(spec: DriveStudySpec) -> list[StudyRun]:
         options, duration = _surface_options(surface, spec)
         speed = _leader_speed(options)
         cases = [("teleport", period, {}) for period in spec.comm_periods]
-        cases += [("steps", spec.base_period,
-                   {"control_steps": steps, "snap_steps": max(1, steps // 2),
-                    "max_speed": spec.base_factor * speed})
+        cases += [("steps", spec.base_period, _drive(steps, spec.base_factor * speed))
                   for steps in spec.control_steps]
-        cases += [("speed", period, _base_drive(spec, factor * speed))
+        cases += [("speed", period, _drive(spec.base_steps, factor * speed))
                   for period in spec.comm_periods for factor in spec.speed_factors]
         for label in spec.estimators:
             for block, period, drive in cases:
@@ -149,7 +146,7 @@ def study_runs(spec: DriveStudySpec) -> list[StudyRun]:
                 sigma_r, sigma_t = NOISE_LEVELS[level]
                 for n in spec.noise_followers:
                     for motion in ("drive", "teleport"):
-                        drive = (_base_drive(spec, spec.base_factor * speed)
+                        drive = (_drive(spec.base_steps, spec.base_factor * speed)
                                  if motion == "drive" else {})
                         config = RunConfig(
                             run_id="drive-study", followers=n, motion=motion,
