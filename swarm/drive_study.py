@@ -169,6 +169,8 @@ def _simulate(config: RunConfig) -> dict:
 
 def _row(run: StudyRun, summary: dict) -> dict:
     """The table row of ``run``, whose run gave ``summary``."""
+    from world.results import broken_ticks  # the world's one count (imported with a run)
+
     followers = [summary["followers"][str(k)] for k in range(1, run.config.followers + 1)]
 
     def mean(key: str) -> float:
@@ -197,7 +199,7 @@ def _row(run: StudyRun, summary: dict) -> dict:
                                      for f in followers),
         "worst_formation_error": max((f.get("worst_formation_error") or 0.0)
                                      for f in followers),
-        "broken_ticks": sum(f.get("broken_ticks", 0) for f in followers),
+        "broken_ticks": broken_ticks(summary),
     }
 
 
