@@ -11,6 +11,8 @@ The rule (design §7): a follower's formation error is measured on its true pose
 whether or not it settled in time: a follower that missed a tick stands where it stood while
 the formation moves on, and the world sees it out of formation. Every tick with a formation
 error counts towards the mean and the worst, and is broken if the error exceeds the tolerance.
+A tick without one (its ideal place has left the surface's domain, so the world cannot say
+the follower kept it) is broken too: it cannot count as kept formation.
 """
 from __future__ import annotations
 
@@ -70,7 +72,7 @@ class FormationHealth:
     >>> for error in (0.25, 1.5, None, 0.5):
     ...     h.add(error)
     >>> h.values()
-    {'mean_formation_error': 0.75, 'worst_formation_error': 1.5, 'broken_ticks': 1}
+    {'mean_formation_error': 0.75, 'worst_formation_error': 1.5, 'broken_ticks': 2}
     """
 
     def __init__(self, tolerance: float) -> None:
@@ -83,8 +85,10 @@ class FormationHealth:
         self.broken = 0
 
     def add(self, error: float | None) -> None:
-        """Count one tick's formation error (None: it has none, e.g. a non-finite pose)."""
+        """Count one tick's formation error (None: the world could not measure it, its ideal
+        place being off the surface's domain; not in the mean or the worst, but broken)."""
         if error is None:
+            self.broken += 1
             return
         self.total.add(error)
         self.worst = error if self.worst is None else max(self.worst, error)

@@ -3,6 +3,7 @@ met the end (the leader leaving a DEM, a follower's rod leaving it), the same ti
 numbers whatever the layout, the pipelining or the repeat."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from pathlib import Path
@@ -131,3 +132,24 @@ def test_the_readme_dem_example_completes(tmp_path, capsys):
     summary = json.loads((tmp_path / "dem" / "summary.json").read_text())
     assert summary["complete"] and summary["ticks_completed"] == 30
 
+
+
+def test_a_tick_whose_ideal_place_is_off_the_surface_is_broken(tmp_path):
+    """Noisy enough that the ideal column's rod leaves the DEM a tick before the actual one:
+    at that tick the world has no formation error to give (the cell is empty), and the tick
+    counts as broken, never as kept formation (design §7); the mean and the worst are those of
+    the measured ticks."""
+    config = dataclasses.replace(_config("rod-leaves", pipelined=False), seed=1,
+                                 noise_range=0.1, noise_bearing=0.05, noise_move=0.05)
+    summary, rows = run_local(config, tmp_path)
+    unmeasured = [r for r in rows if r["agent"] > 0 and r["formation_error"] is None]
+    assert unmeasured, "the case no longer has a tick whose ideal place is off the DEM"
+    assert summary["formation_broken"]
+    for k in (1, 2):
+        mine = [r["formation_error"] for r in rows if r["agent"] == k]
+        measured = [e for e in mine if e is not None]
+        health = summary["followers"][str(k)]
+        assert health["broken_ticks"] == sum(e is None or e > config.formation_tolerance
+                                             for e in mine)
+        assert health["worst_formation_error"] == max(measured)
+        assert health["mean_formation_error"] == pytest.approx(sum(measured) / len(measured))

@@ -42,7 +42,8 @@ RESERVE_FILE = ".summary.reserve"
 
 def broken_ticks(summary: dict) -> int:
     """The follower-ticks of the run ``summary`` describes that stood beyond the formation
-    tolerance, over every follower (missed ticks included: design §7)."""
+    tolerance, over every follower (missed ticks included, and ticks whose ideal place was off
+    the surface's domain: design §7)."""
     return sum(s.get("broken_ticks", 0) for s in summary["followers"].values())
 
 

@@ -276,8 +276,8 @@ class RosScene:
         as ``repr`` of the number (a float64 round trip; empty for none), with the tolerance
         and whether it missed the tick. Level ``ERROR`` while it stands beyond the tolerance,
         ``WARN`` once back within it after a broken tick (the run's verdict is failed
-        already), ``OK`` while no tick broke, ``STALE`` at a tick without a formation error
-        (a pose the surface refuses)."""
+        already), ``OK`` while no tick broke; ``ERROR`` too at a tick without a formation
+        error (its ideal place is off the surface's domain), which counts as broken."""
         T = self.types
         Status, KeyValue = T["diagnostic_msgs/msg/DiagnosticStatus"], T[
             "diagnostic_msgs/msg/KeyValue"]
@@ -290,7 +290,8 @@ class RosScene:
                                  "count the tick with protocol.health.ColumnHealth.add_tick")
             error, broken = row.get("formation_error"), row["broken_ticks"]
             if error is None:
-                level, message = Status.STALE, "no formation error at this tick"
+                level, message = Status.ERROR, ("its ideal place is off the surface's domain: "
+                                                "not in formation")
             elif error > tolerance:
                 level = Status.ERROR
                 message = f"{error:.3g} m from its place, beyond {tolerance:g} m"
