@@ -21,7 +21,6 @@ file and the reason (:class:`StateLogError`).
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import os
 from dataclasses import dataclass
@@ -30,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from agents.policies.base import Before
-from protocol.config import checked_json, json_checksum
+from protocol.config import checked_line, checked_lines
 from protocol.folder import AppendFile, write_atomic
 from protocol.messages import ProtocolError, Sensing, from_body, to_body
 
@@ -70,10 +69,6 @@ def state_path(state_dir: str | os.PathLike[str], agent: int) -> Path:
 
 
 
-def _line(body: dict) -> str:
-    return json.dumps({**body, "sum": json_checksum(body)}, allow_nan=False) + "\n"
-
-
 class StateLog:
     """The replay log of follower ``agent`` in run ``run_id``, start ``start``.
 
@@ -104,20 +99,12 @@ class StateLog:
                           "start this follower afresh, losing its history)")
 
     def _parse(self, raw: bytes) -> list[Entry]:
-        lines = raw.split(b"\n")
-        if lines[-1]:  # a torn last append: that tick was never reported, forget it
-            lines = lines[:-1]
-        lines = lines[:-1] if lines and lines[-1] == b"" else lines
-        if not lines:
+        try:  # a torn last append: that tick was never reported, forget it
+            bodies = checked_lines(raw, MAX_LINE)
+        except ValueError as exc:
+            raise self._refuse(str(exc)) from None
+        if not bodies:
             raise self._refuse("it is empty (no header)")
-        bodies = []
-        for number, line in enumerate(lines, start=1):
-            if len(line) > MAX_LINE:
-                raise self._refuse(f"line {number} is longer than {MAX_LINE} bytes")
-            try:
-                bodies.append(checked_json(line, "sum"))
-            except ValueError as exc:
-                raise self._refuse(f"line {number} {exc}") from None
         header = bodies[0]
         for key in ("schema", "run_id", "agent", "start"):
             if header.get(key) != self.header[key]:
@@ -141,13 +128,14 @@ class StateLog:
         a failed write is cut back to the previous line before the error is raised."""
         log = AppendFile(self.path)
         try:
-            log.append(_line(entry.body()).encode("utf-8"))
+            log.append(checked_line(entry.body()).encode("utf-8"))
         finally:
             log.close()
 
     def rewrite(self, entries: list[Entry]) -> None:
         """Replace the file atomically with the header and ``entries`` (a rollback)."""
-        write_atomic(self.path, _line(self.header) + "".join(_line(e.body()) for e in entries))
+        write_atomic(self.path, checked_line(self.header)
+                     + "".join(checked_line(e.body()) for e in entries))
 
     def remove(self) -> None:
         """Delete the log (its run is complete), and its folder if that leaves it empty: the
@@ -190,10 +178,17 @@ def _entry(body: dict) -> Entry:
 
 
 def replay(policy, entries: list[Entry]) -> None:
-    """Feed ``entries`` to a fresh ``policy``: it ends in the state it had after the last one."""
+    """Feed ``entries`` to a fresh ``policy``: it ends in the state it had after the last one.
+
+    Every tick that passed without the follower settling — the ``skips`` before an entry, and
+    the entry's own tick when it missed it (``settled`` None) — is bridged by ``policy.skip()``,
+    as the follower's loop did live (:func:`agents.follower.run_follower`): the leader moved on
+    in it, so the next reading is two ticks after the last one learnt from, not one."""
     for entry in entries:
         for _ in range(entry.skips):
             policy.skip()
-        if entry.settled is not None:
+        if entry.settled is None:
+            policy.skip()
+        else:
             target = None if entry.target is None else np.asarray(entry.target, dtype=float)
             policy.learn(entry.settled, target, entry.before)

@@ -772,6 +772,31 @@ def checked_json(text: str | bytes, key: str) -> dict:
     return body
 
 
+def checked_line(body: dict, key: str = "sum") -> str:
+    """One line of a state log: ``body`` with its :func:`json_checksum` under ``key``, and a
+    newline (what :func:`checked_lines` reads back)."""
+    return json.dumps({**body, key: json_checksum(body)}, allow_nan=False) + "\n"
+
+
+def checked_lines(raw: bytes, max_line: int, key: str = "sum") -> list[dict]:
+    """The maps of a state log's lines (:func:`checked_line`), in order. A torn last line (an
+    append cut by a crash: no final newline) is dropped — whatever it recorded was never
+    answered or reported to anyone; any other defect is a ValueError starting ``line N``."""
+    lines = raw.split(b"\n")
+    if lines[-1]:  # a torn last append
+        lines = lines[:-1]
+    lines = lines[:-1] if lines and lines[-1] == b"" else lines
+    bodies = []
+    for number, line in enumerate(lines, start=1):
+        if len(line) > max_line:
+            raise ValueError(f"line {number} is longer than {max_line} bytes")
+        try:
+            bodies.append(checked_json(line, key))
+        except ValueError as exc:
+            raise ValueError(f"line {number} {exc}") from None
+    return bodies
+
+
 def _no_constant(name: str):
     raise ValueError(f"{name} is not a number here")
 

@@ -112,8 +112,8 @@ def _ask(client, key, payload) -> str:
     return decode(replies[0].err.payload.to_bytes(), ErrorReply).error
 
 
-def _joined(client, agent: int) -> Joined:
-    replies = list(client.get(keys.act("bad", agent), payload=encode(JoinRequest(tick=0)),
+def _joined(client, agent: int, run: str = "bad") -> Joined:
+    replies = list(client.get(keys.act(run, agent), payload=encode(JoinRequest(tick=0)),
                               timeout=5.0))
     return decode(replies[0].ok.payload.to_bytes(), Joined)
 
@@ -199,6 +199,53 @@ def test_a_request_sent_before_a_join_is_not_read_after_it(world):
     settled = _reply(client, act, Snap(tick=0, epoch=again.epoch))
     assert isinstance(settled, ActSensing) and settled.moved, settled
     assert service.rejected == before + 1  # the re-ask; stale leftovers are not refusals
+
+
+def _at_tick_zero(service, client, run: str, spacing: float) -> None:
+    """Begin tick 0 with the leader settled and its rod counted: follower 1's turn."""
+    service.sim.start_tick(0)
+    service.sim.drive(0, 0, 0.0)
+    client.put(keys.rod(run, 0), encode(Rod(tick=0, length=spacing, side=1)))
+    deadline = time.monotonic() + 10.0
+    while not _joined(client, 1, run).ready:
+        assert time.monotonic() < deadline, "the world never counted the leader's rod"
+        time.sleep(0.01)
+
+
+def test_a_resumed_world_holds_a_redo_to_what_it_answered_before(tmp_path):
+    """A world killed mid-tick and resumed runs the tick again with the same noise, so what it
+    answered before its death is journalled (``world_requests.jsonl``) and a redo must ask it
+    again (design §5): a follower that looked before moving cannot redo the tick without
+    looking (reading the same draw from elsewhere), and the redo that asks the same gets the
+    same reading."""
+    config = resolve(RunConfig(run_id="bad", followers=2, noise_range=0.02,
+                               noise_bearing=0.01))
+    endpoint = free_tcp_endpoint()
+    sense = keys.sense("bad", 1)
+    with zenoh.open(zenoh_config("router", listen=[endpoint])) as wsession, \
+            zenoh.open(zenoh_config("client", connect=[endpoint])) as client:
+        service = WorldService(wsession, config, make_surface(config.surface), tmp_path)
+        try:
+            _at_tick_zero(service, client, "bad", config.spacing)
+            epoch = _joined(client, 1).epoch
+            first = _reply(client, sense, SenseRequest(tick=0, look=True, epoch=epoch))
+            assert isinstance(first, Sensing) and first.rod is not None, first
+        finally:
+            service.close()  # the world dies before the tick completes
+        assert (tmp_path / "world_requests.jsonl").exists()
+        resumed = WorldService(wsession, config, make_surface(config.surface), tmp_path,
+                               resume=True)
+        try:
+            _at_tick_zero(resumed, client, "bad", config.spacing)
+            epoch = _joined(client, 1).epoch
+            other = _reply(client, sense, SenseRequest(tick=0, look=False, epoch=epoch))
+            assert isinstance(other, ErrorReply), other
+            assert "redoes tick 0" in other.error and "must repeat" in other.error
+            same = _reply(client, sense, SenseRequest(tick=0, look=True, epoch=epoch))
+            assert isinstance(same, Sensing) and (same.r, same.theta, same.rod) == (
+                first.r, first.theta, first.rod)
+        finally:
+            resumed.close()
 
 
 def test_a_link_told_its_request_is_stale_joins_again(world):

@@ -302,17 +302,24 @@ def _edit_checkpoint(folder: Path, change) -> None:
                     offsets=body["offsets"], wall_time=body["wall_time"])
 
 
-@pytest.mark.parametrize("defect", ["offset mid-row", "damaged kept row", "controls mid-row"])
+@pytest.mark.parametrize("defect", ["offset mid-row", "damaged kept row", "controls mid-row",
+                                    "crafted journal line"])
 def test_resume_changes_nothing_until_everything_is_validated(tmp_path, procs, defect):
     """A checkpoint offset into the middle of a row, or a damaged row before the offset:
     ``--resume`` refuses in one line and every file is as it was (it used to cut ticks.csv
-    first, then crash); in a drive run, ``controls.csv``'s offset too."""
+    first, then crash); in a drive run, ``controls.csv``'s offset too; and a request journal
+    with a line the world did not write."""
     folder = tmp_path / "run"
     drive = {"motion": "drive"} if defect == "controls mid-row" else {}
     _stopped_run(folder, RunConfig(run_id="resume-check", followers=1, ticks=40, **drive),
                  after=12)
     damaged = "controls.csv" if drive else "ticks.csv"
-    if defect in ("offset mid-row", "controls mid-row"):
+    if defect == "crafted journal line":  # a whole line, but not the world's
+        damaged = checkpoint.JOURNAL_FILE
+        with open(folder / damaged, "ab") as journal:
+            journal.write(b'{"agent": 1, "tick": 99, "index": 0, "request": {"sense": true}, '
+                          b'"sum": "0000"}\n')
+    elif defect in ("offset mid-row", "controls mid-row"):
         _edit_checkpoint(folder, lambda body: body["offsets"].update(
             {damaged: body["offsets"][damaged] - 9}))
     else:

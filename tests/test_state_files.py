@@ -57,6 +57,33 @@ def test_replay_log_round_trips_exactly_and_rebuilds_the_policy(tmp_path):
     assert rebuilt.propose(pre).offset.tolist() == live.propose(pre).offset.tolist()
 
 
+class _Calls:
+    """A policy that notes what replay asks of it."""
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+
+    def skip(self) -> None:
+        self.calls.append("skip")
+
+    def learn(self, settled, target, before=None):
+        self.calls.append(f"learn {settled.tick}")
+
+
+def test_replay_bridges_every_tick_that_passed_without_a_settle():
+    """Ticks 2-3 passed unseen (``skips``) and tick 5 was missed (no settle): each is one
+    ``skip``, so a policy learns the ticks it saw at their true spacing, as the live loop
+    (``run_follower``: ``policy.skip()`` on a missed tick) did."""
+    entries = _entries(2) + [Entry(tick=4, skips=2, settled=_entries(5)[4].settled,
+                                   target=None),
+                             Entry(tick=5, skips=0, settled=None, target=None),
+                             Entry(tick=6, skips=0, settled=_entries(7)[6].settled,
+                                   target=(0.5, 0.5))]
+    policy = _Calls()
+    replay(policy, entries)
+    assert policy.calls == ["learn 0", "learn 1", "skip", "skip", "learn 4", "skip", "learn 6"]
+
+
 def test_a_torn_last_line_is_a_tick_never_reported(tmp_path):
     path = _log(tmp_path, _entries())
     raw = path.read_bytes()
@@ -95,7 +122,7 @@ def test_foreign_files_are_refused(tmp_path):
 
 
 def test_crafted_lines_with_valid_checksums_are_refused(tmp_path):
-    from agents.checkpoint import _line
+    from protocol.config import checked_line as _line
 
     header = {"schema": 1, "run_id": RUN, "agent": 1, "start": START}
     crafted = [

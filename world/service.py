@@ -135,6 +135,8 @@ class WorldService:
         else:
             self.start = checkpoint.new_start()
             self.recorder.open()
+            self._journal = checkpoint.Journal(self.out_dir, run, self.start)
+            self._journal.open()
             self._save_state(0.0)  # a world killed before tick 0 completes resumes from here
         self.on_tick = on_tick
         self.view = ViewPublisher(session, config, surface, self.sim.ideal, out_dir)
@@ -173,17 +175,27 @@ class WorldService:
         except (KeyError, TypeError, ValueError) as exc:
             raise checkpoint.StateError(f"checkpoint {self.out_dir / checkpoint.STATE_FILE}: bad "
                                         f"simulation state ({exc}); refusing it") from None
+        # what it answered in the ticks it runs again (their redos must ask the same), read
+        # before any file changes
+        journal = checkpoint.Journal(self.out_dir, self.config.run_id, state["start"])
+        kept = journal.read(self.sim.n_agents, self.sim.complete)
         try:  # every file is checked before any is changed
             self.recorder.open(resume_offsets=state["offsets"], resume_ticks=self.sim.tick + 1)
         except DamagedRecord as exc:
             raise checkpoint.StateError(f"cannot resume {self.out_dir}: {exc}") from None
         self.start, self._wall_before = state["start"], state["wall_time"]
         self._through = [self.sim.tick] * self.sim.n_agents
+        for (agent, tick), requests in checkpoint.attempts(kept).items():
+            self.sim.expect_redo(agent, tick, requests)
+        self._journal = journal
+        self._journal.open(kept)
         log.warning("world: resuming run %s after tick %d", self.config.run_id, self.sim.tick)
 
     def close(self) -> None:
         undeclare_all(self._declared)
         self.recorder.close()
+        with self._cond:  # not while a request is being answered
+            self._journal.close()
 
     @property
     def rejected(self) -> int:
@@ -249,8 +261,10 @@ class WorldService:
             with self._cond:
                 self._check_epoch(agent, req.epoch)
                 self._check_turn(agent, req.tick)
+                sensing = self.sim.sense(agent, req.tick, req.look)
+                self._answered(agent, req.tick)
                 # the agent validates it on decode; its numbers are the world's own
-                return encode(self.sim.sense(agent, req.tick, req.look), check=False)
+                return encode(sensing, check=False)
         self._answer(query, handle)
 
     def _joined(self, agent: int) -> Joined:
@@ -288,9 +302,23 @@ class WorldService:
                     return encode(joined)
                 self._check_epoch(agent, req.epoch)
                 self._check_turn(agent, req.tick)
+                reply = self.sim.act(agent, req)
+                self._answered(agent, req.tick)
                 # the agent validates the reply on decode; its numbers are the world's own
-                return encode(self.sim.act(agent, req), check=False)
+                return encode(reply, check=False)
         self._answer(query, handle)
+
+    def _answered(self, agent: int, tick: int) -> None:
+        """(Lock held.) Journal the request of ``agent`` the simulation just carried out, before
+        its answer leaves (:class:`world.checkpoint.Journal`); a journal that cannot be written
+        ends the run (a resumed world could not hold a redo to it), unanswered."""
+        requests = self.sim.agents[agent].requests
+        try:
+            self._journal.add(agent, tick, len(requests) - 1, requests[-1])
+        except OSError as exc:
+            reason = f"cannot write {checkpoint.JOURNAL_FILE}: {exc.strerror or exc}"
+            self.abort(reason)
+            raise RunEnded(reason) from None
 
     # --- subscribers ---------------------------------------------------------------------------
 
@@ -554,6 +582,7 @@ class WorldService:
         checkpoint.save(self.out_dir, run_id=self.config.run_id, start=self.start,
                         sim=self.sim.state(), offsets=self.recorder.offsets,
                         wall_time=float(wall_time))
+        self._journal.keep_after(self.sim.complete)
 
     def run(self) -> dict:
         """Wait for the agents, run every tick, write the results; return the summary.

@@ -126,11 +126,11 @@ class AgentState:
     odometry_errors: dict[int, np.ndarray] = field(default_factory=dict)
     # what its sensors did in each tick it began (world.sensing), until the tick after is done
     sensed: dict[int, TickSensing] = field(default_factory=dict)
-    # the requests of the tick it is in, in order; and what an attempt of tick ``redo_tick``
-    # that was rolled back had requested (a redo must repeat it: it draws the same noise)
+    # the requests of the tick it is in, in order; and per tick, what an undone attempt of it
+    # had requested (a rollback, or a world resumed from its checkpoint): a redo must repeat
+    # it, since it draws the same noise
     requests: list = field(default_factory=list)
-    redo: tuple = ()
-    redo_tick: int = -1
+    redo: dict[int, tuple] = field(default_factory=dict)
     begun: tuple = ()  # (pos, heading[, leader velocity, leader time]) when ``tick`` began
     estimate: np.ndarray | None = None
     acted: str = ""
@@ -269,8 +269,7 @@ class WorldSim:
         state = self.agents[agent]
         if state.tick != tick:
             return
-        if state.redo_tick != tick or len(state.requests) > len(state.redo):
-            state.redo, state.redo_tick = tuple(state.requests), tick
+        self.expect_redo(agent, tick, state.requests)
         state.pos, state.heading = state.begun[0].copy(), state.begun[1].copy()
         if agent == 0:
             self.leader_velocity, self.leader_time = state.begun[2].copy(), state.begun[3]
@@ -363,6 +362,7 @@ class WorldSim:
             _drop_ticks_before(state.odometry_errors, j - 1)
             _drop_ticks_before(state.records, j)  # j's: control_rows
             _drop_ticks_before(state.sensed, j)  # j's settled reading: the next persist
+            _drop_ticks_before(state.redo, j + 1)  # a complete tick is never redone
         _drop_ticks_before(self._leader_at, j)
         for key in [key for key in self._rod_cache if key[1] < j]:  # the next floor reads j's
             del self._rod_cache[key]
@@ -439,15 +439,24 @@ class WorldSim:
 
     # --- requests ------------------------------------------------------------------------------
 
+    def expect_redo(self, agent: int, tick: int, requests) -> None:
+        """``agent`` will redo tick ``tick``, an attempt of which requested ``requests`` (in
+        order; the longest attempt known is kept): :meth:`rollback`, and a world resumed from
+        its checkpoint with the requests it had answered (:mod:`world.checkpoint`'s journal)."""
+        state = self.agents[agent]
+        if len(requests) > len(state.redo.get(tick, ())):
+            state.redo[tick] = tuple(requests)
+
     def _check_redo(self, agent: int, tick: int, request: object) -> None:
-        """Refuse a request of a tick redone after :meth:`rollback` that differs from what the
+        """Refuse a request of a tick redone (:meth:`expect_redo`) that differs from what the
         undone attempt requested at the same place (a deterministic agent redoes it exactly)."""
         if not 0 <= agent < self.n_agents:
             return  # refused by _check_request
         state = self.agents[agent]
         done = len(state.requests) if state.tick == tick else 0
-        if state.redo_tick == tick and done < len(state.redo) and state.redo[done] != request:
-            raise RequestError(f"agent {agent} redoes tick {tick} after a rollback: request "
+        undone = state.redo.get(tick, ())
+        if done < len(undone) and undone[done] != request:
+            raise RequestError(f"agent {agent} redoes tick {tick}, undone by a restart: request "
                                f"{done + 1} must repeat what it asked before (the same noise "
                                "is drawn again)")
 
