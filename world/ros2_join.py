@@ -55,14 +55,20 @@ def config_override(endpoint: str, user: str | None = None, password: str | None
     'mode="client";connect/endpoints=["tcp/10.0.0.5:7447"];transport/auth/usrpwd/user="observer";transport/auth/usrpwd/password="pw"'
     >>> config_override("tcp/10.0.0.5:7447")
     'mode="client";connect/endpoints=["tcp/10.0.0.5:7447"]'
+    >>> config_override("tcp/10.0.0.5:7447';rm -rf ~;'")
+    Traceback (most recent call last):
+    ...
+    ValueError: endpoint must not contain ';' or a single quote
     """
     if (user is None) != (password is None):
         raise ValueError("user and password must be given together")
     pairs: dict[str, object] = {"mode": "client", "connect/endpoints": [endpoint]}
+    quoted = (("endpoint", endpoint),) + ((("user", user), ("password", password))
+                                          if user is not None else ())
+    for name, value in quoted:  # pasted between single quotes, split at ';'
+        if ";" in value or "'" in value:
+            raise ValueError(f"{name} must not contain ';' or a single quote")
     if user is not None:
-        for name, value in (("user", user), ("password", password)):
-            if ";" in value or "'" in value:  # the separator, and the shell's quote
-                raise ValueError(f"{name} must not contain ';' or a single quote")
         pairs.update({"transport/auth/usrpwd/user": user,
                       "transport/auth/usrpwd/password": password})
     return ";".join(f"{key}={json.dumps(value)}" for key, value in pairs.items())
