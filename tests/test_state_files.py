@@ -15,7 +15,7 @@ import pytest
 from agents.checkpoint import Entry, StateLog, StateLogError, replay, state_path
 from agents.policies import make_policy
 from protocol.config import AgentSettings, RunConfig, dump_config
-from protocol.messages import Sensing
+from protocol.messages import Drive, Move, Sensing, Snap
 from protocol.record import RESULT_FILES
 from protocol.session import free_tcp_endpoint
 from swarm.launch import write_briefs
@@ -215,3 +215,34 @@ def test_the_last_log_removed_takes_its_emptied_folder_along(tmp_path):
     (folder / "notes.txt").write_text("mine\n")
     kept.remove()
     assert [p.name for p in folder.iterdir()] == ["notes.txt"]
+
+
+def test_the_request_journal_reads_back_what_the_world_answered_after_its_checkpoint(tmp_path):
+    """The world's request journal (``world_requests.jsonl``): a resumed world gets back every
+    request of the ticks after its checkpoint, equal to what it answered (actions through the
+    protocol codec); the file stays bounded as ticks are checkpointed; a torn last line (never
+    answered) is dropped; another start's file is refused in one line."""
+    journal = world_checkpoint.Journal(tmp_path, RUN, START)
+    journal.open()
+    ticks = 3 * world_checkpoint.TRIM_LINES // 4
+    for tick in range(ticks):
+        journal.add(0, tick, 0, Drive(tick=tick, t=1.28 * tick))
+        journal.add(1, tick, 0, ("sense", tick % 2 == 0))
+        journal.add(1, tick, 1, Move(tick=tick, offset=(0.25, -1.0 / 3.0)))
+        journal.add(1, tick, 2, Snap(tick=tick))
+        journal.keep_after(tick - 1)  # each tick checkpointed once the next one began
+    path = tmp_path / world_checkpoint.JOURNAL_FILE
+    assert path.read_bytes().count(b"\n") <= 1 + world_checkpoint.TRIM_LINES + 8
+    last = ticks - 1
+    expected = [(0, last, 0, Drive(tick=last, t=1.28 * last)),
+                (1, last, 0, ("sense", last % 2 == 0)),
+                (1, last, 1, Move(tick=last, offset=(0.25, -1.0 / 3.0))),
+                (1, last, 2, Snap(tick=last))]
+    assert journal.read(2, last - 1) == expected
+    assert world_checkpoint.attempts(expected)[(1, last)] == [e[3] for e in expected[1:]]
+    journal.close()
+    with open(path, "ab") as torn:
+        torn.write(b'{"agent": 1, "tick": ')
+    assert world_checkpoint.Journal(tmp_path, RUN, START).read(2, last - 1) == expected
+    with pytest.raises(world_checkpoint.StateError, match="header is not this run's"):
+        world_checkpoint.Journal(tmp_path, RUN, "feedfacefeedface").read(2, last - 1)

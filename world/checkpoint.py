@@ -13,8 +13,9 @@ after the checkpoint. A tick the resumed world runs again draws the same noise, 
 redoing it must ask what it asked the first time (design §5): were the world to forget what it
 answered, an agent could redo a tick from another pose, read the same draws there and cancel
 them. Each sensing and action is appended (one checksummed JSON line, written before the
-answer leaves the world) with its agent, tick and place in the tick; after each checkpoint the
-file keeps only the ticks after it; a resumed world reads it back
+answer leaves the world) with its agent, tick and place in the tick; the ticks a checkpoint
+covers are left out when it is read, and dropped from the file every few hundred lines; a
+resumed world reads it back
 (:meth:`world.sim.WorldSim.expect_redo`). A torn last line was never answered and is dropped.
 The journal goes with the checkpoint: deleted once the run is complete.
 """
@@ -35,6 +36,7 @@ from protocol.record import RESULT_FILES, SUMMARY_FILE
 STATE_FILE = "world_state.json"
 JOURNAL_FILE = "world_requests.jsonl"
 MAX_JOURNAL_LINE = 4096  # bytes; a real line is a few hundred
+TRIM_LINES = 512  # lines of checkpointed ticks the journal may hold before it is rewritten
 SCHEMA = 2  # 2: a driving follower's summed odometry errors are in the sim state
 
 
@@ -148,6 +150,7 @@ class Journal:
         self.path = Path(out_dir) / JOURNAL_FILE
         self.header = {"schema": SCHEMA, "run_id": run_id, "start": start}
         self._lines: list[tuple[int, str]] = []  # (tick, line) after the last checkpoint
+        self._stale = 0  # lines in the file of ticks checkpointed since its last rewrite
         self._file: AppendFile | None = None
 
     def open(self, kept=()) -> None:
@@ -166,7 +169,7 @@ class Journal:
         lines = "".join(line for _, line in self._lines)
         write_atomic(self.path, checked_line(self.header) + lines)
         self.close()
-        self._file = AppendFile(self.path)
+        self._file, self._stale = AppendFile(self.path), 0
 
     def add(self, agent: int, tick: int, index: int, request) -> None:
         """Record that the world answers ``agent``'s ``index``-th request of ``tick`` (before
@@ -178,10 +181,14 @@ class Journal:
         self._lines.append((tick, line))
 
     def keep_after(self, tick: int) -> None:
-        """Tick ``tick`` is checkpointed: keep only the requests of the ticks after it."""
+        """Tick ``tick`` is checkpointed: the requests of it and the ticks before are no longer
+        needed (:meth:`read` leaves them out). The file is rewritten without them once they
+        are the greater part of it and at least :data:`TRIM_LINES`, so its length stays
+        bounded at the cost of a rewrite every few hundred requests, not every tick."""
         kept = [(t, line) for t, line in self._lines if t > tick]
-        if len(kept) != len(self._lines):
-            self._lines = kept
+        self._stale += len(self._lines) - len(kept)
+        self._lines = kept
+        if self._stale >= max(TRIM_LINES, len(kept)):
             self._rewrite()
 
     def read(self, agents: int, after: int) -> list[tuple[int, int, int, object]]:
