@@ -18,7 +18,7 @@ from protocol.record import read_ticks
 from protocol.session import free_tcp_endpoint, zenoh_config
 from swarm.launch import agent_commands, launch, write_briefs
 from swarm.local import run_local
-from tests.waiting import Procs, children, running, signalled, ticks_done, wait_for
+from tests.waiting import Procs, children, identified, running, signalled, ticks_done, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -138,13 +138,14 @@ def test_ctrl_c_stops_everything_and_leaves_a_partial_result(tmp_path, stop):
                             env={**os.environ, "TMPDIR": str(scratch)})
     try:
         wait_for(lambda: ticks_done(out) >= 2, 60, "two ticks")
-        agents = children(proc.pid)
+        agents = identified(children(proc.pid))
         assert len(agents) == 3
         assert len(_credentials(scratch)) == 1
     finally:
         code, _, err = signalled(proc, stop, 20)
     assert code == 128 + stop, err
-    wait_for(lambda: not any(running(pid) for pid in agents), 10, "agent processes to end")
+    wait_for(lambda: not any(running(pid, started) for pid, started in agents.items()), 10,
+             "agent processes to end")
     summary = json.loads((out / "summary.json").read_text())
     assert summary["complete"] is False and summary["ticks_completed"] >= 2
     assert read_ticks(out / "ticks.csv")  # readable

@@ -17,7 +17,7 @@ import pytest
 
 from swarm.grid import Axis, estimator_axis, expand, run_grid
 from swarm.local import run_local
-from tests.waiting import children, running, signalled, wait_for
+from tests.waiting import children, identified, running, signalled, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -119,12 +119,13 @@ def test_a_stopped_grid_stops_its_workers(tmp_path, scratch, stop):
     try:
         wait_for(lambda: _started(out / "runs") and len(_workers(proc.pid)) == 2, 120,
                  "runs under way")
-        workers = _workers(proc.pid)
+        workers = identified(_workers(proc.pid))
     finally:
         code, _, err = signalled(proc, stop, 30)
     assert code == 128 + stop, err
     assert "interrupted: finished runs are in" in err and "cleanup still running" not in err
-    wait_for(lambda: not any(running(pid) for pid in workers), 10, "the workers to end")
+    wait_for(lambda: not any(running(pid, started) for pid, started in workers.items()), 10,
+             "the workers to end")
     assert not list(scratch.iterdir())
     assert not any((path.parent / "summary.json").exists()
                    and '"complete": true' in (path.parent / "summary.json").read_text()

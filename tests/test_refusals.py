@@ -88,7 +88,7 @@ def test_ctrl_c_before_the_first_tick_says_so_and_keeps_nothing(tmp_path):
     import subprocess
     import sys
 
-    from tests.waiting import children, running, signalled, wait_for
+    from tests.waiting import children, identified, running, signalled, wait_for
 
     (tmp_path / "slow_plugin.py").write_text("import time\ntime.sleep(60)\n")
     proc = subprocess.Popen([sys.executable, "-m", "swarm", "run", "--followers", "2",
@@ -97,14 +97,14 @@ def test_ctrl_c_before_the_first_tick_says_so_and_keeps_nothing(tmp_path):
                             text=True)
     try:
         wait_for(lambda: len(children(proc.pid)) == 3, 60, "the three agent processes")
-        agents = children(proc.pid)
+        agents = identified(children(proc.pid))
         assert (tmp_path / "run" / "config.toml").exists()
     finally:
         code, _, err = signalled(proc, signal.SIGINT, timeout=30)
     assert code == 130, err
     assert err.splitlines() == ["interrupted before the first tick: nothing kept (run removed)"]
     assert list(tmp_path.iterdir()) == [tmp_path / "slow_plugin.py"]
-    assert not any(running(pid) for pid in agents)
+    assert not any(running(pid, started) for pid, started in agents.items())
 
 
 def test_a_discarded_folder_takes_nothing_that_is_not_its_own(tmp_path):

@@ -48,10 +48,20 @@ def stat_fields(pid: int) -> list[str] | None:
         return None
 
 
-def running(pid: int) -> bool:
-    """Whether process ``pid`` exists and is not a zombie (ended, not yet reaped)."""
+STARTED = 19  # the start time's place in stat_fields: with the pid, it names one process
+
+
+def running(pid: int, started: str | None = None) -> bool:
+    """Whether process ``pid`` exists and is not a zombie (ended, not yet reaped) — and, given
+    its ``started`` time (:func:`identified`), is still that process: on a busy machine the
+    kernel hands an ended process's number to a new process or thread within seconds."""
     fields = stat_fields(pid)
-    return fields is not None and fields[0] != "Z"
+    return fields is not None and fields[0] != "Z" and started in (None, fields[STARTED])
+
+
+def identified(pids: list[int]) -> dict[int, str]:
+    """Each process of ``pids`` that exists, with its start time (for :func:`running`)."""
+    return {pid: fields[STARTED] for pid in pids if (fields := stat_fields(pid)) is not None}
 
 
 def children(pid: int) -> list[int]:
