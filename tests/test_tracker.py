@@ -254,6 +254,25 @@ def test_ekf_state_round_trips_with_the_swinging_rods():
     assert first.state() == copy.state()
 
 
+def test_ekf_goes_on_when_one_of_its_filters_runs_away():
+    """At a long comm period the leader moves about 5 m between readings and one filter of the
+    bank (a rod whose rates drift fast behind a leader whose track barely changes) runs away
+    until a reading's predicted covariance is no longer positive: it is restarted, the mixture
+    goes on without it, and the run completes with a finite state (it ended in a NaN move)."""
+    policies = []
+
+    def factory(settings):
+        policies.append(model_based("ekf", settings))
+        return policies[-1]
+
+    summary, _ = run_local(RunConfig(surface="elliptic", seed=0, estimator="ekf",
+                                     comm_period=5.12, noise_range=0.005,
+                                     noise_bearing=0.002), policy_factory=factory)
+    assert summary["complete"]
+    state = policies[0].state()
+    assert all(np.all(np.isfinite(state[key])) for key in ("mean", "cov", "scores"))
+
+
 class _Logged:
     """Forwards to ``policy`` and keeps every propose and learn call."""
 

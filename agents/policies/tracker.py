@@ -212,8 +212,9 @@ class RodTracker(LearnsTick):
         gain = np.swapaxes(inverse @ hc, 1, 2)  # (members, N, 2)
         surprise = z - _observed(mean, blocks)  # (members, 2)
         mean = mean + np.einsum("kij,kj->ki", gain, surprise)
-        self._evidence -= 0.5 * (np.einsum("ki,kij,kj->k", surprise, inverse, surprise)
-                                 + np.log(det) + 2.0 * LOG_2PI)
+        with np.errstate(invalid="ignore", divide="ignore"):  # a run-away filter: NaN
+            self._evidence -= 0.5 * (np.einsum("ki,kij,kj->k", surprise, inverse, surprise)
+                                     + np.log(det) + 2.0 * LOG_2PI)
         # symmetric but for rounding: symmetrised once a tick, by _advance
         return mean, cov - gain @ hc
 
@@ -308,8 +309,31 @@ class RodTracker(LearnsTick):
         return self._weights
 
     def _rod_end(self, mean: np.ndarray) -> np.ndarray:
-        """The mixture's rod end relative to the follower (2,)."""
-        return self.weights() @ (mean[:, S] + mean[:, J] + mean[:, RHO])
+        """The mixture's rod end relative to the follower (2,), over the filters whose
+        numbers are finite (a filter whose model ran away, e.g. its rod's rates grown to
+        radians a tick, drops out until it is restarted; see :meth:`_restart_broken`)."""
+        ends, weights = mean[:, S] + mean[:, J] + mean[:, RHO], self.weights()
+        finite = np.isfinite(ends).all(axis=1)
+        if not finite.all():
+            if not finite.any():
+                raise NotFitted("ekf: every filter's numbers ran away")
+            weights = np.where(finite, weights, 0.0)
+            weights, ends = weights / weights.sum(), np.where(finite[:, None], ends, 0.0)
+        return weights @ ends
+
+    def _restart_broken(self) -> None:
+        """Restart from the prior every filter whose numbers are no longer finite (its model
+        ran away: a reading's predicted covariance lost its positive determinant, or its
+        rates grew until the rod's scale overflowed), with the lowest score of the others:
+        the mixture goes on without it, and the state stays finite (:meth:`restore`)."""
+        broken = ~(np.isfinite(self.scores) & np.isfinite(self.mean).all(axis=1)
+                   & np.isfinite(self.cov).all(axis=(1, 2)))
+        if broken.any():
+            mean, cov = self._start()
+            self.mean, self.cov = self.mean.copy(), self.cov.copy()
+            self.mean[broken], self.cov[broken] = mean[broken], cov[broken]
+            self.scores = self.scores.copy()
+            self.scores[broken] = self.scores[~broken].min() if (~broken).any() else 0.0
 
     # -- the policy interface ----------------------------------------------------------------
 
@@ -345,6 +369,7 @@ class RodTracker(LearnsTick):
             mean, cov = self._odometry(mean, cov, settled, offset + snap)
         self.mean, self.cov = mean, cov
         self.scores = self.memory * self.scores + self._evidence
+        self._restart_broken()
         self._forget()
         e = self._rod_end(mean)
         return float(e[0]), float(e[1])
@@ -369,6 +394,7 @@ class RodTracker(LearnsTick):
     def skip(self) -> None:
         if self.mean is not None:
             self.mean, self.cov = self._advance(self.mean, self.cov)
+            self._restart_broken()
             self._forget()
 
     def state(self) -> dict:
