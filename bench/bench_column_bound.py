@@ -19,9 +19,11 @@ in-memory layout) and prints per follower:
    and ``persist / bound``.
 
 Hindsight fits see the answers, so they are bounds, not estimators; an estimator has to learn
-the same from its own past. Measured on wavy (#31): the bound is 1.5-2.8x below persist at
-every follower, so the information is in the readings; ``ekf``'s constant-rate rod model
-errs on the exact history by 0.04-0.09 m, as much as the noise it averages.
+the same from its own past. Measured on wavy (#31): the bound is 1.4-2.7x below persist at
+every follower, so the information is in the readings; a constant-rate rod model errs on the
+exact history by 0.02-0.09 m, as much as the noise it averages, and the fitted recurrence is a
+damped swing about a mean, which ``ekf``'s swinging rods model (persist / auto 1.11-2.42 with
+them, 0.96-1.91 without; docs/estimators.md).
 """
 from __future__ import annotations
 

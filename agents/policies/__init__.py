@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from agents.policies.auto import COMBINE, Auto
 from agents.policies.base import (
@@ -97,10 +98,26 @@ EKF_JERKS = (1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)  # the leader's jerk levels ekf
 # the drifts of the rod's rates per tick (rad²/tick²) ekf weighs: from a rod that barely turns
 # (~1e-4 rad/tick change per tick) to one sweeping over waves (~0.1)
 EKF_TURNS = (1e-8, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)
+# A rod that swings to and fro about a mean heading (a follower's rod down a column as waves
+# pass under it): the period of its swing in ticks (one level: a swing must last several of
+# the bank's memories, 1 / (1 - EKF_MEMORY) = 5 ticks, to be told from the readings' noise, and
+# repeat within a run), its damping ratio, and the drifts at which it is weighed (those at which
+# a rod visibly sweeps, >= 0.01 rad/tick change per tick; docs/estimators.md)
+EKF_SWEEPS = (16.0,)
+EKF_DAMPING = 0.3
+EKF_SWEPT = (1e-4, 1e-3, 1e-2)
 EKF_MEMORY = 0.8  # per tick: a tick's evidence counts ~5 ticks (ekf follows a changing surface)
 # the leader's landing off its track, in units of the declared range variance: none (it drives
 # its path), or one follower's snap error ... a few followers' accumulated (a column)
 EKF_LANDINGS = (0.0, 1.0, 4.0)
+
+
+def ekf_rods() -> list[tuple[float, float]]:
+    """The rod models ekf weighs, (drift, period) pairs (:class:`RodTracker`'s ``rods``):
+    a rod turning at rates that drift (every level of ``EKF_TURNS``, period inf) and one
+    swinging with each period of ``EKF_SWEEPS`` at every drift of ``EKF_SWEPT``."""
+    return ([(drift, math.inf) for drift in EKF_TURNS]
+            + [(drift, period) for period in EKF_SWEEPS for drift in EKF_SWEPT])
 
 
 def model_based(name: str, settings: AgentSettings) -> Policy:
@@ -114,8 +131,8 @@ def model_based(name: str, settings: AgentSettings) -> Policy:
     landing = settings.noise_range**2 + move_variance(settings)
     return RodTracker(settings.noise_range, settings.noise_bearing, move_variance(settings),
                       odometry, settings.comm_period, settings.spacing, jerks=EKF_JERKS,
-                      landings=tuple(share * landing for share in EKF_LANDINGS), turns=EKF_TURNS,
-                      memory=EKF_MEMORY, name=name)
+                      landings=tuple(share * landing for share in EKF_LANDINGS), rods=ekf_rods(),
+                      damping=EKF_DAMPING, memory=EKF_MEMORY, name=name)
 
 
 def own_motion(name: str, settings: AgentSettings) -> Policy:

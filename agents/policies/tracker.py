@@ -8,7 +8,7 @@ the follower reads ``L`` (the ``pre`` reading), so what it must predict is ``rho
 every honest reading of the tick: the leader before the move, after the move and once settled,
 the rod end after the move and once settled, the moves the follower commanded, and its odometry.
 
-State (relative to where the follower stands now, xy, one tick the time unit), 14 numbers:
+State (relative to where the follower stands now, xy, one tick the time unit), 16 numbers:
 
 - ``S, V, A``: the leader's track: position, displacement per tick and its change per tick
   (constant acceleration; the unmodelled change of ``A`` is white *jerk*);
@@ -16,6 +16,13 @@ State (relative to where the follower stands now, xy, one tick the time unit), 1
   rates per tick. Seen as complex numbers, ``rho_{j+1} = rho_j exp(kappa + i omega)``: the rod
   turns with the leader's heading at a rate that changes slowly, and its xy length changes with
   the slope under it at a rate that changes slowly (random walks of the rates);
+- ``dev``: for a *swinging* rod, how far its log-length and heading stand off their mean
+  (the rod of a follower further out swings over the surface's waves, and its xy length
+  recovers as they pass): the rates are pulled back towards the mean, a damped oscillator,
+  ``lam_{j+1} = phi lam_j - w² dev_j``, ``dev_{j+1} = dev_j + lam_{j+1}`` and
+  ``rho_{j+1} = rho_j exp(kappa_{j+1} + i omega_{j+1})`` (``w = 2 pi / period``,
+  ``phi = 1 - 2 zeta w`` for the damping ratio ``zeta``); for a rod of constant rates
+  (``phi = 1``, ``w = 0``) it stays 0;
 - ``D``: the actuation error of the follower's own moves since it last settled (teleport: the
   move's and the snap's noise), which the odometry of the interval reads;
 - ``J``: the leader's *landing offset* this tick, off its track: none for a leader that drives
@@ -30,13 +37,13 @@ A move by ``u`` shifts the positions by ``-u`` and adds the move's declared actu
 follower's replay log rebuilds it (:mod:`agents.checkpoint`); :meth:`RodTracker.state` and
 :meth:`RodTracker.restore` give it as plain data as well.
 
-How fast the leader's acceleration changes (its jerk), how far it lands off its track and how
-fast the rod's rates drift (the rod of a follower further out sweeps over the surface as the
-column turns) are properties of the hidden surface and of the follower's place in the column,
-which it does not know: :class:`RodTracker` runs one filter per triple of levels (``jerks`` x
-``landings`` x ``turns``), side by side as one batch of arrays, and proposes their mixture,
-each weighted by the likelihood of the readings it predicted (multiple-model adaptive
-estimation).
+How fast the leader's acceleration changes (its jerk), how far it lands off its track, how
+fast the rod's rates drift and whether the rod swings (the rod of a follower further out
+sweeps over the surface as the column turns) are properties of the hidden surface and of the
+follower's place in the column, which it does not know: :class:`RodTracker` runs one filter
+per combination of levels (``jerks`` x ``landings`` x ``rods``), side by side as one batch of
+arrays, and proposes their mixture, each weighted by the likelihood of the readings it
+predicted (multiple-model adaptive estimation).
 """
 from __future__ import annotations
 
@@ -50,8 +57,8 @@ from agents.policies.base import Before, LearnsTick, Proposal, relative
 from protocol.messages import Sensing
 from protocol.sensing import reading_covariance
 
-N = 14
-S, V, A, RHO, LAM, D, J = (slice(i, i + 2) for i in range(0, N, 2))
+N = 16
+S, V, A, RHO, LAM, D, J, DEV = (slice(i, i + 2) for i in range(0, N, 2))
 JITTER = 1e-12  # added to every reading's covariance: a noise-free reading stays invertible
 # Before any reading the leader's place and track and the rod vector are unknown: a prior far
 # wider than any rod (in units of the rod's length squared); the first readings replace it.
@@ -68,7 +75,7 @@ MOVED[S, S] = MOVED[D, D] = EYE2
 MOVED[S, D] = MOVED[D, S] = -EYE2
 TRACK = np.eye(N)  # the linear part of a tick: constant acceleration; D and J start afresh
 TRACK[S, V], TRACK[S, A], TRACK[V, A] = EYE2, 0.5 * EYE2, EYE2
-TRACK[D, D] = TRACK[J, J] = 0.0
+TRACK[D, D] = TRACK[J, J] = TRACK[DEV, DEV] = 0.0
 # white jerk's covariance of (position, displacement, acceleration) over one tick, per unit
 JERK_DT = np.array([[1 / 20, 1 / 8, 1 / 6], [1 / 8, 1 / 3, 1 / 2], [1 / 6, 1 / 2, 1.0]])
 ADJUGATE = np.array([[1.0, -1.0], [-1.0, 1.0]])  # the signs of a 2x2 matrix's adjugate
@@ -87,7 +94,7 @@ def _observed(x: np.ndarray, blocks: tuple[slice, ...], axis: int = 1) -> np.nda
 
 class RodTracker(LearnsTick):
     """``ekf``: the extended Kalman filters of the module docstring, one per (jerk, landing,
-    turn) triple, and their likelihood-weighted mixture.
+    rod) combination, and their likelihood-weighted mixture.
 
     Parameters
     ----------
@@ -110,9 +117,14 @@ class RodTracker(LearnsTick):
     landings : sequence of float
         Variances per coordinate of the leader's landing off its track the filters assume
         (length²; 0: it drives its path).
-    turns : sequence of float
-        Variances of the unmodelled change of the rod's turn rate and log-length rate per tick
-        the filters assume (rad² per tick²).
+    rods : sequence of (float, float)
+        The rod models the filters assume, pairs (drift, period): the variance of the
+        unmodelled change of the rod's turn rate and log-length rate per tick (rad² per
+        tick²), and the period in ticks of the rod's swing about its mean (> 2, and stable
+        with ``damping``; ``inf``: no swing, the rates persist).
+    damping : float
+        The damping ratio of a swinging rod (>= 0): each tick its rates keep
+        ``1 - 2 damping (2 pi / period)`` of themselves before the pull back.
     memory : float
         In [0, 1]: each tick, the filters' past log-likelihoods are multiplied by it before the
         tick's are added (old evidence fades, so a surface whose curvature changes is
@@ -123,16 +135,23 @@ class RodTracker(LearnsTick):
     def __init__(self, sigma_r: float = 0.0, sigma_theta: float = 0.0,
                  move_variance: float = 0.0, odometry_variance: float | None = None,
                  comm_period: float = 1.0, spacing: float = 1.0, jerks=(1e-4,),
-                 landings=(0.0,), turns=(1e-4,), memory: float = 0.8,
-                 name: str = "ekf") -> None:
+                 landings=(0.0,), rods=((1e-4, math.inf),),
+                 damping: float = 0.3, memory: float = 0.8, name: str = "ekf") -> None:
         for key, value in (("sigma_r", sigma_r), ("sigma_theta", sigma_theta),
                            ("move_variance", move_variance)):
             if not 0.0 <= value < math.inf:
                 raise ValueError(f"{key} must be finite and >= 0, got {value}")
-        for key, values in (("jerks", jerks), ("landings", landings), ("turns", turns)):
+        rods = tuple(tuple(rod) for rod in rods)
+        if not len(rods) or not all(len(rod) == 2 and 0.0 <= rod[0] < math.inf
+                                    and 2.0 < rod[1] <= math.inf for rod in rods):
+            raise ValueError(f"rods must be pairs (drift >= 0, period > 2 or inf), at least "
+                             f"one, got {rods}")
+        for key, values in (("jerks", jerks), ("landings", landings)):
             if not len(values) or not all(0.0 <= v < math.inf for v in values):
                 raise ValueError(f"{key} must be finite values >= 0, at least one, "
                                  f"got {values}")
+        if not 0.0 <= damping < math.inf:
+            raise ValueError(f"damping must be finite and >= 0, got {damping}")
         if odometry_variance is not None and not 0.0 <= odometry_variance < math.inf:
             raise ValueError(f"odometry_variance must be finite and >= 0 or None, "
                              f"got {odometry_variance}")
@@ -145,16 +164,32 @@ class RodTracker(LearnsTick):
         self.sigma_r, self.sigma_theta = sigma_r, sigma_theta
         self.move_variance, self.odometry_variance = move_variance, odometry_variance
         self.comm_period, self.spacing, self.memory = comm_period, spacing, memory
-        levels = list(product(jerks, landings, turns))
+        # each filter's (jerk, landing, drift, period), in the order of the batch
+        self.levels = levels = [(jerk, landing, *rod) for jerk, landing, rod in product(
+            jerks, landings, rods)]
         self.members = len(levels)
         # each filter's process noise per tick: the leader's jerk and landing, the rates' drift
         self._q = np.zeros((self.members, N, N))
-        for k, (jerk, landing, turn) in enumerate(levels):
+        # each filter's rod: the rates' persistence and pull back towards the mean rod (0 and
+        # 1 for a constant rate), and whether it tracks the rod's deviation from its mean
+        self._persist, self._pull, self._swept = (np.ones(self.members),
+                                                  np.zeros(self.members),
+                                                  np.zeros(self.members))
+        for k, (jerk, landing, turn, sweep) in enumerate(levels):
             for axis in range(2):
                 idx = [S.start + axis, V.start + axis, A.start + axis]
                 self._q[k][np.ix_(idx, idx)] = jerk * spacing**2 * JERK_DT
             self._q[k][LAM, LAM] = turn * EYE2
             self._q[k][J, J] = landing * EYE2
+            if sweep < math.inf:
+                frequency = 2.0 * math.pi / sweep
+                persist, pull = 1.0 - 2.0 * damping * frequency, frequency**2
+                # (lam, dev) -> (persist lam - pull dev, persist lam + (1 - pull) dev): its
+                # eigenvalues' product is persist, their sum persist + 1 - pull
+                if not (abs(persist) < 1.0 and abs(persist + 1.0 - pull) < 1.0 + persist):
+                    raise ValueError(f"rods: a swing of period {sweep} with damping {damping} "
+                                     f"is unstable (persistence {persist:.3g})")
+                self._persist[k], self._pull[k], self._swept[k] = persist, pull, 1.0
         self.mean: np.ndarray | None = None  # (members, N)
         self.cov: np.ndarray | None = None  # (members, N, N)
         self.scores = np.zeros(self.members)  # discounted log-likelihoods
@@ -177,10 +212,11 @@ class RodTracker(LearnsTick):
         gain = np.swapaxes(inverse @ hc, 1, 2)  # (members, N, 2)
         surprise = z - _observed(mean, blocks)  # (members, 2)
         mean = mean + np.einsum("kij,kj->ki", gain, surprise)
-        self._evidence -= 0.5 * (np.einsum("ki,kij,kj->k", surprise, inverse, surprise)
-                                 + np.log(det) + 2.0 * LOG_2PI)
-        cov = cov - gain @ hc
-        return mean, 0.5 * (cov + np.swapaxes(cov, 1, 2))
+        with np.errstate(invalid="ignore", divide="ignore"):  # a run-away filter: NaN
+            self._evidence -= 0.5 * (np.einsum("ki,kij,kj->k", surprise, inverse, surprise)
+                                     + np.log(det) + 2.0 * LOG_2PI)
+        # symmetric but for rounding: symmetrised once a tick, by _advance
+        return mean, cov - gain @ hc
 
     def _reading(self, mean, cov, z: np.ndarray, rod: bool):
         """Update with a leader (``rod`` False) or rod-end reading ``z`` (2,)."""
@@ -206,17 +242,25 @@ class RodTracker(LearnsTick):
     def _advance(self, mean, cov):
         """One tick of the models: the leader's track and the rod's turn; a new landing
         offset; the actuation error restarts."""
-        rho, lam = mean[:, RHO], mean[:, LAM]
+        persist, pull, swept = self._persist[:, None], self._pull[:, None], self._swept[:, None]
+        rho, dev = mean[:, RHO], mean[:, DEV]
+        lam = persist * mean[:, LAM] - pull * dev  # the tick's rates
         scale, cos, sin = np.exp(lam[:, 0]), np.cos(lam[:, 1]), np.sin(lam[:, 1])
         turn = scale[:, None, None] * np.stack([cos, -sin, sin, cos], -1).reshape(-1, 2, 2)
         turned = np.einsum("kij,kj->ki", turn, rho)
+        # d rho' / d lam: rho' and rho' turned a quarter
+        by_rate = np.stack([turned[:, 0], -turned[:, 1], turned[:, 1], turned[:, 0]],
+                           -1).reshape(-1, 2, 2)
         f = np.broadcast_to(TRACK, cov.shape).copy()
         f[:, RHO, RHO] = turn
-        f[:, RHO, LAM.start] = turned  # d rho' / d lam: rho' and rho' turned a quarter
-        f[:, RHO.start, LAM.start + 1], f[:, RHO.start + 1, LAM.start + 1] = -turned[:, 1], \
-            turned[:, 0]
+        f[:, RHO, LAM] = persist[:, :, None] * by_rate
+        f[:, RHO, DEV] = -pull[:, :, None] * by_rate
+        f[:, LAM, LAM] = persist[:, :, None] * EYE2
+        f[:, LAM, DEV] = -pull[:, :, None] * EYE2
+        f[:, DEV, LAM] = (swept * persist)[:, :, None] * EYE2
+        f[:, DEV, DEV] = (swept * (1.0 - pull))[:, :, None] * EYE2
         new = mean @ TRACK.T
-        new[:, RHO], new[:, LAM] = turned, lam
+        new[:, RHO], new[:, LAM], new[:, DEV] = turned, lam, swept * (dev + lam)
         cov = f @ cov @ np.swapaxes(f, 1, 2) + self._q
         return new, 0.5 * (cov + np.swapaxes(cov, 1, 2))
 
@@ -227,6 +271,7 @@ class RodTracker(LearnsTick):
         wide = DIFFUSE * self.spacing**2 * EYE2
         cov[:, S, S] = cov[:, V, V] = cov[:, A, A] = cov[:, RHO, RHO] = wide
         cov[:, LAM, LAM] = EYE2  # rates of the order of a radian per tick
+        cov[:, DEV, DEV] = self._swept[:, None, None] * EYE2  # a deviation of about a radian
         cov[:, J, J] = self._q[:, J, J]
         return np.zeros((self.members, N)), cov
 
@@ -264,8 +309,31 @@ class RodTracker(LearnsTick):
         return self._weights
 
     def _rod_end(self, mean: np.ndarray) -> np.ndarray:
-        """The mixture's rod end relative to the follower (2,)."""
-        return self.weights() @ (mean[:, S] + mean[:, J] + mean[:, RHO])
+        """The mixture's rod end relative to the follower (2,), over the filters whose
+        numbers are finite (a filter whose model ran away, e.g. its rod's rates grown to
+        radians a tick, drops out until it is restarted; see :meth:`_restart_broken`)."""
+        ends, weights = mean[:, S] + mean[:, J] + mean[:, RHO], self.weights()
+        finite = np.isfinite(ends).all(axis=1)
+        if not finite.all():
+            if not finite.any():
+                raise NotFitted("ekf: every filter's numbers ran away")
+            weights = np.where(finite, weights, 0.0)
+            weights, ends = weights / weights.sum(), np.where(finite[:, None], ends, 0.0)
+        return weights @ ends
+
+    def _restart_broken(self) -> None:
+        """Restart from the prior every filter whose numbers are no longer finite (its model
+        ran away: a reading's predicted covariance lost its positive determinant, or its
+        rates grew until the rod's scale overflowed), with the lowest score of the others:
+        the mixture goes on without it, and the state stays finite (:meth:`restore`)."""
+        broken = ~(np.isfinite(self.scores) & np.isfinite(self.mean).all(axis=1)
+                   & np.isfinite(self.cov).all(axis=(1, 2)))
+        if broken.any():
+            mean, cov = self._start()
+            self.mean, self.cov = self.mean.copy(), self.cov.copy()
+            self.mean[broken], self.cov[broken] = mean[broken], cov[broken]
+            self.scores = self.scores.copy()
+            self.scores[broken] = self.scores[~broken].min() if (~broken).any() else 0.0
 
     # -- the policy interface ----------------------------------------------------------------
 
@@ -301,6 +369,7 @@ class RodTracker(LearnsTick):
             mean, cov = self._odometry(mean, cov, settled, offset + snap)
         self.mean, self.cov = mean, cov
         self.scores = self.memory * self.scores + self._evidence
+        self._restart_broken()
         self._forget()
         e = self._rod_end(mean)
         return float(e[0]), float(e[1])
@@ -325,6 +394,7 @@ class RodTracker(LearnsTick):
     def skip(self) -> None:
         if self.mean is not None:
             self.mean, self.cov = self._advance(self.mean, self.cov)
+            self._restart_broken()
             self._forget()
 
     def state(self) -> dict:
