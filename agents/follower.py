@@ -99,7 +99,8 @@ def at_rod_end(settled: Sensing, driven: Driven) -> Sensing:
     residual = driven.residual
     if residual is None:
         return settled
-    x, y = relative(settled) - beyond_noise(residual, driven.residual_variance)
+    x, y = (driven.settled_leader(relative(settled))
+            - beyond_noise(residual, driven.residual_variance))
     return dataclasses.replace(settled, r=math.hypot(x, y), theta=math.atan2(y, x))
 
 
