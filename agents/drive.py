@@ -554,26 +554,10 @@ class Driven:
         through the follower's tick); without noise, the reading as it is."""
         if self.leader is None or self.limits is None:
             return reading
-        return self._with(self.leader, self.leader_variance, reading)[0]
-
-    def settled_rod(self, reading: np.ndarray | None) -> tuple[np.ndarray, float] | None:
-        """The rod end's offset from where the follower settled (shape (2,)) and its variance
-        (both coordinates together), from every look of the tick: ``residual`` fused with the
-        settled sensing's rod ``reading`` (shape (2,), or None: not in range); None when the
-        rod end was never in range. Without noise, ``residual`` as it is."""
-        if self.residual is None:
-            return None
-        if reading is None or self.limits is None or self.residual_variance == 0.0:
-            return self.residual, self.residual_variance
-        return self._with(self.residual, self.residual_variance, reading)
-
-    def _with(self, estimate: np.ndarray, variance: float, reading: np.ndarray
-              ) -> tuple[np.ndarray, float]:
         looks = _Fixed(self.limits)
-        looks.points.append((estimate, variance))
-        looks.add(np.zeros(2), np.asarray(reading, dtype=float))
-        best, sigma = looks.estimate()
-        return best, 2.0 * sigma * sigma
+        looks.points.append((self.leader, self.leader_variance))
+        looks.add(np.zeros(2), reading)
+        return looks.estimate()[0]
 
 
 def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndarray,

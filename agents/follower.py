@@ -98,13 +98,12 @@ def at_rod_end(settled: Sensing, driven: Driven) -> Sensing:
     (it is sensed from where it stands). The weight leaves a settle within the reading's
     noise as it is (a shift would only add that noise) and shifts one clearly off by its whole
     offset; without noise, by the exact offset."""
-    fused = driven.settled_rod(settled.rod)
-    if fused is None:
+    residual = driven.residual
+    if residual is None:
         return settled
-    residual, variance = fused
-    x, y = driven.settled_leader(relative(settled)) - beyond_noise(residual, variance)
-    rod = settled.rod if variance == 0.0 else (float(residual[0]), float(residual[1]))
-    return dataclasses.replace(settled, r=math.hypot(x, y), theta=math.atan2(y, x), rod=rod)
+    x, y = (driven.settled_leader(relative(settled))
+            - beyond_noise(residual, driven.residual_variance))
+    return dataclasses.replace(settled, r=math.hypot(x, y), theta=math.atan2(y, x))
 
 
 def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick: int,
