@@ -253,8 +253,7 @@ class Track:
     ends it drove onto, in the local compass frame (axes parallel to the world's, so they add
     up across ticks). A tick's step is its odometry's per-tick reading (design §5) times
     ``T_c``, from where it settled to where it settled, plus the change in where it read its
-    rod end from there (the settled sensing's rod reading, fused from every look of the tick,
-    :meth:`Driven.settled_rod`, weighted by its declared variance
+    rod end from there (the settled sensing's rod reading, weighted by its declared variance
     as :func:`agents.follower.at_rod_end` weighs its shift, :func:`beyond_noise`): where it
     landed off its rod end is its own error, which the path of its rod ends does not carry, so
     the goal heading fitted to it (:func:`goal_heading`) does not pass it down the column. A

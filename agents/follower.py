@@ -85,10 +85,10 @@ def displacement(offset: np.ndarray, pre: Sensing, moved: Sensing,
 
 
 def at_rod_end(settled: Sensing, driven: Driven) -> Sensing:
-    """The settled sensing of a driving follower as seen from the rod end it drove onto, its
-    readings fused from every look of the tick (:meth:`agents.drive.Driven.settled_leader`,
-    :meth:`agents.drive.Driven.settled_rod`; without noise, the settled readings as they are):
-    the leader reading shifted by the follower's best estimate of the rod end's offset
+    """The settled sensing of a driving follower as seen from the rod end it drove onto: the
+    leader reading, fused from every look of the tick
+    (:meth:`agents.drive.Driven.settled_leader`; without noise, the settled reading as it is),
+    shifted by the follower's best estimate of the rod end's offset
     (:class:`agents.drive.Driven`), weighted ``|e|² / (|e|² + 9 var)`` by its declared variance
     (:func:`agents.drive.beyond_noise`).
 
