@@ -534,12 +534,29 @@ class Driven:
     the displacement the odometry summed over it (local frame, from the tick's start), and,
     when the rod end was in range, ``residual``: where the robot believes the rod end is from
     where it settled (its best estimate, after every reading) and that estimate's variance
-    (both coordinates together)."""
+    (both coordinates together); ``leader`` and ``leader_variance`` the same of the leader,
+    from its ``pre`` reading and every step's (it stands still through the follower's tick);
+    ``limits`` the follower's, which declare the settled readings' variance."""
 
     moved: Sensing
     travelled: np.ndarray
     residual: np.ndarray | None = None
     residual_variance: float = 0.0
+    leader: np.ndarray | None = None
+    leader_variance: float = 0.0
+    limits: Limits | None = None
+
+    def settled_leader(self, reading: np.ndarray) -> np.ndarray:
+        """The leader's offset from where the follower settled (shape (2,)) from every look of
+        the tick: the drive's estimate (``leader``) and the settled sensing's ``reading``
+        (shape (2,)), fused as :class:`_Fixed` fuses the goal's (the leader stands still
+        through the follower's tick); without noise, the reading as it is."""
+        if self.leader is None or self.limits is None:
+            return reading
+        looks = _Fixed(self.limits)
+        looks.points.append((self.leader, self.leader_variance))
+        looks.add(np.zeros(2), reading)
+        return looks.estimate()[0]
 
 
 def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndarray,
@@ -590,12 +607,14 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
         leader.drift(step)
         if step == settings.control_steps - 1:
             moved, travelled = reply.sensing, position.copy()
+        leader.add(position, relative(reply))
         if step >= settings.control_steps - 1 and moved.rod is not None:
             if reply.rod is not None:
                 rod.add(position, np.asarray(reply.rod))
-                leader.add(position, relative(reply))
             target, spread = rod.estimate()
+    seen, sigma = leader.estimate()
+    seen = (seen - position, 2.0 * sigma * sigma, limits)
     if moved.rod is None or not rod.points:
-        return Driven(moved, travelled)
+        return Driven(moved, travelled, None, 0.0, *seen)
     best, sigma = rod.estimate()
-    return Driven(moved, travelled, best - position, 2.0 * sigma * sigma)
+    return Driven(moved, travelled, best - position, 2.0 * sigma * sigma, *seen)

@@ -86,7 +86,9 @@ def displacement(offset: np.ndarray, pre: Sensing, moved: Sensing,
 
 def at_rod_end(settled: Sensing, driven: Driven) -> Sensing:
     """The settled sensing of a driving follower as seen from the rod end it drove onto: the
-    leader reading shifted by the follower's best estimate of the rod end's offset
+    leader reading, fused from every look of the tick
+    (:meth:`agents.drive.Driven.settled_leader`; without noise, the settled reading as it is),
+    shifted by the follower's best estimate of the rod end's offset
     (:class:`agents.drive.Driven`), weighted ``|e|² / (|e|² + 9 var)`` by its declared variance
     (:func:`agents.drive.beyond_noise`).
 
@@ -99,7 +101,8 @@ def at_rod_end(settled: Sensing, driven: Driven) -> Sensing:
     residual = driven.residual
     if residual is None:
         return settled
-    x, y = relative(settled) - beyond_noise(residual, driven.residual_variance)
+    x, y = (driven.settled_leader(relative(settled))
+            - beyond_noise(residual, driven.residual_variance))
     return dataclasses.replace(settled, r=math.hypot(x, y), theta=math.atan2(y, x))
 
 

@@ -8,7 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from agents.drive import Settled, Track, goal_heading
+from agents.drive import Driven, Limits, Settled, Track, goal_heading
+from agents.follower import at_rod_end
 from protocol.config import AgentSettings, RunConfig, estimator_options
 from protocol.messages import Control, Sensing, Snap
 from swarm.cli import main as swarm_main
@@ -296,3 +297,43 @@ def test_a_noise_free_wavy_column_of_five_stays_near_teleport():
     assert max(apart) < 0.25
     last = [r["formation_error"] for r in rows if r["agent"] == 5]
     assert sum(last) / len(last) < 0.06
+
+
+def _driven(leader: np.ndarray, variance: float, noise: tuple[float, float]) -> Driven:
+    settings = AgentSettings.from_config(RunConfig(motion="drive", max_speed=1.0,
+                                                   noise_range=noise[0], noise_bearing=noise[1]))
+    return Driven(Sensing(tick=3, r=3.57, theta=0.0), np.zeros(2), np.zeros(2), 0.0,
+                  leader, variance, Limits.from_settings(settings))
+
+
+def test_the_settled_leader_reading_fuses_every_look_of_the_tick():
+    """The leader stands still through a follower's tick: the leader reading the follower
+    logs (and its estimator and its track learn from) is its drive's estimate from every
+    earlier look fused with the settled reading, each weighted by the inverse of its declared
+    variance; without noise, the settled reading exactly."""
+    reading = np.array([3.5, 0.4])
+    drive = np.array([3.6, 0.3])
+    noisy = _driven(drive, 0.001, (0.05, 0.03))
+    single = noisy.limits.reading_variance(float(np.hypot(*reading)))
+    expected = (drive / 0.001 + reading / single) / (1.0 / 0.001 + 1.0 / single)
+    np.testing.assert_allclose(noisy.settled_leader(reading), expected, atol=1e-12)
+    settled = Sensing(tick=3, r=float(np.hypot(*reading)), theta=math.atan2(0.4, 3.5),
+                      rod=(0.0, 0.0))
+    seen = at_rod_end(settled, noisy)
+    np.testing.assert_allclose(seen.r * np.array([math.cos(seen.theta), math.sin(seen.theta)]),
+                               expected, atol=1e-12)
+    exact = _driven(drive, 0.0, (0.0, 0.0))
+    assert np.array_equal(exact.settled_leader(reading), reading)
+
+
+@pytest.mark.slow
+def test_fusing_the_leader_looks_holds_a_noisy_wavy_column_closer():
+    """Wavy, 3 followers, σ 0.05/0.03, seed 0, persist: with the settled leader reading of one
+    look the last follower was 0.238 m off on average (0.771 m at worst); with every look of
+    the tick fused, 0.199 (0.661)."""
+    config = RunConfig(surface="wavy", followers=3, ticks=150, seed=0, noise_range=0.05,
+                       noise_bearing=0.03, estimator="persist", motion="drive")
+    _, rows = run_local(config)
+    last = [r["formation_error"] for r in rows if r["agent"] == 3]
+    assert sum(last) / len(last) < 0.22
+    assert max(_worst(rows).values()) < 0.72
