@@ -129,36 +129,45 @@ def _gp_forecast(data: bytes, shape: tuple[int, int], noise: float) -> tuple[flo
 
 
 @functools.lru_cache(maxsize=64)
-def _gp_kernel(n: int, ell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The squared-exponential kernel of ticks ``0..n-1`` with length scale ``ell``, its
-    column to tick ``n``, and the identity (n, n): they depend on ``(n, ell)`` only."""
+def _gp_kernels(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The squared-exponential kernels of ticks ``0..n-1``, one per length scale of
+    :data:`GP_LENGTHS` (L, n, n), their columns to tick ``n`` (L, n), and the identity
+    (n, n): they depend on ``n`` only."""
     t = np.arange(n, dtype=float)
-    return (np.exp(-0.5 * ((t[:, None] - t[None, :]) / ell) ** 2),
-            np.exp(-0.5 * ((t - float(n)) / ell) ** 2), np.eye(n))
+    ells = np.array(GP_LENGTHS)[:, None, None]
+    return (np.exp(-0.5 * ((t[None, :, None] - t[None, None, :]) / ells) ** 2),
+            np.exp(-0.5 * ((t[None, :] - float(n)) / ells[:, 0]) ** 2), np.eye(n))
 
 
 def _cholesky_solve(chol: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``C^-1 b`` for ``C = chol @ chol.T`` (``chol`` lower triangular)."""
-    return np.linalg.solve(chol.T, np.linalg.solve(chol, b))
+    """``C^-1 b`` for each ``C = chol @ chol.T`` of a stack (``chol`` (L, n, n) lower
+    triangular, ``b`` (L, n, k))."""
+    return np.linalg.solve(np.swapaxes(chol, -1, -2), np.linalg.solve(chol, b))
 
 
 def _gp_coordinate(t: np.ndarray, basis: np.ndarray, y: np.ndarray, noise: float) -> float:
+    """One coordinate's forecast: every length scale's fit at once (each is the same
+    LAPACK computation on its own matrix as when they were fitted one by one), the one of
+    highest likelihood taken."""
     scale = float(np.var(y)) + 1e-300
+    k, k_new, eye = _gp_kernels(t.size)
+    lengths = len(GP_LENGTHS)
+    # Signal variance s2 and noise variance enter as C = k + (noise / s2 + jitter) I;
+    # s2 is unknown, so the samples' variance stands in for it here.
+    cov = k + (noise / scale + GP_JITTER) * eye
+    chol = np.linalg.cholesky(cov)
+    ci_h = _cholesky_solve(chol, np.broadcast_to(basis, (lengths, *basis.shape)))
+    ci_y = _cholesky_solve(chol, np.broadcast_to(y[:, None], (lengths, y.size, 1)))[:, :, 0]
+    betas = [np.linalg.lstsq(basis.T @ ci_h[i], basis.T @ ci_y[i], rcond=None)[0]
+             for i in range(lengths)]
+    resid = np.array([y - basis @ beta for beta in betas])
+    ci_r = _cholesky_solve(chol, resid[:, :, None])[:, :, 0]
     best = None
-    for ell in GP_LENGTHS:
-        k, k_new, eye = _gp_kernel(t.size, ell)
-        # Signal variance s2 and noise variance enter as C = k + (noise / s2 + jitter) I;
-        # s2 is unknown, so the samples' variance stands in for it here.
-        cov = k + (noise / scale + GP_JITTER) * eye
-        chol = np.linalg.cholesky(cov)
-        ci_h, ci_y = _cholesky_solve(chol, basis), _cholesky_solve(chol, y)
-        beta = np.linalg.lstsq(basis.T @ ci_h, basis.T @ ci_y, rcond=None)[0]
-        resid = y - basis @ beta
-        ci_r = _cholesky_solve(chol, resid)
-        s2 = max(float(resid @ ci_r) / t.size, 1e-300)
-        nll = t.size * math.log(s2) + 2.0 * float(np.sum(np.log(np.diag(chol))))
+    for i in range(lengths):
+        s2 = max(float(resid[i] @ ci_r[i]) / t.size, 1e-300)
+        nll = t.size * math.log(s2) + 2.0 * float(np.sum(np.log(np.diag(chol[i]))))
         if best is None or nll < best[0]:
-            pred = float(np.array([1.0, float(t.size)]) @ beta + k_new @ ci_r)
+            pred = float(np.array([1.0, float(t.size)]) @ betas[i] + k_new[i] @ ci_r[i])
             best = (nll, pred)
     return best[1]
 
