@@ -176,7 +176,9 @@ class CountedARX(ARX):
         if not self.refit:
             return self
         source = ARX(self.order, self.window, self.affine, self.name)
+        # the same data (samples, and the pairs made from them as they came), no fit yet
         source.xs, source.us, source.last_seen = self.xs, self.us, self.last_seen
+        source._pairs = self._pairs
         return source
 
     def leverage(self, pre):
@@ -410,3 +412,29 @@ def test_auto_is_no_worse_than_persist_under_honest_noise(surface):
             run_local(RunConfig(surface=surface, estimator=estimator, seed=seed, **NOISY))[0]
             ["followers"]["1"]["mean_required_range"] for seed in range(3)])
     assert means["auto"] <= means["persist"]
+
+
+@pytest.mark.parametrize("order, window", [(1, None), (2, None), (2, 4)])
+def test_arx_keeps_each_pair_as_a_refit_from_its_samples_would_make_it(order, window):
+    """ARX makes each pair's regressor once, as its sample arrives; what it fits on is what
+    rebuilding every pair from the kept samples gives (the newest ``window``), across a
+    chain restarted by a lost tick and windows that drop old samples."""
+    from protocol.messages import Sensing
+
+    rng = np.random.default_rng(7)
+    arx = ARX(order=order, window=window, affine=True)
+    for tick in range(30):
+        settled = Sensing(tick=tick, r=3.0 + rng.normal(0, 0.1), theta=rng.normal(0, 0.3))
+        arx.record(settled, None if tick == 12 else rng.normal(0, 0.5, 2))
+        n_pairs = len(arx.us) - order + 1
+        if n_pairs < 1:
+            with pytest.raises(NotFitted):
+                arx._fit()
+            continue
+        first = len(arx.us) - n_pairs if window is None else max(len(arx.us) - n_pairs,
+                                                                  len(arx.us) - window)
+        rows = range(first, len(arx.us))
+        phi = np.array([np.concatenate([part for k in range(order) for part in (
+            arx.xs[i - k], arx.us[i - k])] + [np.ones(1)]) for i in rows])
+        _, _, fitted = arx._fit()
+        assert fitted.tolist() == phi.tolist()

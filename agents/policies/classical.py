@@ -285,16 +285,19 @@ class ARX(Policy):
         self.xs: deque[np.ndarray] = deque(maxlen=None if keep is None else keep + 1)
         self.us: deque[np.ndarray] = deque(maxlen=keep)
         self.last_seen: np.ndarray | None = None  # measured relative(settled_j)
+        # each pair's regressor and target, made once when its sample arrives (a pair never
+        # changes while it is kept): the newest ``window`` of them, all if None
+        self._pairs: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=window)
         # the fit of the data above (coefficients, projector), until they change
         self._fitted: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
-    def _regressor(self, end: int, u_now: np.ndarray | None = None,
-                   samples: tuple[list, list] | None = None) -> np.ndarray:
-        """``[x_end, u_end, x_{end-1}, u_{end-1}, ... (, 1)]`` over ``order`` lags, from
-        ``samples`` (``xs`` and ``us`` as lists; default: the policy's, copied)."""
-        xs, us = (list(self.xs), list(self.us)) if samples is None else samples
+    def _regressor(self, end: int, u_now: np.ndarray | None = None) -> np.ndarray:
+        """``[x_end, u_end, x_{end-1}, u_{end-1}, ... (, 1)]`` over ``order`` lags of the
+        policy's samples, ``u_now`` appended to its ``u`` when given (the coming
+        prediction's)."""
+        xs, us = self.xs, self.us
         if u_now is not None:
-            us = [*us, u_now]
+            xs, us = list(xs), [*us, u_now]
         parts = []
         for k in range(self.order):
             parts += [xs[end - k], us[end - k]]
@@ -310,16 +313,11 @@ class ARX(Policy):
         data."""
         if self._fitted is not None:
             return self._fitted
-        n_pairs = len(self.us) - self.order + 1  # pairs (phi_i -> x_{i+1}), i = order-1 .. j-1
-        if n_pairs < 1:
+        # pairs (phi_i -> x_{i+1}), i = order-1 .. j-1, the newest ``window`` of them
+        if not self._pairs:
             raise NotFitted(f"{self.name} needs {self.order + 1} connected samples")
-        first = len(self.us) - n_pairs
-        if self.window is not None:
-            first = max(first, len(self.us) - self.window)
-        rows = range(first, len(self.us))
-        samples = list(self.xs), list(self.us)  # once, not once a row
-        phi = np.array([self._regressor(i, samples=samples) for i in rows])
-        target = np.array([self.xs[i + 1] for i in rows])
+        phi = np.array([row for row, _ in self._pairs])
+        target = np.array([x for _, x in self._pairs])
         pinv = np.linalg.pinv(phi, rcond=RCOND)
         self._fitted = (pinv @ target, pinv, phi)  # (p, 2), and for leverage's projector
         return self._fitted
@@ -363,8 +361,11 @@ class ARX(Policy):
         else:
             self.xs.clear()
             self.us.clear()
+            self._pairs.clear()
         self.xs.append(seen)
         self.last_seen = seen
+        if len(self.us) >= self.order:  # the pair ending at this sample
+            self._pairs.append((self._regressor(len(self.us) - 1), seen))
         return float(seen[0]), float(seen[1])
 
     def skip(self) -> None:
@@ -372,4 +373,5 @@ class ARX(Policy):
         self._fitted = None
         self.xs.clear()
         self.us.clear()
+        self._pairs.clear()
         self.last_seen = None
