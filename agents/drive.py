@@ -510,8 +510,13 @@ class _Fixed:
         self.points: list[tuple[np.ndarray, float]] = []
 
     def add(self, position: np.ndarray, offset: np.ndarray) -> None:
+        """A reading ``offset`` (2,) taken from the dead-reckoned ``position`` (2,)."""
         distance = math.hypot(offset[0], offset[1])
-        self.points.append((position + offset, self.limits.reading_variance(distance)))
+        self.add_point(position + offset, self.limits.reading_variance(distance))
+
+    def add_point(self, point: np.ndarray, variance: float) -> None:
+        """An estimate ``point`` (2,) of the point, of ``variance`` (both coordinates)."""
+        self.points.append((point, variance))
 
     def drift(self, step: int) -> None:
         """Step ``step`` was driven: every earlier reading drifts by its odometry noise."""
@@ -526,6 +531,12 @@ class _Fixed:
         weights = np.array([1.0 / v for _, v in self.points])
         goal = sum(w * p for w, (p, _) in zip(weights, self.points)) / weights.sum()
         return goal, math.sqrt(0.5 / weights.sum())
+
+    def seen_from(self, position: np.ndarray) -> tuple[np.ndarray, float]:
+        """:meth:`estimate` as an offset from ``position`` (2,), with its variance (both
+        coordinates together)."""
+        point, sigma = self.estimate()
+        return point - position, 2.0 * sigma * sigma
 
 
 @dataclass(frozen=True)
@@ -554,7 +565,7 @@ class Driven:
         if self.leader is None or self.limits is None:
             return reading
         looks = _Fixed(self.limits)
-        looks.points.append((self.leader, self.leader_variance))
+        looks.add_point(self.leader, self.leader_variance)
         looks.add(np.zeros(2), reading)
         return looks.estimate()[0]
 
@@ -612,9 +623,7 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
             if reply.rod is not None:
                 rod.add(position, np.asarray(reply.rod))
             target, spread = rod.estimate()
-    seen, sigma = leader.estimate()
-    seen = (seen - position, 2.0 * sigma * sigma, limits)
-    if moved.rod is None or not rod.points:
-        return Driven(moved, travelled, None, 0.0, *seen)
-    best, sigma = rod.estimate()
-    return Driven(moved, travelled, best - position, 2.0 * sigma * sigma, *seen)
+    seen, variance = leader.seen_from(position)
+    residual, residual_variance = (rod.seen_from(position) if moved.rod is not None
+                                   and rod.points else (None, 0.0))
+    return Driven(moved, travelled, residual, residual_variance, seen, variance, limits)
