@@ -234,6 +234,28 @@ def bounded_interrupt(grace: float = INTERRUPT_GRACE_S) -> Iterator[None]:
             raise SystemExit(128 + signal.SIGTERM)
 
 
+@contextlib.contextmanager
+def stops_deferred() -> Iterator[None]:
+    """Within the block, Ctrl-C and SIGTERM wait: they are delivered, to whatever handles them
+    outside, once it is done. For a step that must not be cut in half — spawning a child
+    process and keeping its handle, so that the cleanup can end it (a stop arriving between
+    the two left an agent running after ``swarm run`` exited). Outside the main thread this
+    does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous = {sig: signal.signal(sig, lambda signum, frame: held.append(signum))
+                for sig in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for sig in dict.fromkeys(held):
+            signal.raise_signal(sig)
+
+
 def _exit_interrupted(grace: float, status: int) -> None:
     sys.stderr.write(f"interrupted: cleanup still running after {grace:g} s; exiting\n")
     sys.stderr.flush()

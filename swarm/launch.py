@@ -24,7 +24,7 @@ import zenoh
 from agents.follower import run_follower
 from agents.leader import run_leader
 from agents.link import AgentAbort, RunFinished
-from protocol.cli import describe
+from protocol.cli import describe, stops_deferred
 from protocol.config import AgentSettings, RunConfig
 from protocol.folder import FolderLock, open_file
 from protocol.messages import safe_text
@@ -164,6 +164,11 @@ class _ProcessAgents:
         # the results folder (the world's secrets); a follower keeps its state there too
         briefs = write_briefs(service.config, self.credentials.folder)
         cmds = agent_commands(briefs, self.endpoint, self.config.followers, self.credentials)
+        with stops_deferred():  # every agent started is in self.procs, for stop() to end
+            self._spawn(cmds)
+        threading.Thread(target=self._watch, args=(service,), daemon=True).start()
+
+    def _spawn(self, cmds: list[list[str]]) -> None:
         for k, cmd in enumerate(cmds):
             log_fd = open_file(self.out_dir / "logs" / f"agent-{k}.log",
                                os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
@@ -173,7 +178,6 @@ class _ProcessAgents:
                 self.procs.append(subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT,
                                                    stdin=subprocess.DEVNULL,
                                                    start_new_session=True))
-        threading.Thread(target=self._watch, args=(service,), daemon=True).start()
 
     def _watch(self, service: WorldService) -> None:
         """End the run when an agent fails; in realtime an agent killed by a signal is only

@@ -126,3 +126,26 @@ def test_a_discarded_folder_takes_nothing_that_is_not_its_own(tmp_path):
     found = NewFolder(tmp_path / "runs", None)  # it was there: nothing is made, nothing goes
     found.discard()
     assert (tmp_path / "runs" / "b").is_dir() and not found.made
+
+
+def test_a_stop_during_a_step_that_must_finish_waits_for_it():
+    """``protocol.cli.stops_deferred``: Ctrl-C arriving while ``swarm run`` spawns its agents
+    waits until every agent it started is held (one was left running once the launcher had
+    exited); then it acts as it would have, a ``KeyboardInterrupt`` after the block."""
+    import subprocess
+    import sys
+
+    script = (
+        "import os, signal\n"
+        "from protocol.cli import stops_deferred\n"
+        "done = []\n"
+        "try:\n"
+        "    with stops_deferred():\n"
+        "        os.kill(os.getpid(), signal.SIGINT)\n"
+        "        done.append('finished')\n"
+        "    print('not interrupted')\n"
+        "except KeyboardInterrupt:\n"
+        "    print('interrupted after', done)\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=60, cwd=Path(__file__).resolve().parents[1])
+    assert out.stdout.strip() == "interrupted after ['finished']", out
