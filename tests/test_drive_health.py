@@ -200,6 +200,25 @@ def test_the_distance_to_teleport_does_not_grow_with_the_control_steps():
     assert all(math.isfinite(d) and d < 0.02 for d in distances), distances
 
 
+def test_the_columns_distance_to_teleport_does_not_grow_with_the_control_steps():
+    """The same for a 3-follower column over a whole run on wavy, where the study's axis (the
+    window's steps scaled with the move phase's) grows: with ``--control-steps`` alone
+    growing, the mean distance to the teleport run over followers and ticks stays within a
+    tenth of four steps' (docs/drive.md, after the study's control-step axis)."""
+    base = dict(surface="wavy", followers=3, ticks=40, estimator="persist")
+    _, teleport = run_local(RunConfig(**base))
+    where = {(r["agent"], r["tick"]): np.array([r["pos_x"], r["pos_y"]])
+             for r in teleport if r["agent"]}
+    distances = []
+    for steps in (4, 8, 16, 64):
+        _, rows = run_local(RunConfig(**base, motion="drive", control_steps=steps))
+        distances.append(float(np.mean([
+            np.linalg.norm(np.array([r["pos_x"], r["pos_y"]]) - where[r["agent"], r["tick"]])
+            for r in rows if r["agent"]])))
+    assert max(distances[1:]) <= distances[0] * 1.1, distances
+    assert all(0.0 < d < 0.02 for d in distances), distances
+
+
 def test_a_broken_formation_is_a_failure_of_every_command():
     """``world.results.run_failure`` is the one verdict of ``swarm run`` and ``python -m world``:
     an incomplete run first, then a broken formation, and nothing for a healthy run."""
