@@ -5,9 +5,10 @@ iterating on its own odometry, and the discrepancy accumulates) and never measur
 study does, with followers that drive (``--motion drive``): the required sensing range and the
 formation error against
 
-- the **control steps** per comm interval (2 … 64, ``snap_steps = control_steps / 2``; the
-  correction window keeps its third of the comm period, so only the granularity of control
-  changes),
+- the **control steps** per comm interval (2 … 64, the correction window's default 4 steps:
+  issue #30's axis), and again with the window's steps scaled with them (``snap_steps =
+  control_steps / 2``, block ``window``); either way the window keeps its third of the comm
+  period, so only the granularity of control changes,
 - the **top speed**, as a multiple of the leader's speed (from just above it to unbounded),
 - the **comm period**, crossed with the top speed (the minimum top speed per surface and
   comm period comes from this block),
@@ -95,7 +96,7 @@ class StudyRun:
 
     surface: str
     estimator: str
-    block: str  # "steps", "speed", "teleport" or "noise"
+    block: str  # "steps", "window", "speed", "teleport" or "noise"
     config: RunConfig
     speed_factor: float
     noise: str = "none"
@@ -115,10 +116,12 @@ def _leader_speed(options: dict) -> float:
     return leader_speed(config, surface)
 
 
-def _drive(steps: int, max_speed: float) -> dict:
-    """A driving robot's options: ``steps`` control steps, half as many correction steps, at
-    the top speed ``max_speed`` (the default robot has ``spec.base_steps``)."""
-    return {"control_steps": steps, "snap_steps": max(1, steps // 2), "max_speed": max_speed}
+def _drive(steps: int, max_speed: float, window: int | None = None) -> dict:
+    """A driving robot's options: ``steps`` control steps, ``window`` correction steps (default
+    half as many), at the top speed ``max_speed`` (the default robot has ``spec.base_steps``
+    and half as many, the run's defaults)."""
+    return {"control_steps": steps, "snap_steps": max(1, steps // 2) if window is None
+            else window, "max_speed": max_speed}
 
 
 def study_runs(spec: DriveStudySpec) -> list[StudyRun]:
@@ -128,7 +131,10 @@ def study_runs(spec: DriveStudySpec) -> list[StudyRun]:
         options, duration = _surface_options(surface, spec)
         speed = _leader_speed(options)
         cases = [("teleport", period, {}) for period in spec.comm_periods]
-        cases += [("steps", spec.base_period, _drive(steps, spec.base_factor * speed))
+        cases += [("steps", spec.base_period, _drive(steps, spec.base_factor * speed,
+                                                     max(1, spec.base_steps // 2)))
+                  for steps in spec.control_steps]
+        cases += [("window", spec.base_period, _drive(steps, spec.base_factor * speed))
                   for steps in spec.control_steps]
         cases += [("speed", period, _drive(spec.base_steps, factor * speed))
                   for period in spec.comm_periods for factor in spec.speed_factors]
@@ -285,30 +291,42 @@ def write_report(out_dir: Path, rows: list[dict], minimum: list[dict], spec: Dri
                 cells.append(_factor(match[0]["min_speed_factor"])
                              + ("" if math.isinf(best) else f" ({_factor(best)})"))
             lines.append(f"| {surface} | {period:g} | " + " | ".join(cells) + " |")
-    lines += ["", "## Formation error against control steps", "",
-              f"T_c = {spec.base_period:g}, top speed {spec.base_factor:g}× the leader's, "
-              "correction window a third of the comm period; teleport: the same column "
-              "teleporting.",
-              ""]
-    head = ["surface", "estimator", *[str(n) for n in spec.control_steps], "teleport"]
-    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for surface in spec.surfaces:
-        for label in spec.estimators:
-            cells = []
-            for steps in spec.control_steps:
-                match = [r for r in rows if r["block"] == "steps" and r["surface"] == surface
-                         and r["estimator"] == label and r["control_steps"] == steps]
-                cells.append(table_number(match[0]["mean_formation_error"]) if match else "-")
-            tele = [r for r in rows if r["block"] == "teleport" and r["surface"] == surface
-                    and r["estimator"] == label and r["comm_period"] == spec.base_period]
-            cells.append(table_number(tele[0]["mean_formation_error"]) if tele else "-")
-            lines.append(f"| {surface} | {label} | " + " | ".join(cells) + " |")
+    lines += _steps_table(rows, spec, "steps", "## Formation error against control steps",
+                          f"the correction window's {max(1, spec.base_steps // 2)} steps "
+                          "(the default)")
+    lines += _steps_table(rows, spec, "window", "## The same, the window's steps scaled too",
+                          "as many correction steps as half the control steps (docs/drive.md "
+                          "says why a finer window lands worse)")
     lines += _noise_table(rows, spec)
     incomplete = [r for r in rows if not r["complete"]]
     lines += ["", f"Runs that ended early: {len(incomplete)}."]
     path = out_dir / "report.md"
     write_atomic(path, "\n".join(lines) + "\n")
     return path
+
+
+def _steps_table(rows: list[dict], spec: DriveStudySpec, block: str, title: str,
+                 window: str) -> list[str]:
+    """The report's table of the mean formation error against the control steps (``block``
+    ``steps`` or ``window``), beside the same column teleporting."""
+    lines = ["", title, "",
+             f"T_c = {spec.base_period:g}, top speed {spec.base_factor:g}× the leader's, "
+             f"{window}, the window a third of the comm period; teleport: the same column "
+             "teleporting.", ""]
+    head = ["surface", "estimator", *[str(n) for n in spec.control_steps], "teleport"]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for surface in spec.surfaces:
+        for label in spec.estimators:
+            cells = []
+            for steps in spec.control_steps:
+                match = [r for r in rows if r["block"] == block and r["surface"] == surface
+                         and r["estimator"] == label and r["control_steps"] == steps]
+                cells.append(table_number(match[0]["mean_formation_error"]) if match else "-")
+            tele = [r for r in rows if r["block"] == "teleport" and r["surface"] == surface
+                    and r["estimator"] == label and r["comm_period"] == spec.base_period]
+            cells.append(table_number(tele[0]["mean_formation_error"]) if tele else "-")
+            lines.append(f"| {surface} | {label} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def within_bound(drive: float, teleport: float) -> bool:

@@ -525,7 +525,10 @@ def test_the_drive_study_writes_its_table_figure_and_report(tmp_path, capsys):
                        "1"]) == 0
     rows = read_table(out / "tables" / "drive.csv")
     assert len(rows) == len(study_runs(QUICK))
-    assert {r["block"] for r in rows} == {"teleport", "steps", "speed", "noise"}
+    assert {r["block"] for r in rows} == {"teleport", "steps", "window", "speed", "noise"}
+    steps = {(r["block"], r["control_steps"], r["snap_steps"]) for r in rows
+             if r["block"] in ("steps", "window") and r["surface"] == "wavy"}
+    assert steps == {("steps", 2, 4), ("steps", 8, 4), ("window", 2, 1), ("window", 8, 4)}
     noisy = [r for r in rows if r["block"] == "noise"]
     assert {(r["noise"], r["motion"]) for r in noisy} == {
         (level, motion) for level in QUICK.noise_levels for motion in ("drive", "teleport")}
