@@ -399,8 +399,11 @@ class WorldService:
                     if self.config.mode == "realtime":
                         self._mark_missed(agent, "its process vanished")
                     else:  # lockstep: it redoes the tick when it is back (design §4)
-                        log.warning("world: agent %d vanished during tick %d; its tick is rolled "
-                                    "back until it is back", agent, tick)
+                        # once the run is ending the agents leave: no warning (the end line
+                        # alone says why the run ended)
+                        report = log.warning if self._ended is None else log.info
+                        report("world: agent %d vanished during tick %d; its tick is rolled "
+                               "back until it is back", agent, tick)
                         self._roll_back(agent)
             self._cond.notify_all()
 
@@ -643,6 +646,8 @@ class WorldService:
         name = Path(exc.filename).name if exc.filename else "the results"
         reason = f"cannot write {name}: {exc.strerror or exc}"
         with self._cond:
+            if self._ended is None:  # the run is ending: its agents leave without a warning
+                self._ended = reason
             try:
                 self.recorder.write_summary(complete=False, reason=reason, wall_time=self._wall(),
                                             final=True)
