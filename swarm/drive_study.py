@@ -117,11 +117,11 @@ def _leader_speed(options: dict) -> float:
 
 
 def _drive(steps: int, max_speed: float, window: int | None = None) -> dict:
-    """A driving robot's options: ``steps`` control steps, ``window`` correction steps (default
-    half as many), at the top speed ``max_speed`` (the default robot has ``spec.base_steps``
-    and half as many, the run's defaults)."""
-    return {"control_steps": steps, "snap_steps": max(1, steps // 2) if window is None
-            else window, "max_speed": max_speed}
+    """A driving robot's options: ``steps`` control steps, ``window`` correction steps (default:
+    the run's, :class:`RunConfig`'s ``snap_steps``), at the top speed ``max_speed`` (the default
+    robot has ``spec.base_steps``)."""
+    return {"control_steps": steps, "max_speed": max_speed,
+            **({} if window is None else {"snap_steps": window})}
 
 
 def study_runs(spec: DriveStudySpec) -> list[StudyRun]:
@@ -131,10 +131,10 @@ def study_runs(spec: DriveStudySpec) -> list[StudyRun]:
         options, duration = _surface_options(surface, spec)
         speed = _leader_speed(options)
         cases = [("teleport", period, {}) for period in spec.comm_periods]
-        cases += [("steps", spec.base_period, _drive(steps, spec.base_factor * speed,
-                                                     max(1, spec.base_steps // 2)))
+        cases += [("steps", spec.base_period, _drive(steps, spec.base_factor * speed))
                   for steps in spec.control_steps]
-        cases += [("window", spec.base_period, _drive(steps, spec.base_factor * speed))
+        cases += [("window", spec.base_period, _drive(steps, spec.base_factor * speed,
+                                                      max(1, steps // 2)))
                   for steps in spec.control_steps]
         cases += [("speed", period, _drive(spec.base_steps, factor * speed))
                   for period in spec.comm_periods for factor in spec.speed_factors]
@@ -292,7 +292,7 @@ def write_report(out_dir: Path, rows: list[dict], minimum: list[dict], spec: Dri
                              + ("" if math.isinf(best) else f" ({_factor(best)})"))
             lines.append(f"| {surface} | {period:g} | " + " | ".join(cells) + " |")
     lines += _steps_table(rows, spec, "steps", "## Formation error against control steps",
-                          f"the correction window's {max(1, spec.base_steps // 2)} steps "
+                          f"the correction window's {RunConfig().snap_steps} steps "
                           "(the default)")
     lines += _steps_table(rows, spec, "window", "## The same, the window's steps scaled too",
                           "as many correction steps as half the control steps (docs/drive.md "
