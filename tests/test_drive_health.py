@@ -184,18 +184,26 @@ def test_teleport_runs_stay_healthy_under_noise(estimator):
     assert max(f["worst_formation_error"] for f in summary["followers"].values()) < 0.7
 
 
+def _to_teleport(base: dict, steps: tuple[int, ...]) -> list[np.ndarray]:
+    """Per number of control steps (the other options default), every follower-tick's
+    distance from where the same run teleporting put that follower (noise-free, m)."""
+    _, teleport = run_local(RunConfig(**base))
+    where = {(r["agent"], r["tick"]): np.array([r["pos_x"], r["pos_y"]])
+             for r in teleport if r["agent"]}
+    out = []
+    for n in steps:
+        _, rows = run_local(RunConfig(**base, motion="drive", control_steps=n))
+        out.append(np.array([np.linalg.norm(np.array([r["pos_x"], r["pos_y"]])
+                                            - where[r["agent"], r["tick"]])
+                             for r in rows if r["agent"]]))
+    return out
+
+
 def test_the_distance_to_teleport_does_not_grow_with_the_control_steps():
     """Default limits, no noise: more control steps never take follower 1 further from the
     teleport run (the correction window keeps its third of T_c)."""
-    base = dict(surface="wavy", followers=1, ticks=12, estimator="persist")
-    _, teleport = run_local(RunConfig(**base))
-    where = {r["tick"]: np.array([r["pos_x"], r["pos_y"]]) for r in teleport if r["agent"]}
-    distances = []
-    for steps in (4, 8, 16, 32):
-        _, rows = run_local(RunConfig(**base, motion="drive", control_steps=steps))
-        distances.append(max(float(np.linalg.norm(np.array([r["pos_x"], r["pos_y"]])
-                                                  - where[r["tick"]]))
-                             for r in rows if r["agent"]))
+    distances = [float(d.max()) for d in _to_teleport(
+        dict(surface="wavy", followers=1, ticks=12, estimator="persist"), (4, 8, 16, 32))]
     assert max(distances[1:]) <= distances[0] * 1.5 + 1e-3, distances
     assert all(math.isfinite(d) and d < 0.02 for d in distances), distances
 
@@ -205,16 +213,8 @@ def test_the_columns_distance_to_teleport_does_not_grow_with_the_control_steps()
     window's steps scaled with the move phase's) grows: with ``--control-steps`` alone
     growing, the mean distance to the teleport run over followers and ticks stays within a
     tenth of four steps' (docs/drive.md, after the study's control-step axis)."""
-    base = dict(surface="wavy", followers=3, ticks=40, estimator="persist")
-    _, teleport = run_local(RunConfig(**base))
-    where = {(r["agent"], r["tick"]): np.array([r["pos_x"], r["pos_y"]])
-             for r in teleport if r["agent"]}
-    distances = []
-    for steps in (4, 8, 16, 64):
-        _, rows = run_local(RunConfig(**base, motion="drive", control_steps=steps))
-        distances.append(float(np.mean([
-            np.linalg.norm(np.array([r["pos_x"], r["pos_y"]]) - where[r["agent"], r["tick"]])
-            for r in rows if r["agent"]])))
+    distances = [float(d.mean()) for d in _to_teleport(
+        dict(surface="wavy", followers=3, ticks=40, estimator="persist"), (4, 8, 16, 64))]
     assert max(distances[1:]) <= distances[0] * 1.1, distances
     assert all(0.0 < d < 0.02 for d in distances), distances
 
