@@ -7,6 +7,13 @@
    per follower is the heading error the follower passes down the column (``d ×`` it at the
    next rod end); with no noise it is the goal heading's own error (the fit's lag), since the
    robot executes its heading exactly.
+   Split in two: the **goal heading** the controller steered for at its last step (its
+   estimate of where to settle, :func:`agents.drive.goal_heading` through
+   :class:`agents.drive.Track`) against the heading of the ideal rod end (design §3,
+   :func:`world.geometry.heading_at_rod_end`), and the **execution**: the heading it settled
+   with against that goal heading (its heading filter, the turn limit, the actuation noise).
+   Median, rms and worst of each; the rms of a few ticks far off can exceed the median many
+   times.
 2. **Rules on the ideal column** (no robot): along the ideal formation of the same surface,
    the error of two estimates of a rod's end tangent ``u`` from what a follower at the rod end
    could know — the chord alone (``χ``, the direction from the rod's start to its end) and the
@@ -18,6 +25,7 @@ Figures depend on nothing but the configuration; nothing here is asserted.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 from pathlib import Path
@@ -26,6 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agents import drive, follower  # noqa: E402
 from protocol.config import RunConfig  # noqa: E402
 from swarm.local import run_local  # noqa: E402
 from world import geometry  # noqa: E402
@@ -40,25 +49,57 @@ def _wrap(a: float) -> float:
     return math.atan2(math.sin(a), math.cos(a))
 
 
-def settled_rod_errors(config: RunConfig) -> dict[int, np.ndarray]:
-    """Per follower, the chart angle from its predecessor's actual rod end tangent to its own
-    settled rod, one per tick (initial ticks included)."""
-    _, rows = run_local(config)
+@contextlib.contextmanager
+def _noting_goal_headings(noted: dict[tuple[int, int], float]):
+    """Meanwhile, note in ``noted[(agent, tick)]`` the goal heading of each driving tick's last
+    control step (the controller's own functions wrapped from outside, for this figure only)."""
+    last: list[float] = []
+    plain_command, plain_tick = drive.step_command, follower.drive_tick
+
+    def command(position, heading, slope, goal, goal_heading, *args, **kwargs):
+        last[:] = [goal_heading]
+        return plain_command(position, heading, slope, goal, goal_heading, *args, **kwargs)
+
+    def tick(act, pre, *args, **kwargs):
+        driven = plain_tick(act, pre, *args, **kwargs)
+        noted[act.__self__.agent, pre.tick] = last[0]  # act: a swarm.local.LocalLink's
+        return driven
+
+    drive.step_command, follower.drive_tick = command, tick
+    try:
+        yield
+    finally:
+        drive.step_command, follower.drive_tick = plain_command, plain_tick
+
+
+def settled_rod_errors(config: RunConfig) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray],
+                                                   dict[int, np.ndarray]]:
+    """Per follower, one per tick (initial ticks included): the chart angle from its
+    predecessor's actual rod end tangent to its own settled rod; the goal heading's error
+    (against the heading at the actual rod end); the execution's (settled against goal)."""
+    noted: dict[tuple[int, int], float] = {}
+    with _noting_goal_headings(noted):
+        _, rows = run_local(config)
     surface = make_surface(config.surface)
     pose = {(r["tick"], r["agent"]): (np.array([r["pos_x"], r["pos_y"]]),
                                       np.array([r["heading_x"], r["heading_y"]]))
             for r in rows}
     ticks = sorted({t for t, _ in pose})
     errors: dict[int, np.ndarray] = {}
+    goals: dict[int, np.ndarray] = {}
+    executions: dict[int, np.ndarray] = {}
     for k in range(1, config.followers + 1):
-        series = []
+        series, goal, execution = [], [], []
         for j in ticks:
             (p0, h0), (p1, h1) = pose[j, k - 1], pose[j, k]
-            _, u = geometry.rod_end(surface, p0, h0, config.spacing, config.side_sign)
+            end, u = geometry.rod_end(surface, p0, h0, config.spacing, config.side_sign)
             n = geometry.rod_normal(surface, p1, h1, config.side_sign)
             series.append(_wrap(_angle(n) - _angle(u)))
-        errors[k] = np.array(series)
-    return errors
+            ideal = _angle(geometry.heading_at_rod_end(surface, end, u, config.side_sign))
+            goal.append(_wrap(noted[k, j] - ideal))
+            execution.append(_wrap(_angle(h1) - noted[k, j]))
+        errors[k], goals[k], executions[k] = map(np.array, (series, goal, execution))
+    return errors, goals, executions
 
 
 def rule_errors(name: str, followers: int, ticks: int, spacing: float,
@@ -97,11 +138,18 @@ def main() -> None:
                        noise_bearing=sigma_t, estimator="persist", motion="drive")
     print(f"{args.surface}, {args.followers} followers, σ {args.noise}, seed {args.seed}: "
           "settled rod vs its predecessor's end tangent (rad), estimated ticks")
-    print("| follower | mean | rms | worst |\n|---|---|---|---|")
-    for k, e in settled_rod_errors(config).items():
-        e = e[config.init_ticks:]
+    print("| follower | mean | rms | worst | goal heading: median / rms / worst | "
+          "execution: median / rms / worst |\n|---|---|---|---|---|---|")
+    errors, goals, executions = settled_rod_errors(config)
+
+    def spread(e: np.ndarray) -> str:
+        return (f"{np.median(np.abs(e)):.4f} / {math.sqrt((e * e).mean()):.4f} / "
+                f"{np.abs(e).max():.4f}")
+
+    for k, e in errors.items():
+        e, goal, execution = (x[config.init_ticks:] for x in (e, goals[k], executions[k]))
         print(f"| {k} | {e.mean():+.4f} | {math.sqrt((e * e).mean()):.4f} | "
-              f"{np.abs(e).max():.4f} |")
+              f"{np.abs(e).max():.4f} | {spread(goal)} | {spread(execution)} |")
     print(f"\nrules on the ideal {args.surface} column (rad)")
     print("| rule | mean abs | worst |\n|---|---|---|")
     for rule, e in rule_errors(args.surface, args.followers, args.ticks, config.spacing,
