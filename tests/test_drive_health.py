@@ -10,7 +10,7 @@ import pytest
 
 from agents.drive import Driven, Limits, Settled, Track, goal_heading
 from agents.follower import at_rod_end
-from protocol.config import AgentSettings, RunConfig, estimator_options
+from protocol.config import CORRECTION_SHARE, AgentSettings, RunConfig, estimator_options
 from protocol.messages import Control, Sensing, Snap
 from swarm.cli import main as swarm_main
 from swarm.local import run_local
@@ -73,15 +73,17 @@ def test_case_c_no_spin_without_noise():
 
 
 def test_a_ticks_steps_fill_its_comm_period():
-    """The move phase takes two thirds of T_c whatever the step counts, the correction window
-    the rest; without a window the move phase takes it all."""
+    """The move phase takes its share of T_c (all but the correction window's,
+    ``CORRECTION_SHARE``) whatever the step counts, the correction window the rest; without a
+    window the move phase takes it all."""
     for steps, snap in ((8, 4), (3, 7), (64, 4), (5, 0)):
         config = RunConfig(motion="drive", control_steps=steps, snap_steps=snap)
         total = sum(config.step_duration(k) for k in range(config.tick_steps))
         assert total == pytest.approx(config.comm_period, rel=1e-12)
         assert config.step_start(config.tick_steps) == pytest.approx(config.comm_period)
         if snap:
-            assert config.step_start(steps) == pytest.approx(config.comm_period * 2 / 3)
+            assert config.step_start(steps) == pytest.approx(
+                config.comm_period * (1.0 - CORRECTION_SHARE))
     with pytest.raises(ValueError, match="step"):
         RunConfig(motion="drive").step_duration(12)
 
