@@ -101,8 +101,9 @@ unicycle under way at ``v`` that turns out at its top rate ``ω`` and back withi
 s, under way at about 1.3 m/s when it looks) that is 0.13 m in a third of ``T_c`` and 0.27 m in
 half, and the landings that broke 5-follower columns at σ 0.05/0.03 with a third were
 0.27–0.30 m off sideways (docs/drive.md). The cost is an earlier look, from about twice as far
-(noise-free on elliptic, mean required range 0.39 m against 0.20 m), still a tenth of the rod
-along which the follower reads its leader at every step."""
+(the drive study's default robot, noise-free: mean required range 0.31–0.81 m against
+0.16–0.44 m), still under a quarter of the rod along which the follower reads its leader at
+every step."""
 ACCEL_FACTOR = 4.0
 """``max_accel``'s default, in ``max_speed / comm_period``: top speed from rest in a quarter
 of a comm period (docs/drive.md)."""

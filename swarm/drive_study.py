@@ -7,8 +7,8 @@ formation error against
 
 - the **control steps** per comm interval (2 … 64, the correction window's default 4 steps:
   issue #30's axis), and again with the window's steps scaled with them (``snap_steps =
-  control_steps / 2``, block ``window``); either way the window keeps its third of the comm
-  period, so only the granularity of control changes,
+  control_steps / 2``, block ``window``); either way the window keeps its share of the comm
+  period (``protocol.config.CORRECTION_SHARE``), so only the granularity of control changes,
 - the **top speed**, as a multiple of the leader's speed (from just above it to unbounded),
 - the **comm period**, crossed with the top speed (the minimum top speed per surface and
   comm period comes from this block),
@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.config import RunConfig, estimator_options
+from protocol.config import CORRECTION_SHARE, RunConfig, estimator_options
 from protocol.folder import write_atomic
 from swarm.grid import number, table_number, write_table
 
@@ -311,8 +311,8 @@ def _steps_table(rows: list[dict], spec: DriveStudySpec, block: str, title: str,
     ``steps`` or ``window``), beside the same column teleporting."""
     lines = ["", title, "",
              f"T_c = {spec.base_period:g}, top speed {spec.base_factor:g}× the leader's, "
-             f"{window}, the window a third of the comm period; teleport: the same column "
-             "teleporting.", ""]
+             f"{window}, the window taking {CORRECTION_SHARE:.0%} of the comm period; teleport: "
+             "the same column teleporting.", ""]
     head = ["surface", "estimator", *[str(n) for n in spec.control_steps], "teleport"]
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for surface in spec.surfaces:
