@@ -2,10 +2,9 @@
 
 A run folder holds ``config.toml`` (written by whoever starts the run), ``ticks.csv``,
 ``observations.csv``, with ``--motion drive`` ``controls.csv``, and ``summary.json``. The
-recorder appends each complete tick to the CSV files and rewrites ``summary.json`` atomically
-when asked (the world asks at most ten times a second while the run goes, and at its end:
-``world.service.SUMMARY_EVERY_S``), so an interrupted run leaves a readable partial result
-with ``"complete": false``, and a tick's write costs the same at tick 100 as at tick 100,000.
+recorder appends each complete tick to the CSV files and rewrites ``summary.json`` atomically,
+so an interrupted run leaves a readable partial result with ``"complete": false``, and a
+tick's write costs the same at tick 100 as at tick 100,000.
 """
 from __future__ import annotations
 

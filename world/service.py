@@ -7,7 +7,6 @@
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -44,12 +43,6 @@ from world.surfaces import Surface
 from world.view import ViewPublisher
 
 log = logging.getLogger(__name__)
-
-SUMMARY_EVERY_S = 0.1
-"""A running run's ``summary.json`` is replaced after a complete tick at most this often (s):
-every tick of a realtime run, about every tenth of a second of one run in lockstep as fast as
-it goes, whose world would otherwise spend as long renaming summaries as serving its agents
-(``bench/bench_noise_cost.py``); the last summary is written whatever the interval."""
 
 
 def agent_ranges(agents, limit: int = 12) -> str:
@@ -129,7 +122,6 @@ class WorldService:
         self._rods: dict[int, set[int]] = {}  # per open tick, agents whose rod arrived
         self._progress = time.monotonic()  # when some agent last got through a tick
         self._tick_started = 0.0
-        self._summary_at = -math.inf  # when the running summary was last written
         self._alive: set[int] = set()
         # per agent, the number of its latest join (its requests carry it, design §8)
         self._epochs = [0] * self.sim.n_agents
@@ -486,9 +478,7 @@ class WorldService:
         self._rods.pop(tick, None)
         wall = self._wall()  # the checkpoint and the summary tell the same time
         self._save_state(wall)
-        if (now := time.monotonic()) - self._summary_at >= SUMMARY_EVERY_S:
-            self.recorder.write_summary(complete=False, reason="running", wall_time=wall)
-            self._summary_at = now
+        self.recorder.write_summary(complete=False, reason="running", wall_time=wall)
         self.view.publish_tick(shown)
         if self.ros2 is not None:
             self.ros2.publish_tick(shown, controls)
