@@ -62,6 +62,11 @@ MIN_CHORD = 1e-6
 TRACK = 3
 """How many past ticks the goal heading's fit spans (:func:`goal_heading`): the fit's
 noise falls and its lag grows with it; 3 was the best of 1, 3, 6 and 10 on issue #30's grid."""
+LEPSKI = 2.0
+"""How far (in its σ) a shorter fit's direction may lie from a longer one's for the goal
+heading to keep the longer (:func:`goal_heading`): about the 95 % band of a Gaussian. Beyond
+it the longer fit's lag, not the noise, explains the difference (Lepski's rule for choosing
+a smoothing window)."""
 DEGREE = 2
 """The degree of the goal heading's fit in time, below its top term (:func:`goal_heading`)."""
 TURN_SLIP = 0.1
@@ -165,7 +170,10 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
     the rod it stands at the end of, by the Gauss lemma), so its path is tangent to its
     heading. The path through the track's positions and the goal (one comm period apart) is
     fitted in time, least squares, and its tangent at the goal is the heading: the fit
-    averages the errors of the ticks it spans instead of passing them on. The fit is a cubic
+    averages the errors of the ticks it spans instead of passing them on. Under noise it spans
+    the most past ticks (up to the track's) whose fit agrees with every fit over fewer within
+    :data:`LEPSKI` of their declared σ: over ticks long enough for the path to bend within the
+    track, the shorter fit's smaller lag wins. The fit is a cubic
     whose cubic term is kept by the weight ``|c|² / (|c|² + 9 var c)`` of its declared
     variance (the points' spread, ``variance / 2`` per coordinate, through the least-squares
     covariance): without noise the cubic, whose lag on a winding path is a fourth of the
@@ -196,13 +204,31 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
     for step in reversed(track):
         positions.insert(0, positions[0] - step)
     points = np.array(positions + [chord])  # at t = -len(track) ... 0, 1
-    fit = _fit(len(track))
-    if fit.top is None:
-        tangent = fit.tangent @ points
-    else:  # the top term, as much as it stands out of the points' noise
-        top = fit.top @ points
-        kept = _weight(float(top @ top), 9.0 * variance * fit.top_variance) * top
-        tangent = fit.tangent @ points + fit.kept * kept
+
+    def fitted(ticks: int) -> tuple[np.ndarray, float]:
+        """The tangent of the fit over the last ``ticks`` displacements, and the σ (rad) of
+        its direction from the points' declared variance (its lower-degree map's)."""
+        fit, span = _fit(ticks), points[len(points) - ticks - 2:]
+        tangent = fit.tangent @ span
+        if fit.top is not None:  # the top term, as much as it stands out of the points' noise
+            top = fit.top @ span
+            tangent = tangent + fit.kept * _weight(
+                float(top @ top), 9.0 * variance * fit.top_variance) * top
+        length = math.hypot(tangent[0], tangent[1])
+        spread = math.sqrt(0.5 * variance * float(fit.tangent @ fit.tangent))
+        return tangent, (spread / length if length > 0.0 else math.inf)
+
+    if variance == 0.0:  # no noise to average: the longest fit has the least lag
+        tangent, _ = fitted(len(track))
+    else:  # the longest fit that agrees with every shorter one within their noise (Lepski)
+        seen: list[tuple[float, float]] = []
+        for ticks in range(1, len(track) + 1):
+            candidate, spread = fitted(ticks)
+            angle = forward(candidate)
+            if any(abs(wrap(angle - a)) > LEPSKI * s for a, s in seen):
+                break
+            tangent = candidate
+            seen.append((angle, spread))
     return wrap(heading + weight * wrap(forward(tangent) - heading))
 
 
