@@ -60,8 +60,9 @@ from protocol.sensing import reading_variance as sensor_variance
 MIN_CHORD = 1e-6
 """A chord (m) shorter than this, relative to the rod's length, says nothing of a direction."""
 TRACK = 3
-"""How many past ticks the goal heading's fit spans (:func:`goal_heading`): the fit's
-noise falls and its lag grows with it; 3 was the best of 1, 3, 6 and 10 on issue #30's grid."""
+"""How many past ticks the goal heading's fit spans at most (:func:`goal_heading`; under noise
+:data:`LEPSKI` may shorten it): the fit's noise falls and its lag grows with it; 3 was the best
+of 1, 3, 6 and 10 on issue #30's grid."""
 LEPSKI = 2.0
 """How far (in its σ) a shorter fit's direction may lie from a longer one's for the goal
 heading to keep the longer (:func:`goal_heading`): about the 95 % band of a Gaussian. Beyond

@@ -203,7 +203,7 @@ def _to_teleport(base: dict, steps: tuple[int, ...]) -> list[np.ndarray]:
 
 def test_the_distance_to_teleport_does_not_grow_with_the_control_steps():
     """Default limits, no noise: more control steps never take follower 1 further from the
-    teleport run (the correction window keeps its third of T_c)."""
+    teleport run (the correction window keeps its share of T_c, ``CORRECTION_SHARE``)."""
     distances = [float(d.max()) for d in _to_teleport(
         dict(surface="wavy", followers=1, ticks=12, estimator="persist"), (4, 8, 16, 32))]
     assert max(distances[1:]) <= distances[0] * 1.5 + 1e-3, distances
