@@ -4,6 +4,7 @@ is not reported as a plain success."""
 from __future__ import annotations
 
 import errno
+import json
 import math
 import os
 import threading
@@ -12,6 +13,7 @@ import pytest
 import zenoh
 
 import swarm.cli
+import world.checkpoint
 import world.main
 import world.results
 from agents import leader
@@ -265,6 +267,42 @@ def test_world_reports_a_failing_results_disk(tmp_path, monkeypatch, capsys, cod
     line = one_error_line(capsys)
     assert line.startswith(f"error: cannot write the results in {tmp_path / 'out'}: "
                            f"{os.strerror(code)}: ")
+
+
+def test_a_failing_journal_write_is_reported_as_a_failing_results_disk(tmp_path, monkeypatch,
+                                                                      capsys):
+    """The request journal is a results file too: when its append fails (the disk filled while
+    a request was answered), the world ends with the same one line as for any results file,
+    naming it, and the summary says why — not a different message for the file that filled
+    first."""
+    config = RunConfig(run_id="journal", ticks=8, start_timeout=10.0)
+    path = tmp_path / "run.toml"
+    dump_config(config, path)
+    real, calls = world.checkpoint.Journal.add, []
+
+    def add(self, *args):
+        calls.append(args)
+        if len(calls) > 10:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self.path))
+        real(self, *args)
+
+    monkeypatch.setattr(world.checkpoint.Journal, "add", add)
+    endpoint = free_tcp_endpoint()
+    result: list[int] = []
+    out = tmp_path / "out"
+    world_thread = threading.Thread(target=lambda: result.append(world.main.main(
+        ["--config", str(path), "--listen", endpoint, "--out", str(out)])))
+    world_thread.start()
+    agents = _Agents(config, endpoint)
+    world_thread.join(timeout=60)
+    agents.stop(timeout=30)
+    assert not world_thread.is_alive() and not any(t.is_alive() for t in agents.threads)
+    assert result == [1]
+    assert one_error_line(capsys) == (f"error: cannot write the results in {out}: "
+                                      f"No space left on device: {out}/world_requests.jsonl")
+    summary = json.loads((out / "summary.json").read_text())
+    assert not summary["complete"]
+    assert summary["reason"] == "cannot write world_requests.jsonl: No space left on device"
 
 
 # --- agents -------------------------------------------------------------------------------------

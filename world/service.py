@@ -126,6 +126,9 @@ class WorldService:
         # per agent, the number of its latest join (its requests carry it, design §8)
         self._epochs = [0] * self.sim.n_agents
         self._ended: str | None = None
+        # a results write that failed in a request handler (the journal), raised by run() as a
+        # results write of its own would be: one report of a failing disk, whichever file it hit
+        self._disk_failure: OSError | None = None
         self._finished: bytes | None = None  # the world/done message, once published
         self._rejected = 0
         self._wall_before = 0.0  # wall time of earlier starts of this run (resume)
@@ -317,6 +320,7 @@ class WorldService:
             self._journal.add(agent, tick, len(requests) - 1, requests[-1])
         except OSError as exc:
             reason = f"cannot write {checkpoint.JOURNAL_FILE}: {exc.strerror or exc}"
+            self._disk_failure = self._disk_failure or exc
             self.abort(reason)
             raise RunEnded(reason) from None
 
@@ -612,6 +616,10 @@ class WorldService:
                         break
                     if self.on_tick is not None:
                         self.on_tick(tick)
+            with self._cond:
+                failure = self._disk_failure
+            if failure is not None:
+                raise failure
         except OSError as exc:  # the results disk failed (full, read-only): say which file
             self._record_failure(exc)
             raise
