@@ -248,22 +248,29 @@ class _Agents:
             t.join(timeout=timeout)
 
 
+def _world_with_agents(config: RunConfig, path, out) -> int:
+    """Run ``python -m world`` on the config file ``path`` in a thread, with the leader and
+    followers as threads, into ``out``; its exit status once everyone has ended."""
+    endpoint = free_tcp_endpoint()
+    result: list[int] = []
+    world_thread = threading.Thread(target=lambda: result.append(world.main.main(
+        ["--config", str(path), "--listen", endpoint, "--out", str(out)])))
+    world_thread.start()
+    agents = _Agents(config, endpoint)
+    world_thread.join(timeout=60)
+    agents.stop(timeout=30)
+    assert not world_thread.is_alive() and not any(t.is_alive() for t in agents.threads)
+    assert len(result) == 1
+    return result[0]
+
+
 @pytest.mark.parametrize("code", [errno.ENOSPC, pytest.param(errno.EROFS, marks=pytest.mark.slow)])
 def test_world_reports_a_failing_results_disk(tmp_path, monkeypatch, capsys, code):
     config = RunConfig(run_id="disk", ticks=8, start_timeout=10.0)
     path = tmp_path / "run.toml"
     dump_config(config, path)
     _failing_writes(monkeypatch, code, after=3)
-    endpoint = free_tcp_endpoint()
-    result: list[int] = []
-    world_thread = threading.Thread(target=lambda: result.append(world.main.main(
-        ["--config", str(path), "--listen", endpoint, "--out", str(tmp_path / "out")])))
-    world_thread.start()
-    agents = _Agents(config, endpoint)
-    world_thread.join(timeout=60)
-    agents.stop(timeout=30)
-    assert not world_thread.is_alive() and not any(t.is_alive() for t in agents.threads)
-    assert result == [1]
+    assert _world_with_agents(config, path, tmp_path / "out") == 1
     line = one_error_line(capsys)
     assert line.startswith(f"error: cannot write the results in {tmp_path / 'out'}: "
                            f"{os.strerror(code)}: ")
@@ -287,17 +294,8 @@ def test_a_failing_journal_write_is_reported_as_a_failing_results_disk(tmp_path,
         real(self, *args)
 
     monkeypatch.setattr(world.checkpoint.Journal, "add", add)
-    endpoint = free_tcp_endpoint()
-    result: list[int] = []
     out = tmp_path / "out"
-    world_thread = threading.Thread(target=lambda: result.append(world.main.main(
-        ["--config", str(path), "--listen", endpoint, "--out", str(out)])))
-    world_thread.start()
-    agents = _Agents(config, endpoint)
-    world_thread.join(timeout=60)
-    agents.stop(timeout=30)
-    assert not world_thread.is_alive() and not any(t.is_alive() for t in agents.threads)
-    assert result == [1]
+    assert _world_with_agents(config, path, out) == 1
     assert one_error_line(capsys) == (f"error: cannot write the results in {out}: "
                                       f"No space left on device: {out}/world_requests.jsonl")
     summary = json.loads((out / "summary.json").read_text())
