@@ -7,7 +7,7 @@ Zenoh run) in a small process pool. Per cell it prints, in metres, the mean over
 follower 1's mean formation error, of the last follower's mean formation error, and the worst
 tick of any follower over every seed (the largest formation error any follower settled with),
 for drive and for teleport, and how many runs broke formation (a follower beyond 0.5 m) or
-ended incomplete. Also (``--checks``) the issue's criteria per cell: drive's last-follower mean
+ended incomplete. Then the issue's criteria per cell: drive's last-follower mean
 ≤ 2 × teleport's + 0.05 m, and the worst tick ≤ 1 m.
 
 Figures depend on nothing but the configurations and seeds; nothing here is asserted.
