@@ -245,10 +245,8 @@ class _Fit:
     ``top_variance`` its variance per unit of the points' (both coordinates together)."""
 
     def __init__(self, track: int) -> None:
-        times = np.arange(-track, 2, dtype=float)
-        degree = min(DEGREE + 1, len(times) - 1)
-        basis = np.stack([times**n for n in range(degree + 1)], axis=1)
-        derivative = np.arange(degree + 1, dtype=float)  # d/dt of t**n at t = 1
+        degree = min(DEGREE + 1, track + 1)
+        times, basis, derivative = _basis(track, degree)
         if degree <= DEGREE:
             self.tangent, self.top = derivative @ np.linalg.pinv(basis), None
             self.kept = self.top_variance = 0.0
@@ -258,6 +256,15 @@ class _Fit:
         self.kept = degree - float(lower @ times**degree)
         self.top = np.linalg.pinv(basis)[degree]
         self.top_variance = float(np.linalg.inv(basis.T @ basis)[degree, degree])
+
+
+def _basis(track: int, degree: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The times of :func:`goal_heading`'s points over ``track`` ticks (``t = -track … 0, 1``),
+    the powers of them up to ``degree`` (one row a point) and each power's derivative at the
+    goal, ``t = 1``."""
+    times = np.arange(-track, 2, dtype=float)
+    powers = np.stack([times**n for n in range(degree + 1)], axis=1)
+    return times, powers, np.arange(degree + 1, dtype=float)
 
 
 @functools.cache
@@ -270,9 +277,8 @@ def _interpolant(track: int) -> np.ndarray:
     """The map from the points at ``t = -track … 0, 1`` to the tangent at ``t = 1`` of the
     polynomial through every one of them (degree ``track + 1``): :func:`goal_heading`'s fit
     without noise."""
-    times = np.arange(-track, 2, dtype=float)
-    basis = np.stack([times**n for n in range(len(times))], axis=1)
-    return np.arange(len(times), dtype=float) @ np.linalg.inv(basis)
+    _, basis, derivative = _basis(track, track + 1)
+    return derivative @ np.linalg.inv(basis)
 
 
 @dataclass(frozen=True)

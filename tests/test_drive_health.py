@@ -269,22 +269,22 @@ def test_where_a_follower_landed_off_its_rod_end_does_not_enter_its_track():
     assert not np.allclose(np.array(off.displacements())[-1], np.zeros(2))
 
 
-def _path_in_time(power: int, scale: float) -> tuple[np.ndarray, tuple, np.ndarray]:
+def _path_in_time(power: int, scale: float) -> tuple[np.ndarray, np.ndarray, tuple, np.ndarray]:
     """Positions ``(t, scale · t**power)`` at ``t = -3 … 1``, one a tick: the times, the
-    track's three displacements and the last chord."""
+    positions, the track's three displacements and the last chord."""
     times = np.arange(-3, 2, dtype=float)
     points = np.stack([times, scale * times**power], axis=1)
-    return times, tuple(np.diff(points[:4], axis=0)), points[4] - points[3]
+    return times, points, tuple(np.diff(points[:4], axis=0)), points[4] - points[3]
 
 
 def test_the_goal_headings_fit_follows_a_winding_path_without_noise():
     """Positions on a cubic in time, one a tick: without noise the fit's tangent at the goal is
     the path's exactly (the quadratic's lag was what put wavy's noise-free column off); with a
     declared spread far above the cubic term it is the quadratic's, nearly."""
-    times, track, chord = _path_in_time(3, 0.05)
+    times, points, track, chord = _path_in_time(3, 0.05)
     cubic = math.atan2(0.15, 1.0)
     assert goal_heading(0.0, chord, track, 0.0) == pytest.approx(cubic, abs=1e-12)
-    fit = np.polyfit(times, np.stack([times, 0.05 * times**3], axis=1), 2)
+    fit = np.polyfit(times, points, 2)
     tangent = 2 * fit[0] + fit[1]
     quadratic = math.atan2(tangent[1], tangent[0])
     noisy = goal_heading(quadratic, chord, track, 0.05)  # from it: the chord's trust aside
@@ -295,10 +295,10 @@ def test_without_noise_the_goal_heading_is_the_polynomial_through_every_point():
     """Positions on a quartic in time over the full track: without noise the fit passes
     through every point, so its tangent at the goal is the path's exactly, where the
     least-squares cubic over the same points is 0.14 rad off."""
-    times, track, chord = _path_in_time(4, 0.01)
+    times, points, track, chord = _path_in_time(4, 0.01)
     exact = math.atan2(0.04, 1.0)
     assert goal_heading(0.0, chord, track, 0.0) == pytest.approx(exact, abs=1e-12)
-    fit = np.polyfit(times, np.stack([times, 0.01 * times**4], axis=1), 3)
+    fit = np.polyfit(times, points, 3)
     tangent = 3 * fit[0] + 2 * fit[1] + fit[2]
     assert abs(math.atan2(tangent[1], tangent[0]) - exact) > 0.1
 
