@@ -170,16 +170,21 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
     In ideal formation a follower moves along its heading (its velocity is g-orthogonal to
     the rod it stands at the end of, by the Gauss lemma), so its path is tangent to its
     heading. The path through the track's positions and the goal (one comm period apart) is
-    fitted in time, least squares, and its tangent at the goal is the heading: the fit
-    averages the errors of the ticks it spans instead of passing them on. Under noise it spans
-    the most past ticks (up to the track's) whose fit agrees with every fit over fewer within
-    :data:`LEPSKI` of their declared σ: over ticks long enough for the path to bend within the
-    track, the shorter fit's smaller lag wins. The fit is a cubic
-    whose cubic term is kept by the weight ``|c|² / (|c|² + 9 var c)`` of its declared
-    variance (the points' spread, ``variance / 2`` per coordinate, through the least-squares
-    covariance): without noise the cubic, whose lag on a winding path is a fourth of the
-    quadratic's (wavy: 0.003 rad rms against 0.014), and a quadratic where the cubic term is
-    within the noise (a cubic's end tangent would amplify it). Without noise the points are
+    fitted, least squares, and its tangent at the goal is the heading: the fit averages the
+    errors of the ticks it spans instead of passing them on. Under noise the points are placed
+    at their distance along the path (:func:`arc_times`), not at their ticks: the rod ends
+    jitter along the path far more than across it, and that jitter does not turn a path's
+    tangent. It spans the most past ticks (up to the track's) whose fit agrees with every fit
+    over fewer within :data:`LEPSKI` of their declared σ: over ticks long enough for the path
+    to bend within the track, the shorter fit's smaller lag wins. The fit is a cubic whose
+    cubic term ``c`` is kept by its Wiener weight ``|c|² / (|c|² + var c)`` against its
+    declared variance (the points' spread, ``variance / 2`` per coordinate, through the
+    least-squares covariance; the weight that minimises the tangent's mean square error
+    where the term's size is estimated by itself): the cubic's lag on a winding path is a
+    fourth of the quadratic's (wavy: 0.003 rad rms against 0.014), its end tangent more
+    sensitive to the points' noise, and the weight trades the two (a significance test,
+    ``9 var c``, kept too little of it: wavy with 5 followers, last follower's mean 0.148 →
+    0.125 m at σ 0.01/0.005, docs/drive.md). Without noise the points are
     exact and the polynomial through all of them is taken instead (a quartic over the full
     track: it halves the cubic's lag again, e.g. wavy with 5 followers, last follower's mean
     0.040 → 0.013 m; under noise a quartic term that stands out by chance swings the end
@@ -213,12 +218,13 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
     def fitted(ticks: int) -> tuple[np.ndarray, float]:
         """The tangent of the fit over the last ``ticks`` displacements, and the σ (rad) of
         its direction from the points' declared variance (its lower-degree map's)."""
-        fit, span = _fit(ticks), points[len(points) - ticks - 2:]
+        span = points[len(points) - ticks - 2:]
+        fit = _Fit(arc_times(span))
         tangent = fit.tangent @ span
-        if fit.top is not None:  # the top term, as much as it stands out of the points' noise
+        if fit.top is not None:  # the top term, by its Wiener weight against the points' noise
             top = fit.top @ span
             tangent = tangent + fit.kept * _weight(
-                float(top @ top), 9.0 * variance * fit.top_variance) * top
+                float(top @ top), variance * fit.top_variance) * top
         length = math.hypot(tangent[0], tangent[1])
         spread = math.sqrt(0.5 * variance * float(fit.tangent @ fit.tangent))
         return tangent, (spread / length if length > 0.0 else math.inf)
@@ -237,16 +243,31 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
     return wrap(heading + weight * wrap(forward(tangent) - heading))
 
 
+def arc_times(points: np.ndarray) -> np.ndarray:
+    """Where :func:`goal_heading`'s fit places its points under noise: at their distance along
+    the polyline through them (the goal, the last, at 1; one unit the mean step). A path's
+    tangent does not depend on how fast it is travelled, and the rod ends a follower drives
+    onto jitter mostly *along* its path (the leader's heading error swings its rod end by
+    ``d`` times it, along the column's motion), which moves a point in time but hardly in
+    arc length. Coincident points (a follower at rest) keep their place in time."""
+    lengths = np.hypot(*np.diff(points, axis=0).T)
+    total = float(lengths.sum())
+    if not total > 0.0:
+        return np.arange(2 - len(points), 2, dtype=float)
+    along = np.concatenate(([0.0], np.cumsum(lengths))) * ((len(points) - 1) / total)
+    return along - along[-1] + 1.0
+
+
 class _Fit:
-    """The linear maps of :func:`goal_heading`'s fit over ``track`` ticks, from the points
-    (one a row, at ``t = -track … 0, 1``) to the tangent at ``t = 1``: with a top term (a fit of
-    degree ``DEGREE + 1``), ``tangent`` is the lower-degree refit's after the kept top term is
+    """The linear maps of :func:`goal_heading`'s fit through points at ``times`` (one a row,
+    the goal last, at ``t = 1``) to the tangent at ``t = 1``: with a top term (a fit of degree
+    ``DEGREE + 1``), ``tangent`` is the lower-degree refit's after the kept top term is
     taken out, ``kept`` what the kept term adds, ``top`` the map to the top coefficient and
     ``top_variance`` its variance per unit of the points' (both coordinates together)."""
 
-    def __init__(self, track: int) -> None:
-        degree = min(DEGREE + 1, track + 1)
-        times, basis, derivative = _basis(track, degree)
+    def __init__(self, times: np.ndarray) -> None:
+        degree = min(DEGREE + 1, len(times) - 1)
+        basis, derivative = _basis(times, degree)
         if degree <= DEGREE:
             self.tangent, self.top = derivative @ np.linalg.pinv(basis), None
             self.kept = self.top_variance = 0.0
@@ -255,21 +276,14 @@ class _Fit:
         self.tangent = lower
         self.kept = degree - float(lower @ times**degree)
         self.top = np.linalg.pinv(basis)[degree]
-        self.top_variance = float(np.linalg.inv(basis.T @ basis)[degree, degree])
+        self.top_variance = float(self.top @ self.top)  # (BᵀB)⁻¹ at it, B of any rank
 
 
-def _basis(track: int, degree: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The times of :func:`goal_heading`'s points over ``track`` ticks (``t = -track … 0, 1``),
-    the powers of them up to ``degree`` (one row a point) and each power's derivative at the
-    goal, ``t = 1``."""
-    times = np.arange(-track, 2, dtype=float)
+def _basis(times: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray]:
+    """The powers of :func:`goal_heading`'s points' times up to ``degree`` (one row a point)
+    and each power's derivative at the goal, ``t = 1``."""
     powers = np.stack([times**n for n in range(degree + 1)], axis=1)
-    return times, powers, np.arange(degree + 1, dtype=float)
-
-
-@functools.cache
-def _fit(track: int) -> _Fit:
-    return _Fit(track)
+    return powers, np.arange(degree + 1, dtype=float)
 
 
 @functools.cache
@@ -277,7 +291,7 @@ def _interpolant(track: int) -> np.ndarray:
     """The map from the points at ``t = -track … 0, 1`` to the tangent at ``t = 1`` of the
     polynomial through every one of them (degree ``track + 1``): :func:`goal_heading`'s fit
     without noise."""
-    _, basis, derivative = _basis(track, track + 1)
+    basis, derivative = _basis(np.arange(-track, 2, dtype=float), track + 1)
     return derivative @ np.linalg.inv(basis)
 
 

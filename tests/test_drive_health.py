@@ -279,16 +279,33 @@ def _path_in_time(power: int, scale: float) -> tuple[np.ndarray, np.ndarray, tup
 
 def test_the_goal_headings_fit_follows_a_winding_path_without_noise():
     """Positions on a cubic in time, one a tick: without noise the fit's tangent at the goal is
-    the path's exactly (the quadratic's lag was what put wavy's noise-free column off); with a
-    declared spread far above the cubic term it is the quadratic's, nearly."""
+    the path's exactly (the quadratic's lag was what put wavy's noise-free column off)."""
     times, points, track, chord = _path_in_time(3, 0.05)
     cubic = math.atan2(0.15, 1.0)
     assert goal_heading(0.0, chord, track, 0.0) == pytest.approx(cubic, abs=1e-12)
     fit = np.polyfit(times, points, 2)
     tangent = 2 * fit[0] + fit[1]
-    quadratic = math.atan2(tangent[1], tangent[0])
-    noisy = goal_heading(quadratic, chord, track, 0.05)  # from it: the chord's trust aside
-    assert abs(noisy - quadratic) < 0.1 * abs(cubic - quadratic)
+    assert abs(math.atan2(tangent[1], tangent[0]) - cubic) > 0.1  # a quadratic's lag
+
+
+def test_under_noise_the_goal_heading_does_not_depend_on_how_fast_the_path_was_driven():
+    """Rod ends on a circle (a column turning steadily), reached in uneven steps: a
+    predecessor's heading error swings the rod end along the path, so the steps' lengths
+    jitter. Under noise the fit places the points by their distance along the path, and its
+    tangent at the goal is the circle's within a few milliradians; a fit in time, quadratic or
+    cubic, takes the uneven steps for a bend and is off by tens of them."""
+    radius, nominal = 10.0, 0.13
+    angles = np.cumsum([0.0, 1.3 * nominal, 0.6 * nominal, 1.2 * nominal, 0.8 * nominal])
+    points = np.stack([radius * np.sin(angles), radius * (1.0 - np.cos(angles))], axis=1)
+    track, chord = tuple(np.diff(points[:4], axis=0)), points[4] - points[3]
+    true = angles[-1]  # the circle's tangent at the goal
+    for variance in (1e-8, 1e-4, 4e-4):  # declared spreads of the points, up to σ 0.01/0.005's
+        assert abs(goal_heading(angles[3], chord, track, variance) - true) < 0.005
+    times = np.arange(-3, 2, dtype=float)
+    for degree in (2, 3):
+        fit = np.polyfit(times, points, degree)
+        tangent = sum(n * fit[degree - n] for n in range(1, degree + 1))
+        assert abs(math.atan2(tangent[1], tangent[0]) - true) > 0.03
 
 
 def test_without_noise_the_goal_heading_is_the_polynomial_through_every_point():
