@@ -152,6 +152,20 @@ def test_the_goal_heading_follows_the_chords():
     assert goal_heading(0.2, 0.01 * chord, (previous,), 1e-4) == 0.2
 
 
+def test_with_no_track_under_noise_the_arc_bends_only_as_far_as_its_bend_stands_out():
+    """A column setting off: no past step, one chord. Without noise the goal heading is the
+    arc's end tangent, the start heading plus twice the bend. Under noise a bend within the
+    chord's angle noise is mostly noise, and doubling it doubles the error: the heading stays
+    near the chord's own direction; a bend far above the noise is the arc's, nearly."""
+    chord = np.array([math.cos(0.3), math.sin(0.3)])  # 1 m, at 0.3 rad
+    assert goal_heading(0.2, chord, (), 0.0) == pytest.approx(0.4)  # the arc: 0.2 + 2 · 0.1
+    within = goal_heading(0.29, chord, (), 1e-3)  # a bend of 0.01 rad, its σ about 0.03
+    assert abs(within - 0.3) < 0.002  # the chord's direction, not 0.31
+    beyond = goal_heading(0.0, chord, (), 1e-5)  # a bend of 0.3 rad, its σ about 0.003
+    trust = 1.0 - 9e-5 / float(chord @ chord)  # the chord's trust (goal_heading's docstring)
+    assert beyond == pytest.approx(trust * 0.6, abs=1e-3)
+
+
 def test_chart_turn_inverts_the_metric_angle():
     slope = np.array([1.5, -0.5])
     for start, angle in ((0.3, 0.7), (-2.0, -1.2), (1.0, 0.01)):
