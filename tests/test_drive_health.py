@@ -392,3 +392,12 @@ def test_fusing_the_leader_looks_holds_a_noisy_wavy_column_closer():
     last = [r["formation_error"] for r in rows if r["agent"] == 3]
     assert sum(last) / len(last) < 0.22
     assert max(_worst(rows).values()) < 0.72
+
+
+def test_a_tick_at_rest_in_the_track_leaves_the_arc_length_fit_well_posed():
+    """Under noise the fit places its points by their distance along the path, so a tick in
+    which the follower did not move puts two points at one place: the fit stays finite and
+    follows the chords (here all along 0.1 rad, so the heading is theirs)."""
+    chord = np.array([math.cos(0.1), math.sin(0.1)])
+    for track in ((np.zeros(2), chord, np.zeros(2)), (np.zeros(2),) * 3, (np.zeros(2),)):
+        assert goal_heading(0.1, chord, track, 1e-3) == pytest.approx(0.1, abs=1e-9)
