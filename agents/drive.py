@@ -183,20 +183,18 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
     where the term's size is estimated by itself): the cubic's lag on a winding path is a
     fourth of the quadratic's (wavy: 0.003 rad rms against 0.014), its end tangent more
     sensitive to the points' noise, and the weight trades the two (a significance test,
-    ``9 var c``, kept too little of it: wavy with 5 followers, last follower's mean 0.148 →
-    0.125 m at σ 0.01/0.005, docs/drive.md). Without noise the points are
-    exact and the polynomial through all of them is taken instead (a quartic over the full
-    track: it halves the cubic's lag again, e.g. wavy with 5 followers, last follower's mean
-    0.040 → 0.013 m; under noise a quartic term that stands out by chance swings the end
-    tangent, so it is not fitted there, docs/drive.md). With one displacement known it
+    ``9 var c``, kept too little of it: docs/drive.md). Without noise the points are exact
+    and the polynomial through all of them is taken instead (a quartic over the full track:
+    it halves the cubic's lag again; under noise a quartic term that stands out by chance
+    swings the end tangent, so it is not fitted there). With one displacement known it
     is the exact quadratic through three points,
     ``χ + (χ − χ₋₁)/2`` for chords of equal length; with none, the end tangent of the
     circular arc tangent to ``heading``, ``ψ₀ + 2(χ − ψ₀)``, whose bend beyond the chord,
     ``χ − ψ₀``, is kept by its Wiener weight against its declared variance (the chord's
     angle's, ``variance / 2ρ²``, and as much again for the start heading): under noise the
     doubled bend doubles the chord's and the start's errors, and a column setting off from
-    rest, whose first steps are mostly noise, passed them down (twin_hills, 5 followers,
-    σ 0.05/0.03: 1.60 m at tick 2, 0.91 m since). Directions are taken on the
+    rest, whose first steps are mostly noise, passed them down (docs/drive.md, *Setting
+    off*). Directions are taken on the
     heading's side (a goal behind is driven to in reverse). The result is trusted by the
     weight ``1 − f / ρ²`` of the chord ``ρ`` above ``f = 9 variance + (MIN_CHORD d)²``
     (``variance``: the chord's declared spread, both coordinates together): the heading turns
@@ -209,12 +207,13 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
             math.atan2(vector[1], vector[0]) - heading))))
 
     chord = np.asarray(chord, dtype=float)
-    weight = _trust(float(chord @ chord), floor)
+    square = float(chord @ chord)
+    weight = _trust(square, floor)
     if weight == 0.0:
         return heading
     if not track:  # the arc's bend beyond the chord, by its Wiener weight (exact without noise)
         bend = wrap(forward(chord) - heading)
-        spread = variance / float(chord @ chord)  # the bend's: the chord's angle's and the start's
+        spread = variance / square  # the bend's: the chord's angle's and the start's
         return wrap(heading + weight * bend * (1.0 + _weight(bend * bend, spread)))
     positions = [np.zeros(2)]
     for step in reversed(track):
@@ -378,7 +377,12 @@ class Track:
         ``chord`` the direction from the leader to it: the path's tangent
         (:func:`goal_heading`) fused with the heading it settled with last time turned as the
         chord turned since (:class:`Settled`)."""
-        path = goal_heading(compass, step, previous, self.chord_variance, self.spacing)
+        return self.fuse(goal_heading(compass, step, previous, self.chord_variance,
+                                      self.spacing), step, chord)
+
+    def fuse(self, path: float, step: np.ndarray, chord: np.ndarray) -> Settled:
+        """:meth:`heading` from the path's tangent ``path`` at the end of ``step``
+        (:func:`goal_heading`, which a caller asking for one goal many times works out once)."""
         angle = math.atan2(chord[1], chord[0])
         length = float(step @ step)
         noise = 0.0 if self.chord_variance == 0.0 else (
@@ -662,12 +666,18 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
     leader = _Fixed(limits)
     leader.add(np.zeros(2), relative(pre))
 
+    owner = limits if track is None else track  # whose declared chord variance and rod length
+    paths: dict[bytes, float] = {}  # the path's tangent per goal: the move phase keeps one
+
     def heading_at(point: np.ndarray) -> float:
+        step = point - landed
+        path = paths.get(key := step.tobytes())
+        if path is None:
+            path = paths[key] = goal_heading(pre.compass, step, previous,
+                                             owner.chord_variance, owner.spacing)
         if track is None:
-            return goal_heading(pre.compass, point - landed, previous, limits.chord_variance,
-                                limits.spacing)
-        return track.heading(pre.compass, point - landed, point - leader.estimate()[0],
-                             previous).heading
+            return path
+        return track.fuse(path, step, point - leader.estimate()[0]).heading
 
     moved, travelled = pre, np.zeros(2)
     reserve = settings.control_steps + settings.snap_steps // 2  # the move phase's end
