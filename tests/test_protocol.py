@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 
 import msgpack
 import pytest
@@ -240,3 +243,30 @@ def test_a_joined_top_speed_must_be_positive(value):
     with pytest.raises(ProtocolError, match="max_speed"):
         decode(_raw(v=1, type="joined", tick=0, settled=False, ready=False, until=0, world=0,
                     start="ab", max_speed=value), Joined)
+
+
+FREED_BLOCKS = """
+import resource, numpy as np
+import protocol
+def temporaries():  # three 1 MiB arrays alive at once, over glibc's default mmap threshold
+    arrays = [np.ones(1 << 17) for _ in range(3)]
+temporaries()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(20):
+    temporaries()
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
+def test_importing_the_project_keeps_freed_blocks_for_reuse_unless_the_environment_tunes_them():
+    """Numpy temporaries of 1 MiB made again and again, three at a time: with the project
+    imported their pages are reused (no new page faults); with the environment's own setting
+    (which the project leaves alone) they are mapped afresh, up to 256 pages each."""
+    def faults(**env):
+        out = subprocess.run([sys.executable, "-c", FREED_BLOCKS], capture_output=True,
+                             text=True, timeout=60, env={**os.environ, **env}, check=True)
+        return int(out.stdout)
+    kept, own = faults(), faults(MALLOC_MMAP_THRESHOLD_="131072")
+    assert own >= 20 * 256, own
+    assert kept < own / 20, (kept, own)
