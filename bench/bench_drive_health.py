@@ -28,7 +28,22 @@ from protocol.config import RunConfig, estimator_options  # noqa: E402
 from swarm.drive_study import NOISE_LEVELS, within_bound  # noqa: E402
 
 NOISE = {f"{r:g}/{t:g}" if r or t else "0": (r, t) for r, t in NOISE_LEVELS.values()}
-"""The drive study's noise levels, named σ_r/σ_θ ("0": none) on the command line."""
+"""The drive study's noise levels, named σ_r/σ_θ ("0": none) on the command line (the
+default; any other ``R/B`` is taken as well)."""
+
+
+def noise_level(name: str) -> tuple[float, float]:
+    """``(σ_r, σ_θ)`` of a ``--noise`` entry, ``R/B`` or ``0`` (ValueError saying what is
+    wrong)."""
+    if name == "0":
+        return 0.0, 0.0
+    try:
+        sigma_r, sigma_t = (float(x) for x in name.split("/"))
+    except ValueError:
+        raise ValueError(f"a noise level is R/B (range σ / bearing σ) or 0, got {name!r}") from None
+    if not (0.0 <= sigma_r < math.inf and 0.0 <= sigma_t < math.inf):
+        raise ValueError(f"a noise level's σ are finite and >= 0, got {name!r}")
+    return sigma_r, sigma_t
 BROKEN = 0.5  # a follower this far out of formation: the column broke (issue #30's measure)
 
 
@@ -37,7 +52,7 @@ def _run(job: tuple) -> tuple[tuple, dict]:
     from swarm.local import run_local
 
     surface, followers, noise, estimator, motion, seed, ticks = job
-    sigma_r, sigma_t = NOISE[noise]
+    sigma_r, sigma_t = noise_level(noise)
     extra = {"motion": "drive"} if motion == "drive" else {}
     config = RunConfig(run_id="health", surface=surface, followers=followers, ticks=ticks,
                        seed=seed, noise_range=sigma_r, noise_bearing=sigma_t,
@@ -58,10 +73,20 @@ def main() -> None:
     p.add_argument("--ticks", type=int, default=150)
     p.add_argument("--surfaces", default="elliptic,hyperbolic,wavy")
     p.add_argument("--followers", default="3,5")
-    p.add_argument("--noise", default=",".join(NOISE))
+    p.add_argument("--noise", default=",".join(NOISE),
+                   help="comma-separated R/B levels or 0 [default the drive study's: "
+                        "%(default)s]")
     p.add_argument("--estimators", default="edmd-b,persist")
     p.add_argument("--workers", type=int, default=2)
     args = p.parse_args()
+    try:
+        for noise in args.noise.split(","):
+            noise_level(noise)
+        if args.seeds < 1 or args.ticks < 1 or not all(
+                n.isdigit() and int(n) >= 1 for n in args.followers.split(",")):
+            raise ValueError("--seeds, --ticks and every --followers entry must be >= 1")
+    except ValueError as exc:
+        p.error(str(exc))
     jobs = [(surface, int(n), noise, est, motion, seed, args.ticks)
             for surface in args.surfaces.split(",") for n in args.followers.split(",")
             for noise in args.noise.split(",") for est in args.estimators.split(",")
