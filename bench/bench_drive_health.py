@@ -124,7 +124,8 @@ def main() -> None:
                           f"{t['last']:.3f} / {t['worst']:.3f} | {d['broken']}/{args.seeds} | "
                           f"{d['incomplete']} | {'yes' if mean_ok else 'NO'} | "
                           f"{'yes' if worst_ok else 'NO'} |", flush=True)
-    print(f"\n{len(jobs)} runs; cells failing a criterion: {failures} "
+    cells = len(jobs) // (2 * args.seeds)
+    print(f"\n{len(jobs)} runs; criteria failing: {failures} of {2 * cells} (two per cell) "
           f"(cpu count {os.cpu_count()})")
 
 
