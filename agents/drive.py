@@ -407,12 +407,30 @@ class HeadingFilter:
     step's compass reading (variance ``σ_θ²``) and by the direction of the step's odometry plus half
     its turn (variance ``σ_odometry² / |step|²`` plus a quarter of the turn's, squared: the chord's
     direction is the mid-step heading only on a circular arc). Without noise the compass is
-    exact and is taken as is."""
+    exact and is taken as is.
+
+    It also keeps how far the heading turned in the tick beyond the turns commanded, and the
+    arc driven, for :meth:`drift`."""
 
     def __init__(self, compass: float, limits: Limits) -> None:
         self.limits = limits
         self.heading = compass
         self.variance = limits.sigma_bearing**2
+        self.unexplained = 0.0  # rad: the heading's change beyond the commanded turns
+        self.driven = 0.0  # m of arc, as commanded
+
+    def drift(self) -> float:
+        """How much the chart heading turns per metre of arc driven without a command
+        (rad/m), as this tick's steps so far showed it: the terrain's parallel transport (on
+        a slope a straight drive curves in the chart), which varies slowly along the way. The
+        heading's unexplained change over the arc driven, kept by its Wiener weight against
+        its declared variance (the start's and the estimate's, over the arc squared): without
+        noise it is exact; within the compass noise it is nothing."""
+        if self.driven <= 0.0:
+            return 0.0
+        rate = self.unexplained / self.driven
+        spread = (self.limits.sigma_bearing**2 + self.variance) / self.driven**2
+        return rate * _weight(rate * rate, spread)
 
     def _update(self, reading: float, variance: float) -> None:
         total = self.variance + variance
@@ -426,6 +444,7 @@ class HeadingFilter:
         commanded, and the compass and odometry read after it; return the new estimate."""
         limits = self.limits
         moved = math.hypot(odometry[0], odometry[1])
+        before = self.heading
         self.heading = wrap(self.heading + turn)
         self.variance += (TURN_SLIP * turn) ** 2 + (TRANSPORT * moved) ** 2
         self._update(compass, limits.sigma_bearing**2)
@@ -435,6 +454,8 @@ class HeadingFilter:
             self._update(wrap(direction + 0.5 * turn),
                          odometry_variance / (moved * moved) + (0.25 * turn) ** 2
                          + (TRANSPORT * moved) ** 2)
+        self.unexplained += wrap(self.heading - before - turn)
+        self.driven += abs(speed) * limits.durations[step]
         return self.heading
 
 
@@ -682,10 +703,13 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
     moved, travelled = pre, np.zeros(2)
     reserve = settings.control_steps + settings.snap_steps // 2  # the move phase's end
     for step in range(settings.tick_steps):
-        wanted = heading_at(target)
+        wanted, end = heading_at(target), reserve if step < settings.control_steps else None
         v, omega, turn = step_command(position, filtered.heading, slope, target, wanted,
-                                      spread, speed, step, limits,
-                                      reserve if step < settings.control_steps else None)
+                                      spread, speed, step, limits, end)
+        ahead = filtered.drift() * abs(v) * limits.durations[step]
+        if ahead:  # the terrain will turn it that much more on the way: aim short of it
+            v, omega, turn = step_command(position, filtered.heading, slope, target,
+                                          wrap(wanted - ahead), spread, speed, step, limits, end)
         given = (float(target[0]), float(target[1])) if step == 0 else None
         reply = act(Control(tick=pre.tick, step=step, speed=v, turn=omega, goal=given))
         odometry = np.asarray(reply.odometry)
