@@ -423,14 +423,17 @@ class HeadingFilter:
         """How much the chart heading turns per metre of arc driven without a command
         (rad/m), as this tick's steps so far showed it: the terrain's parallel transport (on
         a slope a straight drive curves in the chart), which varies slowly along the way. The
-        heading's unexplained change over the arc driven, kept by its Wiener weight against
-        its declared variance (the start's and the estimate's, over the arc squared): without
-        noise it is exact; within the compass noise it is nothing."""
+        heading's unexplained change per metre of the arc driven, ``r``, kept by the weight
+        ``1 − 9v / r²`` above three times its declared σ (``v``: the start's and the
+        estimate's compass variance over the arc squared), 0 below (:func:`_trust`, as
+        :func:`beyond_noise` keeps a shift): without noise it is exact; a rate within the
+        compass noise is left out, since feeding forward noise put noisy columns further off
+        (docs/drive.md)."""
         if self.driven <= 0.0:
             return 0.0
         rate = self.unexplained / self.driven
         spread = (self.limits.sigma_bearing**2 + self.variance) / self.driven**2
-        return rate * _weight(rate * rate, spread)
+        return rate * _trust(rate * rate, 9.0 * spread)
 
     def _update(self, reading: float, variance: float) -> None:
         total = self.variance + variance
