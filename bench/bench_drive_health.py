@@ -24,40 +24,35 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.bench_estimator_table import parse_levels  # noqa: E402
 from protocol.config import RunConfig, estimator_options  # noqa: E402
 from swarm.drive_study import NOISE_LEVELS, within_bound  # noqa: E402
 
-NOISE = {f"{r:g}/{t:g}" if r or t else "0": (r, t) for r, t in NOISE_LEVELS.values()}
-"""The drive study's noise levels, named σ_r/σ_θ ("0": none) on the command line (the
-default; any other ``R/B`` is taken as well)."""
-
-
-def noise_level(name: str) -> tuple[float, float]:
-    """``(σ_r, σ_θ)`` of a ``--noise`` entry, ``R/B`` or ``0`` (ValueError saying what is
-    wrong)."""
-    if name == "0":
-        return 0.0, 0.0
-    try:
-        sigma_r, sigma_t = (float(x) for x in name.split("/"))
-    except ValueError:
-        raise ValueError(f"a noise level is R/B (range σ / bearing σ) or 0, got {name!r}") from None
-    if not (0.0 <= sigma_r < math.inf and 0.0 <= sigma_t < math.inf):
-        raise ValueError(f"a noise level's σ are finite and >= 0, got {name!r}")
-    return sigma_r, sigma_t
+NOISE = ",".join(f"{r:g}/{t:g}" for r, t in NOISE_LEVELS.values())
+"""The drive study's noise levels, σ_r/σ_θ (the default of ``--noise``)."""
 BROKEN = 0.5  # a follower this far out of formation: the column broke (issue #30's measure)
+
+
+def label(level: tuple[float, float]) -> str:
+    """A noise level as the table names it: ``σ_r/σ_θ``, or ``0`` for none."""
+    return f"{level[0]:g}/{level[1]:g}" if any(level) else "0"
 
 
 def _run(job: tuple) -> tuple[tuple, dict]:
     """One run: its cell key and per-follower mean / worst formation error."""
     from swarm.local import run_local
+    from world.sim import RequestError
 
-    surface, followers, noise, estimator, motion, seed, ticks = job
-    sigma_r, sigma_t = noise_level(noise)
+    surface, followers, (sigma_r, sigma_t), estimator, motion, seed, ticks = job
     extra = {"motion": "drive"} if motion == "drive" else {}
     config = RunConfig(run_id="health", surface=surface, followers=followers, ticks=ticks,
                        seed=seed, noise_range=sigma_r, noise_bearing=sigma_t,
                        **estimator_options(estimator), **extra)
-    summary, _ = run_local(config)
+    try:
+        summary, _ = run_local(config)
+    except RequestError:  # a request the world refuses ends a Zenoh run incomplete, as here
+        return job, {"first": math.nan, "last": math.nan, "worst": math.inf, "broken": True,
+                     "complete": False}
     # each follower's mean and worst as the world counted them (protocol.health), follower 1 first
     followers = [f for k in sorted(summary["followers"], key=int)
                  if (f := summary["followers"][k])["worst_formation_error"] is not None]
@@ -73,23 +68,20 @@ def main() -> None:
     p.add_argument("--ticks", type=int, default=150)
     p.add_argument("--surfaces", default="elliptic,hyperbolic,wavy")
     p.add_argument("--followers", default="3,5")
-    p.add_argument("--noise", default=",".join(NOISE),
-                   help="comma-separated R/B levels or 0 [default the drive study's: "
+    p.add_argument("--noise", default=NOISE,
+                   help="comma-separated R/B levels (0 for none) [default the drive study's: "
                         "%(default)s]")
     p.add_argument("--estimators", default="edmd-b,persist")
     p.add_argument("--workers", type=int, default=2)
     args = p.parse_args()
-    try:
-        for noise in args.noise.split(","):
-            noise_level(noise)
-        if args.seeds < 1 or args.ticks < 1 or not all(
-                n.isdigit() and int(n) >= 1 for n in args.followers.split(",")):
-            raise ValueError("--seeds, --ticks and every --followers entry must be >= 1")
-    except ValueError as exc:
-        p.error(str(exc))
-    jobs = [(surface, int(n), noise, est, motion, seed, args.ticks)
+    levels = parse_levels(p, ",".join("0/0" if x == "0" else x for x in args.noise.split(",")),
+                          "--noise")
+    if args.seeds < 1 or args.ticks < 1 or not all(
+            n.isdigit() and int(n) >= 1 for n in args.followers.split(",")):
+        p.error("--seeds, --ticks and every --followers entry must be >= 1")
+    jobs = [(surface, int(n), level, est, motion, seed, args.ticks)
             for surface in args.surfaces.split(",") for n in args.followers.split(",")
-            for noise in args.noise.split(",") for est in args.estimators.split(",")
+            for level in levels for est in args.estimators.split(",")
             for motion in ("drive", "teleport") for seed in range(args.seeds)]
     results: dict[tuple, dict] = {}
     with ProcessPoolExecutor(args.workers,
@@ -103,11 +95,11 @@ def main() -> None:
     failures = 0
     for surface in args.surfaces.split(","):
         for n in args.followers.split(","):
-            for noise in args.noise.split(","):
+            for level in levels:
                 for est in args.estimators.split(","):
                     cell = {}
                     for motion in ("drive", "teleport"):
-                        runs = [results[(surface, int(n), noise, est, motion, s, args.ticks)]
+                        runs = [results[(surface, int(n), level, est, motion, s, args.ticks)]
                                 for s in range(args.seeds)]
                         cell[motion] = {
                             "first": sum(r["first"] for r in runs) / len(runs),
@@ -119,7 +111,7 @@ def main() -> None:
                     mean_ok = within_bound(d["last"], t["last"])
                     worst_ok = d["worst"] <= 1.0 and math.isfinite(d["worst"])
                     failures += (not mean_ok) + (not worst_ok)
-                    print(f"| {surface} | {n} | {noise} | {est} | {d['first']:.3f} / "
+                    print(f"| {surface} | {n} | {label(level)} | {est} | {d['first']:.3f} / "
                           f"{d['last']:.3f} / {d['worst']:.3f} | {t['first']:.3f} / "
                           f"{t['last']:.3f} / {t['worst']:.3f} | {d['broken']}/{args.seeds} | "
                           f"{d['incomplete']} | {'yes' if mean_ok else 'NO'} | "

@@ -202,9 +202,10 @@ def chosen_surfaces(parser: argparse.ArgumentParser, args: argparse.Namespace,
     return tuple(random_waves.name(args.random_seed + i) for i in range(args.random)), base
 
 
-def parse_levels(parser: argparse.ArgumentParser, text: str) -> tuple[tuple[float, float], ...]:
-    """``--noise-levels R/B,R/B,...`` -> ((range sigma, bearing sigma rad), ...), each pair
-    within the run configuration's bounds."""
+def parse_levels(parser: argparse.ArgumentParser, text: str,
+                 flag: str = "--noise-levels") -> tuple[tuple[float, float], ...]:
+    """``flag R/B,R/B,...`` -> ((range sigma, bearing sigma rad), ...), each pair within the
+    run configuration's bounds (``parser`` refuses anything else, naming ``flag``)."""
     try:
         levels = tuple(tuple(float(x) for x in pair.split("/")) for pair in text.split(","))
         if not levels or any(len(level) != 2 for level in levels):
@@ -212,7 +213,7 @@ def parse_levels(parser: argparse.ArgumentParser, text: str) -> tuple[tuple[floa
         for r, b in levels:
             RunConfig(noise_range=r, noise_bearing=b)
     except ValueError as exc:
-        parser.error(f"--noise-levels must be RANGE/BEARING sigma pairs, comma-separated, "
+        parser.error(f"{flag} must be RANGE/BEARING sigma pairs, comma-separated, "
                      f"e.g. 0.02/0.01,0.05/0.03; got {text!r} ({exc})")
     return levels
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from agents.drive import Driven, Limits, Settled, Track, goal_heading
+from agents.drive import Driven, HeadingFilter, Limits, Settled, Track, goal_heading
 from agents.follower import at_rod_end
 from protocol.config import CORRECTION_SHARE, AgentSettings, RunConfig, estimator_options
 from protocol.messages import Control, Sensing, Snap
@@ -407,7 +407,6 @@ def _filter_after(drift: float, noise: float, steps: int = 6, seed: int = 0):
     """A heading filter after ``steps`` control steps at 1 m/s with a turn of 0.01 rad each,
     whose compass shows the commanded turns plus ``drift`` rad per metre driven (the
     terrain's), read with σ ``noise``."""
-    from agents.drive import HeadingFilter
     settings = AgentSettings.from_config(RunConfig(motion="drive", max_speed=1.0,
                                                    noise_range=noise, noise_bearing=noise))
     limits = Limits.from_settings(settings)
