@@ -386,3 +386,84 @@ def test_auto_asks_each_candidate_once_a_tick_when_it_scores_what_was_made():
     asked.learn(settled, target, before)
     assert [c.asked for c in asked.candidates] == [6, 6]
     assert asked.errors[1][-1] == pytest.approx(2.0 + 0.1 - 0.3, abs=1e-12)
+
+
+class _Diverging(Stay):
+    """A candidate whose arithmetic fails: each propose pops the next of ``script`` (an
+    exception to raise, or an offset to propose); ``record`` raises ``learn_error`` if given."""
+
+    def __init__(self, name, script, learn_error=None):
+        super().__init__()
+        self.name, self.script, self.learn_error = name, list(script), learn_error
+
+    def propose(self, pre):
+        step = self.script.pop(0)
+        if isinstance(step, BaseException):
+            raise step
+        return Proposal(np.asarray(step, dtype=float))
+
+    def record(self, settled, target):
+        if self.learn_error is not None:
+            raise self.learn_error
+        return super().record(settled, target)
+
+
+def test_a_diverged_estimate_is_replaced_by_persist_counted_and_logged_once(caplog):
+    from agents.policies.base import FallbackToPersist
+    inf, nan = math.inf, math.nan
+    policy = FallbackToPersist(_Diverging("wild", [
+        OverflowError("(34, 'Numerical result out of range')"), [nan, 0.0], [1.0, inf],
+        np.linalg.LinAlgError("Singular matrix"), ZeroDivisionError("float division"),
+        [0.25, -0.5]], learn_error=FloatingPointError("overflow")))
+    settled = Sensing(tick=0, r=2.0, theta=0.5, rod=(0.1, 0.0))
+    with caplog.at_level("WARNING", logger="agents.policies.base"):
+        measured = policy.learn(settled, np.zeros(2))  # its learning fails: persist's reading
+        proposals = [policy.propose(Sensing(tick=t, r=2.5, theta=0.5)) for t in range(1, 7)]
+    assert measured == (2.0, 0.5)
+    persist = relative(Sensing(tick=1, r=2.5, theta=0.5)) - relative(settled)
+    for proposal in proposals[:5]:  # an overflow, NaN, infinity, a singular system, 1/0
+        assert proposal.fallback and proposal.followed == "persist"
+        assert np.allclose(proposal.offset, persist)
+    assert not proposals[5].fallback and proposals[5].followed == "wild"
+    assert np.array_equal(proposals[5].offset, [0.25, -0.5])
+    assert policy.diverged == 6  # the learning and five proposals
+    warned = [r.getMessage() for r in caplog.records]
+    assert len(warned) == 1 and "estimator wild diverged at tick 0" in warned[0], warned
+
+
+def test_auto_sits_a_diverged_candidate_out_and_survives_overflowing_scores():
+    # each record (made=False) and each propose asks the candidates once, in this order
+    auto = Auto([_Fixed("a", [0.0, 0.0]),
+                 _Diverging("wild", [[1e200, 0.0], [1e200, 0.0], OverflowError("x"),
+                                     [math.nan, 0.0], [1e200, 0.0], [0.5, 0.0]])],
+                horizon=3, burn_in=0)
+    auto.record(_sensing(), np.array([0.1, 0.0]))  # "wild" scored 1e200 away
+    assert auto.errors[1][-1] == pytest.approx(1e200)
+    # its squared score overflows: it loses and nothing raises (the scores' fsum and the
+    # paired test's squares used to raise OverflowError)
+    assert math.isinf(auto._mse([0, 1])[1])
+    assert auto.propose(_sensing()).followed in ("a", "blend")
+    auto.record(_sensing(), np.array([0.1, 0.0]))  # "wild" raised: no proposal, not scored
+    auto.record(_sensing(), np.array([0.1, 0.0]))  # it proposed NaN: the same
+    assert len(auto.errors[1]) == 1
+    auto.record(_sensing(), np.array([0.1, 0.0]))
+    assert len(auto.errors[1]) == 2 and not auto._beats(1, 0, None)
+    assert auto._beats(0, 1, None)  # a finite candidate beats one whose scores overflowed
+    assert auto.propose(_sensing()).followed in ("a", "blend")
+    everyone = Auto([_Diverging("x", [[1e200, 0.0]] * 3), _Diverging("y", [[-1e200, 0.0]] * 3)],
+                    horizon=2, burn_in=0, blend=False, combine="weights")
+    everyone.record(_sensing(), np.array([0.0, 0.0]))
+    with pytest.raises(NotReady):  # every score overflowed: persist stands in (flagged)
+        everyone.weights(everyone._proposals(_sensing()))
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # ekf's overflowing covariance
+def test_a_driving_column_that_cannot_keep_up_ends_broken_not_with_a_traceback():
+    """--max-accel 0.5 covers a fraction of the leader's travel per tick: the followers fall
+    behind without bound; ekf's covariance overflowed and auto's paired test raised
+    OverflowError, before estimates that diverge fell back to persist."""
+    config = RunConfig(surface="elliptic", followers=3, ticks=60, seed=3, motion="drive",
+                       max_accel=0.5, noise_range=0.02, noise_bearing=0.01, estimator="auto")
+    summary, _ = run_local(config)
+    assert summary["complete"] and summary["formation_broken"]
+    assert all(f["broken_ticks"] > 0 for f in summary["followers"].values())

@@ -13,7 +13,16 @@ from statistics import NormalDist
 import numpy as np
 
 from agents.estimators import NotFitted
-from agents.policies.base import Before, LearnsTick, Policy, Proposal, reconstructed_pre, relative
+from agents.policies.base import (
+    DIVERGED,
+    Before,
+    LearnsTick,
+    Policy,
+    Proposal,
+    drivable,
+    reconstructed_pre,
+    relative,
+)
 from protocol.config import AUTO
 from protocol.messages import Sensing
 
@@ -69,6 +78,27 @@ def _weighted(pre: Sensing, proposals: list[Proposal | None], weights: dict[int,
     relative position (xy) its offset implies."""
     offset = np.sum([w * proposals[i].offset for i, w in sorted(weights.items())], axis=0)
     return Proposal(offset, tuple(float(v) for v in relative(pre) - offset), followed=followed)
+
+
+def _sum(values) -> float:
+    """``math.fsum`` of ``values``, infinite where it overflows (the scores of an estimate that
+    diverged), NaN where infinities of both signs meet."""
+    try:
+        return math.fsum(values)
+    except OverflowError:
+        return math.inf
+    except ValueError:  # -inf + inf
+        return math.nan
+
+
+def _learned(cand: Policy, settled: Sensing, target: np.ndarray | None,
+             before: Before | None) -> tuple[float, ...] | None:
+    """``cand`` learns the tick; None if its arithmetic failed (:data:`DIVERGED`): the other
+    candidates learn on, and it proposes again when it can."""
+    try:
+        return cand.learn(settled, target, before)
+    except DIVERGED:
+        return None
 
 
 def _exact(losses: dict[int, float]) -> dict[int, float]:
@@ -256,7 +286,7 @@ class Auto(LearnsTick):
 
     def _mse(self, ready: list[int], now: list[float | None] | None = None) -> dict[int, float]:
         common = min(len(self.errors[i]) for i in ready)
-        return {i: math.fsum(e * e for e in self._adjusted(i, now)[-common:]) / common
+        return {i: _sum(e * e for e in self._adjusted(i, now)[-common:]) / common
                 for i in ready}
 
     def _beats(self, i: int, j: int, now: list[float | None] | None,
@@ -275,8 +305,10 @@ class Auto(LearnsTick):
             self.significance, challengers, common - 1)
         mine, theirs = self._adjusted(i, now)[-common:], self._adjusted(j, now)[-common:]
         diffs = [a * a - b * b for a, b in zip(mine, theirs)]
-        mean = math.fsum(diffs) / common
-        spread = math.sqrt(math.fsum((d - mean) ** 2 for d in diffs) / (common - 1))
+        mean = _sum(diffs) / common
+        if not math.isfinite(mean):  # one side's errors overflowed (a diverged estimate)
+            return mean < 0.0
+        spread = math.sqrt(_sum((d - mean) * (d - mean) for d in diffs) / (common - 1))
         return mean < -level * spread / math.sqrt(common)
 
     def weights(self, proposals: list[Proposal | None],
@@ -288,6 +320,8 @@ class Auto(LearnsTick):
             raise NotFitted("no candidate of auto is scored yet")
         mse = self._mse(ready, now)
         best = min(ready, key=lambda i: (mse[i], i))
+        if not math.isfinite(mse[best]):
+            raise NotFitted("every scored candidate of auto has diverged")
         if mse[best] == 0.0:
             return _exact(mse)
         inverse = {i: mse[best] / mse[i] for i in ready}  # in (0, 1], 1 for the best
@@ -314,6 +348,8 @@ class Auto(LearnsTick):
         """The ``"weights"`` mixture's weight (summing to 1) of each ready candidate, by index."""
         losses = {i: self._loss(i, now) for i in ready}
         lowest = min(losses.values())
+        if not math.isfinite(lowest):
+            raise NotFitted("every scored candidate of auto has diverged")
         if lowest == 0.0:
             return _exact(losses)
         raw = {i: math.exp(-self.sharpness * (loss - lowest) / lowest)
@@ -343,9 +379,10 @@ class Auto(LearnsTick):
         out = []
         for cand in self.candidates:
             try:
-                out.append(cand.propose(pre))
-            except NotFitted:
-                out.append(None)
+                proposal = cand.propose(pre)
+            except (NotFitted, *DIVERGED):  # not ready, or its arithmetic failed this tick
+                proposal = None
+            out.append(proposal if proposal is None or drivable(proposal) else None)
         return out + [self._blended(pre, out, now)]
 
     def _asked_for(self, pre: Sensing) -> tuple[list, list]:
@@ -403,8 +440,8 @@ class Auto(LearnsTick):
                         self.levels[i].append(now[i])
                         self.loss[i] = self._discounted(self.loss[i], error)
         self._asked = None
-        measured = [cand.learn(settled, target, before) for cand in self.candidates]
-        return measured[0]
+        measured = [_learned(cand, settled, target, before) for cand in self.candidates]
+        return next((m for m in measured if m is not None), (settled.r, settled.theta))
 
     def skip(self) -> None:
         self._asked = None

@@ -23,6 +23,7 @@ after a crash).
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from dataclasses import dataclass
 
@@ -30,6 +31,13 @@ import numpy as np
 
 from agents.estimators import NotFitted
 from protocol.messages import Sensing
+
+log = logging.getLogger(__name__)
+
+DIVERGED = (ArithmeticError, np.linalg.LinAlgError)
+"""What a numeric estimator raises when its arithmetic has failed (an overflow, a division by
+zero, a singular system): that tick it has no estimate, as if it were not fitted, and the
+follower does not stop for it (design §6)."""
 
 # The policy-level name of "too little history to propose"; StreamingEDMD raises the same.
 NotReady = NotFitted
@@ -78,6 +86,13 @@ class Proposal:
     prediction: tuple[float, ...] | None = None
     followed: str = ""
     fallback: bool = False
+
+
+def drivable(proposal: Proposal) -> bool:
+    """Whether ``proposal``'s offset is a place a robot can be sent to: two finite numbers (an
+    estimate that overflowed or divided by zero is NaN or infinite, and is no estimate)."""
+    offset = np.asarray(proposal.offset, dtype=float)
+    return offset.shape == (2,) and bool(np.isfinite(offset).all())
 
 
 def polar(r: float, theta: float) -> np.ndarray:
@@ -227,10 +242,15 @@ class Persist(Policy):
 
 
 class FallbackToPersist(LearnsTick):
-    """``policy``, or ``persist``'s proposal (flagged ``fallback``) while it is not ready.
+    """``policy``, or ``persist``'s proposal (flagged ``fallback``) while it is not ready or
+    its estimate has diverged.
 
     The ticks a policy could not predict are then neither silent ``stay`` ticks nor reported as
-    estimated: the proposal says ``fallback=True`` and ``followed="persist"`` (design §6).
+    estimated: the proposal says ``fallback=True`` and ``followed="persist"`` (design §6). A
+    policy whose arithmetic fails (:data:`DIVERGED`) or that proposes no finite offset
+    (:func:`drivable`) has not predicted either: the robot does not drive towards NaN or stop
+    for an overflow, and the first such tick is logged (a warning: the counts are in the
+    summary's ``fallback_ticks``).
     """
 
     def __init__(self, policy: Policy) -> None:
@@ -238,21 +258,41 @@ class FallbackToPersist(LearnsTick):
         self.persist = Persist()
         self.name = policy.name
         self.looks_before_moving = looks_before_moving(policy)
+        self.diverged = 0  # ticks whose proposal or learning failed arithmetically
+
+    def _fallback(self, pre: Sensing) -> Proposal:
+        return dataclasses.replace(self.persist.propose(pre), followed=self.persist.name,
+                                   fallback=True)
+
+    def _diverged(self, tick: int, what: str) -> None:
+        if not self.diverged:
+            log.warning("estimator %s diverged at tick %d (%s); persist stands in for it "
+                        "(counted as fallback ticks)", self.name, tick, what)
+        self.diverged += 1
 
     def propose(self, pre: Sensing) -> Proposal:
         try:
             proposal = self.policy.propose(pre)
         except NotFitted:
-            return dataclasses.replace(self.persist.propose(pre), followed=self.persist.name,
-                                       fallback=True)
+            return self._fallback(pre)
+        except DIVERGED as exc:
+            self._diverged(pre.tick, f"{type(exc).__name__}: {exc}")
+            return self._fallback(pre)
+        if not drivable(proposal):
+            self._diverged(pre.tick, f"it proposed {np.asarray(proposal.offset).tolist()}")
+            return self._fallback(pre)
         if proposal.followed:
             return proposal
         return dataclasses.replace(proposal, followed=self.policy.name)
 
     def learn(self, settled: Sensing, target: np.ndarray | None,
               before: Before | None = None) -> tuple[float, ...]:
-        self.persist.record(settled, target)
-        return self.policy.learn(settled, target, before)
+        kept = self.persist.record(settled, target)
+        try:
+            return self.policy.learn(settled, target, before)
+        except DIVERGED as exc:
+            self._diverged(settled.tick, f"learning: {type(exc).__name__}: {exc}")
+            return kept
 
     def skip(self) -> None:
         self.persist.skip()
