@@ -758,11 +758,26 @@ def dump_config(config: RunConfig, path: str | os.PathLike[str]) -> None:
     write_atomic(Path(path), "\n".join(lines) + "\n")
 
 
+def _canonical(body: dict) -> str:
+    """``body``'s canonical JSON: sorted keys, no spaces, no NaN or infinity."""
+    return json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
 def json_checksum(body: dict) -> str:
     """SHA-256 (hex) of ``body``'s canonical JSON (sorted keys, no spaces): the checksum of
     every state file (the world's checkpoint, a follower's replay log lines)."""
-    canonical = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
-    return hashlib.sha256(canonical.encode()).hexdigest()
+    return hashlib.sha256(_canonical(body).encode()).hexdigest()
+
+
+def checked_text(body: dict, key: str) -> str:
+    """``body`` as canonical JSON with its :func:`json_checksum` added under ``key`` (last),
+    encoded once: what :func:`checked_json` reads back (a state file, or one line of a state
+    log). ``key`` must not be one of ``body``'s."""
+    if key in body:
+        raise ValueError(f"the checksum's key {key!r} is already in the body")
+    canonical = _canonical(body)
+    digest = hashlib.sha256(canonical.encode()).hexdigest()
+    return f'{canonical[:-1]}{"," if body else ""}{json.dumps(key)}:"{digest}"}}'
 
 
 def checked_json(text: str | bytes, key: str) -> dict:
@@ -785,7 +800,7 @@ def checked_json(text: str | bytes, key: str) -> dict:
 def checked_line(body: dict, key: str = "sum") -> str:
     """One line of a state log: ``body`` with its :func:`json_checksum` under ``key``, and a
     newline (what :func:`checked_lines` reads back)."""
-    return json.dumps({**body, key: json_checksum(body)}, allow_nan=False) + "\n"
+    return checked_text(body, key) + "\n"
 
 
 def checked_lines(raw: bytes, max_line: int, key: str = "sum") -> list[dict]:

@@ -28,7 +28,7 @@ import secrets
 from pathlib import Path
 
 from protocol.cli import Refused
-from protocol.config import checked_json, checked_line, checked_lines, json_checksum
+from protocol.config import checked_json, checked_line, checked_lines, checked_text
 from protocol.folder import AppendFile, write_atomic
 from protocol.messages import ACTIONS, ProtocolError, from_body, to_body
 from protocol.record import RESULT_FILES, SUMMARY_FILE
@@ -59,7 +59,7 @@ def save(out_dir: Path, *, run_id: str, start: str, sim: dict, offsets: dict[str
     """Replace the checkpoint atomically (after the tick's rows are on disk)."""
     body = {"schema": SCHEMA, "run_id": run_id, "start": start, "sim": sim,
             "offsets": offsets, "wall_time": wall_time}
-    write_atomic(out_dir / STATE_FILE, json.dumps({**body, "sha256": json_checksum(body)}) + "\n")
+    write_atomic(out_dir / STATE_FILE, checked_text(body, "sha256") + "\n")
 
 
 def load(out_dir: Path, run_id: str) -> dict:
