@@ -467,3 +467,26 @@ def test_a_driving_column_that_cannot_keep_up_ends_broken_not_with_a_traceback()
     summary, _ = run_local(config)
     assert summary["complete"] and summary["formation_broken"]
     assert all(f["broken_ticks"] > 0 for f in summary["followers"].values())
+
+
+class NaNProposer(Stay):
+    """A plug-in whose estimate is NaN from its third tick on."""
+
+    name = "nan-proposer"
+
+    def __init__(self, settings=None):
+        super().__init__()
+
+    def propose(self, pre):
+        return Proposal(np.array([math.nan, 0.0]) if pre.tick >= 2 else np.zeros(2))
+
+
+def test_a_plugin_that_proposes_nan_is_replaced_by_persist_not_followed():
+    from agents.policies.base import FallbackToPersist
+    from agents.policies.plugin import load_estimator
+    policy = FallbackToPersist(load_estimator("tests.test_policies:NaNProposer",
+                                              AgentSettings.from_config(RunConfig())))
+    policy.learn(Sensing(tick=0, r=1.0, theta=0.0, rod=(0.0, 0.0)), np.zeros(2))
+    fine, wild = (policy.propose(Sensing(tick=t, r=1.5, theta=0.0)) for t in (1, 2))
+    assert not fine.fallback and fine.followed == "nan-proposer"
+    assert wild.fallback and wild.followed == "persist" and np.allclose(wild.offset, [0.5, 0.0])
