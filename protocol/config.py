@@ -763,10 +763,14 @@ def _canonical(body: dict) -> str:
     return json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
 
 
+def _digest(canonical: str) -> str:
+    return hashlib.sha256(canonical.encode()).hexdigest()
+
+
 def json_checksum(body: dict) -> str:
     """SHA-256 (hex) of ``body``'s canonical JSON (sorted keys, no spaces): the checksum of
     every state file (the world's checkpoint, a follower's replay log lines)."""
-    return hashlib.sha256(_canonical(body).encode()).hexdigest()
+    return _digest(_canonical(body))
 
 
 def checked_text(body: dict, key: str) -> str:
@@ -776,8 +780,7 @@ def checked_text(body: dict, key: str) -> str:
     if key in body:
         raise ValueError(f"the checksum's key {key!r} is already in the body")
     canonical = _canonical(body)
-    digest = hashlib.sha256(canonical.encode()).hexdigest()
-    return f'{canonical[:-1]}{"," if body else ""}{json.dumps(key)}:"{digest}"}}'
+    return f'{canonical[:-1]}{"," if body else ""}{json.dumps(key)}:"{_digest(canonical)}"}}'
 
 
 def checked_json(text: str | bytes, key: str) -> dict:
