@@ -246,3 +246,21 @@ def test_the_request_journal_reads_back_what_the_world_answered_after_its_checkp
     assert world_checkpoint.Journal(tmp_path, RUN, START).read(2, last - 1) == expected
     with pytest.raises(world_checkpoint.StateError, match="header is not this run's"):
         world_checkpoint.Journal(tmp_path, RUN, "feedfacefeedface").read(2, last - 1)
+
+
+def test_a_state_line_is_encoded_once_and_reads_back_whatever_its_layout():
+    from protocol.config import checked_json, checked_line, checked_lines, checked_text
+    body = {"b": [1.5, None, 'q"uote'], "a": {"z": 1e-300, "y": -0.0}}
+    text = checked_text(body, "sum")
+    assert text.startswith('{"a":{"y":-0.0,"z":1e-300},"b":') and text.endswith('"}')
+    assert checked_json(text, "sum") == body
+    # the layout json.dumps gives by default (what earlier files hold) reads back the same
+    assert checked_json(json.dumps(json.loads(text)), "sum") == body
+    assert checked_json(checked_text({}, "sha256"), "sha256") == {}
+    assert checked_lines((checked_line(body) + checked_line({})).encode(), 10_000) == [body, {}]
+    with pytest.raises(ValueError, match="fails its checksum"):
+        checked_json(text.replace("1e-300", "2e-300"), "sum")
+    with pytest.raises(ValueError, match="already in the body"):
+        checked_text({"sum": 1}, "sum")
+    with pytest.raises(ValueError):  # canonical JSON has no NaN
+        checked_text({"x": float("nan")}, "sum")
