@@ -242,3 +242,17 @@ def test_a_redone_tick_that_acts_otherwise_is_refused():
     sim.act(1, Move(tick=j, offset=(0.5, 0.0)))
     sim.act(1, Snap(tick=j))  # past what the undone attempt did: free
     assert sim.is_settled(1, j)
+
+
+def test_a_noise_block_is_numpys_draw_of_its_key_seeded_faster():
+    """The world seeds a block from its key's 32-bit words (``world.noise._words``) instead of
+    handing numpy the list: the same draws, whatever size the ints (a seed up to 2**63 - 1)."""
+    from world.noise import _block, _words
+    keys = [(0, 0, 0), (1, 2, 3, 0, 1), (2**32 - 1, 5, 6), (2**32, 5, 6), (2**40 + 7, 0, 0, 0, 1),
+            (2**63 - 1, 9, 149, 0, 40)]
+    for key in keys:
+        assert np.array_equal(_block.__wrapped__(key, 48),
+                              np.random.default_rng(list(key)).standard_normal(48)), key
+    assert _words((2**32 + 3, 0)) == [3, 1, 0]
+    with pytest.raises(ValueError, match="non-negative"):
+        _words((1, -1))

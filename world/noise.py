@@ -115,7 +115,26 @@ def _check(channel: str, sigma: float, size: int) -> None:
 
 @functools.lru_cache(maxsize=8192)
 def _block(key: tuple[int, ...], size: int) -> np.ndarray:
-    """``size`` standard normals of one key (read-only; remembered for a while)."""
-    block = np.random.default_rng(list(key)).standard_normal(size)
+    """``size`` standard normals of one key (read-only; remembered for a while): those of
+    ``numpy.random.default_rng(list(key))``, seeded from the key's words directly
+    (:func:`_words`), which skips most of numpy's coercion of a list (a block per reading
+    makes seeding the world's largest cost per request)."""
+    seeded = np.random.SeedSequence(np.array(_words(key), dtype=np.uint32))
+    block = np.random.Generator(np.random.PCG64(seeded)).standard_normal(size)
     block.flags.writeable = False
     return block
+
+
+def _words(key: tuple[int, ...]) -> list[int]:
+    """The 32-bit words numpy's ``SeedSequence`` makes of a list of non-negative ints: each
+    int's, least significant first, at least one."""
+    words = []
+    for part in key:
+        if part < 0:
+            raise ValueError(f"a noise key holds non-negative ints, got {part}")
+        words.append(part & 0xFFFFFFFF)
+        part >>= 32
+        while part:
+            words.append(part & 0xFFFFFFFF)
+            part >>= 32
+    return words
