@@ -9,6 +9,9 @@ run (the machine may be shared: interleaved rounds see the same load), and print
 own wall times (``summary.json``, start-up excluded), their medians and the ratio here /
 baseline; then the same for the CPU time each run took, all its processes together
 (start-up included), which a shared machine disturbs less. Both use this interpreter.
+``--margin N`` also runs every cell at N ticks and prints the wall time per tick between the
+two lengths (what a longer run pays for each tick, without the start and end a 200-tick run's
+ratio dilutes).
 """
 from __future__ import annotations
 
@@ -23,8 +26,9 @@ import tempfile
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parents[1]
-CASE = ["--followers", "3", "--ticks", "200", "--noise-range", "0.02", "--noise-bearing",
-        "0.01", "--noise-move", "0.01", "--seed", "1"]
+TICKS = 200
+CASE = ["--followers", "3", "--noise-range", "0.02", "--noise-bearing", "0.01", "--noise-move",
+        "0.01", "--seed", "1"]
 LAYOUTS = {"in-process": ["--in-process"], "processes": []}
 
 
@@ -34,7 +38,8 @@ def _cpu() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def run_times(checkout: Path, estimator: str, layout: str, out: Path) -> tuple[float, float]:
+def run_times(checkout: Path, estimator: str, layout: str, out: Path,
+              ticks: int = TICKS) -> tuple[float, float]:
     """The wall time ``summary.json`` of one run of the case reports and the CPU time the
     run's processes took (s). A run whose process dies after its summary says it is complete
     counts (older checkouts' in-process runs can abort while the interpreter exits, with an
@@ -43,7 +48,8 @@ def run_times(checkout: Path, estimator: str, layout: str, out: Path) -> tuple[f
     for attempt in range(3):
         before = _cpu()
         died = subprocess.run([sys.executable, "-m", "swarm", "run", *LAYOUTS[layout], *CASE,
-                               "--estimator", estimator, "--out", str(out / str(attempt))],
+                               "--ticks", str(ticks), "--estimator", estimator,
+                               "--out", str(out / str(attempt))],
                               cwd=checkout, env=env, stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL, timeout=600).returncode
         summary = out / str(attempt) / "summary.json"
@@ -63,7 +69,11 @@ def main() -> None:
     p.add_argument("--estimators", default="persist,auto")
     p.add_argument("--layouts", default=",".join(LAYOUTS),
                    help=f"comma-separated, of {', '.join(LAYOUTS)} (default both)")
+    p.add_argument("--margin", type=int, default=None, metavar="N",
+                   help=f"also run N ticks (> {TICKS}) and print the wall time per tick between")
     args = p.parse_args()
+    if args.margin is not None and not TICKS < args.margin <= 100_000:
+        p.error(f"--margin must be a tick count above {TICKS} (and at most 100000)")
     if not (args.baseline / "swarm" / "__main__.py").is_file():
         p.error(f"{args.baseline} is not a checkout of this project")
     layouts = args.layouts.split(",")
@@ -72,6 +82,7 @@ def main() -> None:
     cells = [(e, lay) for lay in layouts for e in args.estimators.split(",")]
     times = {(cell, side): [] for cell in cells for side in ("baseline", "here")}
     cpus = {key: [] for key in times}
+    longer = {key: [] for key in times}
     with tempfile.TemporaryDirectory() as scratch:
         for i in range(args.repeats):
             for cell in cells:
@@ -80,6 +91,10 @@ def main() -> None:
                     wall, cpu = run_times(checkout, *cell, out)
                     times[(cell, side)].append(wall)
                     cpus[(cell, side)].append(cpu)
+                    if args.margin is not None:
+                        wall, _ = run_times(checkout, *cell, out.with_name(out.name + "-long"),
+                                            args.margin)
+                        longer[(cell, side)].append(wall)
     for what, table in (("wall time", times), ("CPU time", cpus)):
         for estimator, layout in cells:
             got = {side: table[((estimator, layout), side)] for side in ("baseline", "here")}
@@ -90,6 +105,16 @@ def main() -> None:
                   + " ".join(f"{t:.2f}" for t in got["here"])
                   + f" s (median {medians['here']:.2f}); ratio "
                   f"{medians['here'] / medians['baseline']:.3f}")
+    if args.margin is not None:
+        span = args.margin - TICKS
+        for estimator, layout in cells:
+            key = (estimator, layout)
+            per = {side: (statistics.median(longer[(key, side)])
+                          - statistics.median(times[(key, side)])) / span
+                   for side in ("baseline", "here")}
+            print(f"wall time per tick from {TICKS} to {args.margin} ticks, {estimator}, "
+                  f"{layout}: baseline {per['baseline'] * 1e3:.2f} ms, here "
+                  f"{per['here'] * 1e3:.2f} ms; ratio {per['here'] / per['baseline']:.3f}")
 
 
 if __name__ == "__main__":
