@@ -92,13 +92,13 @@ def _sum(values) -> float:
 
 
 def _learned(cand: Policy, settled: Sensing, target: np.ndarray | None,
-             before: Before | None) -> tuple[float, ...] | None:
-    """``cand`` learns the tick; None if its arithmetic failed (:data:`DIVERGED`): the other
+             before: Before | None) -> None:
+    """``cand`` learns the tick; if its arithmetic fails (:data:`DIVERGED`) the other
     candidates learn on, and it proposes again when it can."""
     try:
-        return cand.learn(settled, target, before)
+        cand.learn(settled, target, before)
     except DIVERGED:
-        return None
+        pass
 
 
 def _exact(losses: dict[int, float]) -> dict[int, float]:
@@ -440,8 +440,11 @@ class Auto(LearnsTick):
                         self.levels[i].append(now[i])
                         self.loss[i] = self._discounted(self.loss[i], error)
         self._asked = None
-        measured = [_learned(cand, settled, target, before) for cand in self.candidates]
-        return next((m for m in measured if m is not None), (settled.r, settled.theta))
+        anchor, *others = self.candidates
+        measured = anchor.learn(settled, target, before)  # auto records the anchor's
+        for cand in others:
+            _learned(cand, settled, target, before)
+        return measured
 
     def skip(self) -> None:
         self._asked = None
