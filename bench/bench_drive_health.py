@@ -28,14 +28,16 @@ from bench.bench_estimator_table import parse_levels  # noqa: E402
 from protocol.config import RunConfig, estimator_options  # noqa: E402
 from swarm.drive_study import NOISE_LEVELS, within_bound  # noqa: E402
 
-NOISE = ",".join(f"{r:g}/{t:g}" for r, t in NOISE_LEVELS.values())
-"""The drive study's noise levels, σ_r/σ_θ (the default of ``--noise``)."""
 BROKEN = 0.5  # a follower this far out of formation: the column broke (issue #30's measure)
 
 
 def label(level: tuple[float, float]) -> str:
-    """A noise level as the table names it: ``σ_r/σ_θ``, or ``0`` for none."""
+    """A noise level as the table and ``--noise`` name it: ``σ_r/σ_θ``, or ``0`` for none."""
     return f"{level[0]:g}/{level[1]:g}" if any(level) else "0"
+
+
+NOISE = ",".join(label(level) for level in NOISE_LEVELS.values())
+"""The drive study's noise levels (the default of ``--noise``)."""
 
 
 def _run(job: tuple) -> tuple[tuple, dict]:
