@@ -144,3 +144,42 @@ def test_the_floor_with_actuation_noise_is_at_least_the_moves_own():
     one = summary["followers"]["1"]
     assert 0.9 * sigma * math.sqrt(math.pi / 2) < one["mean_floor_range"]
     assert one["mean_floor_range"] < one["mean_required_range"]
+
+
+@pytest.mark.parametrize("sigma_r, sigma_theta", [(0.1, 0.0), (0.0, 0.05)])
+def test_a_sensor_exact_on_one_axis_keeps_the_floor_finite(sigma_r, sigma_theta):
+    """Readings exact along one direction (range or bearing σ zero, the other not) at two
+    bearings pin ``s`` along both, to first order: the floor's covariance becomes singular up
+    to rounding, and the filter must go on, finite, instead of dividing by a determinant
+    rounding made zero or negative (the world crashed at the first such tick of every run
+    with ``--noise-range 0.1 --noise-bearing 0``). Its error is then far below one reading's:
+    zero with an exact bearing, the bearing's second-order shortening of the range with an
+    exact range."""
+    rng = np.random.default_rng(2)
+    f, r = floor.FloorFilter(), 3.57
+    for tick in range(40):
+        events = []
+        for theta in (0.3 + 0.01 * tick, 2.0 - 0.01 * tick):  # the leader's and the rod end's
+            offset = r * np.array([math.cos(theta), math.sin(theta)])
+            n_r, n_theta = rng.normal(0.0, sigma_r or 1.0) * (sigma_r > 0), (
+                rng.normal(0.0, sigma_theta or 1.0) * (sigma_theta > 0))
+            read = (r + n_r) * np.array([math.cos(theta + n_theta), math.sin(theta + n_theta)])
+            events.append(floor.range_bearing(read - offset, offset, sigma_r, sigma_theta))
+        events.append(floor.DECISION)
+        assert math.isfinite(f.tick(events))
+        assert np.isfinite(f.covariance).all()
+    # what the floor's first-order model does not see: r σ_θ² (an exact range; 0.009 m here,
+    # one reading errs r σ_θ = 0.18 m across), nothing (an exact bearing)
+    assert f.tick([]) < (1e-6 * sigma_r if sigma_theta == 0 else 5.0 * r * sigma_theta**2)
+
+
+@pytest.mark.parametrize("motion", ["teleport", "drive"])
+def test_a_run_with_one_exact_sensor_axis_completes(motion):
+    """Runs that crashed the world's floor before (every surface and estimator tried) complete."""
+    extra = {"motion": "drive"} if motion == "drive" else {}
+    for sigma_r, sigma_theta in ((0.1, 0.0), (0.0, 0.05)):
+        summary, rows = run_local(RunConfig(surface="elliptic", followers=2, ticks=20, seed=1,
+                                            noise_range=sigma_r, noise_bearing=sigma_theta,
+                                            **extra))
+        assert summary["complete"]
+        assert all(math.isfinite(r["floor_range"]) for r in rows if r["agent"] > 0)

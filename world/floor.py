@@ -45,6 +45,9 @@ PRIOR_VARIANCE = 1e6
 """Variance (m², per coordinate) of the floor's prior on ``s``: nothing known before tick 0."""
 JITTER = 1e-18
 """Added to a reading's covariance so that a σ = 0 channel keeps it invertible."""
+SINGULAR = 1e-12
+"""A reading's predicted covariance ``S`` counts as singular when ``det S`` is at most this
+share of the product of its diagonal: rounding then decides its sign (:func:`_inverse`)."""
 
 READ = "read"  # a reading of s: error (2,), covariance (2, 2)
 MOVE = "move"  # s moved by a known command: noise (2,) added to the error, its variance
@@ -120,6 +123,31 @@ _JITTERED = JITTER * np.eye(2)
 _PICK = {0: np.eye(4)[:2], 2: np.eye(4)[2:]}  # the rows that read s, or w
 
 
+def _inverse(a: float, b: float, d: float) -> tuple[float, float, float]:
+    """The inverse of the symmetric ``[[a, b], [b, d]]`` (a reading's predicted covariance),
+    as its entries ``(00, 01, 11)``.
+
+    A sensor exact on one axis and noisy on the other (``σ_r = 0 < σ_θ`` or the reverse) reads
+    ``s`` exactly along one direction, so after a reading or two the floor's covariance is
+    zero along it up to rounding — and the next reading's covariance is singular up to
+    rounding: its determinant, a difference of two nearly equal products, can come out zero or
+    negative (the world then divided by zero). Such a matrix (:data:`SINGULAR`) is inverted
+    with ``1e-12`` of its trace added to its diagonal: the exact direction is then known to
+    within a variance of that size instead of exactly (about 1e-7 m for readings of 0.01 m²).
+    A well-conditioned one (every run with both σ or neither) is inverted as it is.
+
+    >>> _inverse(2.0, 0.0, 4.0)
+    (0.5, -0.0, 0.25)
+    >>> all(math.isfinite(x) for x in _inverse(0.01, 0.01, 0.01))  # singular: regularised
+    True
+    """
+    det = a * d - b * b
+    if not det > SINGULAR * a * d:
+        a, d = a + SINGULAR * (a + d), d + SINGULAR * (a + d)
+        det = a * d - b * b
+    return d / det, -b / det, a / det
+
+
 class FloorFilter:
     """The floor's Kalman filter for one follower, in error space (see the module's text).
 
@@ -176,9 +204,8 @@ class FloorFilter:
         """A reading of the ``part`` of the state (s or w) with ``error`` and ``covariance``
         (Joseph form: the covariance stays symmetric and positive)."""
         (a, b), (_, d) = self.covariance[part, part] + covariance
-        a, d = a + JITTER, d + JITTER
-        det = a * d - b * b
-        inverse = np.array([[d / det, -b / det], [-b / det, a / det]])
+        i00, i01, i11 = _inverse(a + JITTER, b, d + JITTER)
+        inverse = np.array([[i00, i01], [i01, i11]])
         gain = self.covariance[:, part] @ inverse  # (4, 2)
         self.error = self.error + gain @ (error - self.error[part])
         keep = _IDENTITY - gain @ _PICK[part.start]
@@ -191,9 +218,7 @@ class FloorFilter:
         p00, p01, p11 = float(p[0, 0]), float(p[0, 1]), float(p[1, 1])
         r00, r01, r11 = (float(covariance[0, 0]) + JITTER, float(covariance[0, 1]),
                          float(covariance[1, 1]) + JITTER)
-        a, b, d = p00 + r00, p01 + r01, p11 + r11
-        det = a * d - b * b
-        i00, i01, i11 = d / det, -b / det, a / det
+        i00, i01, i11 = _inverse(p00 + r00, p01 + r01, p11 + r11)
         k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
         k10, k11 = p01 * i00 + p11 * i01, p01 * i01 + p11 * i11
         v0, v1 = float(error[0]) - self.error[0], float(error[1]) - self.error[1]
