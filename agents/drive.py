@@ -453,7 +453,13 @@ class HeadingFilter:
         self._update(compass, limits.sigma_bearing**2)
         odometry_variance = limits.odometry_variance[step] if limits.odometry_variance else 0.0
         if speed != 0.0 and moved * moved > 9.0 * odometry_variance:  # so moved > 0
-            direction = math.atan2(odometry[1], odometry[0]) + (0.0 if speed > 0 else math.pi)
+            # the robot moves along its heading's axis, forwards or backwards: which way is
+            # the one nearer the heading, not the command's sign (a command slower than the
+            # speed's actuation noise can be driven the other way, and an exact odometry
+            # then flipped the heading by π: docs/drive.md, *Setting off*)
+            direction = math.atan2(odometry[1], odometry[0])
+            if math.cos(direction - self.heading) < 0.0:
+                direction += math.pi
             self._update(wrap(direction + 0.5 * turn),
                          odometry_variance / (moved * moved) + (0.25 * turn) ** 2
                          + (TRANSPORT * moved) ** 2)

@@ -186,6 +186,31 @@ def test_the_heading_filter_averages_the_compass():
     assert np.std(errors) < 0.03 / math.sqrt(12) * 1.3
 
 
+def test_the_heading_filter_reads_the_odometry_on_the_heading_s_axis_either_way():
+    """A step commanded backwards but driven forwards (a command slower than the speed's
+    actuation noise) moves the robot along its heading: with exact odometry the filter took
+    the command's sign and turned the heading by π (on egg_crate with σ_θ 0.06 and speed
+    noise, follower 1 spun at tick 0 and follower 2 ended 7 m off); it keeps it now, and a
+    step driven backwards as commanded still reads the same axis."""
+    limits = _limits(noise_bearing=0.06)
+    for commanded, driven in ((-0.002, 0.0001), (-0.5, -0.1), (0.5, 0.1), (0.002, -0.0001)):
+        f = HeadingFilter(0.035, limits)
+        odometry = driven * np.array([math.cos(0.035), math.sin(0.035)])
+        f.step(0, 0.0, commanded, 0.0665, odometry)
+        assert abs(f.heading - 0.035) < 0.05, (commanded, driven, f.heading)
+        assert abs(f.drift()) < 1.0
+
+
+def test_a_column_setting_off_under_speed_noise_does_not_turn_round():
+    """The run that showed it (egg_crate, σ_r 0.005, σ_θ 0.06, speed noise 0.02, T_c 2.56):
+    follower 2 was 3.9-7.2 m off in its first ticks; within half a metre now."""
+    summary, rows = run_local(RunConfig(
+        surface="world.held_out:egg_crate", followers=2, ticks=10, seed=7, motion="drive",
+        noise_range=0.005, noise_bearing=0.06, comm_period=2.56, init_ticks=8,
+        noise_speed=0.02))
+    assert max(r["formation_error"] for r in rows if r["agent"] > 0) < 0.5
+
+
 # --- the protocol at the world -----------------------------------------------------------------
 
 
