@@ -186,7 +186,8 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
     ``9 var c``, kept too little of it: docs/drive.md). Without noise the points are exact
     and the polynomial through all of them is taken instead (a quartic over the full track:
     it halves the cubic's lag again; under noise a quartic term that stands out by chance
-    swings the end tangent, so it is not fitted there). With one displacement known it
+    swings the end tangent, so it is not fitted there), unless a shorter one disagrees with
+    it by more than the path's turns allow (:func:`_exact_tangent`). With one displacement known it
     is the exact quadratic through three points,
     ``χ + (χ − χ₋₁)/2`` for chords of equal length; with none, the end tangent of the
     circular arc tangent to ``heading``, ``ψ₀ + 2(χ − ψ₀)``, whose bend beyond the chord,
@@ -235,7 +236,7 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
         return tangent, (spread / length if length > 0.0 else math.inf)
 
     if variance == 0.0:  # exact points: the polynomial through them all has the least lag
-        tangent = _interpolant(len(track)) @ points
+        tangent = _exact_tangent(points)
     else:  # the longest fit that agrees with every shorter one within their noise (Lepski)
         seen: list[tuple[float, float]] = []
         for ticks in range(1, len(track) + 1):
@@ -246,6 +247,35 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
             tangent = candidate
             seen.append((angle, spread))
     return wrap(heading + weight * wrap(forward(tangent) - heading))
+
+
+def _exact_tangent(points: np.ndarray) -> np.ndarray:
+    """:func:`goal_heading`'s tangent at the goal through exact ``points`` (the track's, then
+    the goal, one tick apart): the polynomial through the most past ticks whose end tangent
+    agrees with those through fewer within twice the path's largest turn between two
+    successive steps — the rule the noisy fit follows (Lepski's), with the fits' model error
+    in place of the points' σ.
+
+    Exact points leave a fit no noise, but a model error: a polynomial in time through a path
+    whose rod ends slow down and speed up (a column swinging at a long comm period, its steps
+    3.4, 2.1, 1.7 then 0.9 m) extrapolates far off it (a tangent 1.28 rad from the last step's
+    direction, where the steps turn by 0.11 rad at most), the follower turns round, and the
+    column behind it breaks. What a fit leaves out is of the order of the path's turn per tick,
+    so fits that differ by more than twice it (each one's) are not both right, and the longer
+    one is dropped. Where the path is smooth every fit agrees and the one through all the
+    points is taken: its lag is least (docs/drive.md)."""
+    steps = np.diff(points, axis=0)
+    angles = np.arctan2(steps[:, 1], steps[:, 0])
+    turn = max(abs(wrap(float(b - a))) for a, b in zip(angles[:-1], angles[1:]))
+    seen: list[float] = []
+    for ticks in range(1, len(points) - 1):
+        candidate = _interpolant(ticks) @ points[len(points) - ticks - 2:]
+        angle = math.atan2(candidate[1], candidate[0])
+        if any(abs(wrap(angle - a)) > 2.0 * turn for a in seen):
+            break
+        tangent = candidate
+        seen.append(angle)
+    return tangent
 
 
 def arc_times(points: np.ndarray) -> np.ndarray:

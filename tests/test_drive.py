@@ -12,6 +12,7 @@ import pytest
 from agents.drive import (
     HeadingFilter,
     Limits,
+    _interpolant,
     chart_turn,
     goal_heading,
     metric_angle,
@@ -164,6 +165,33 @@ def test_with_no_track_under_noise_the_arc_bends_only_as_far_as_its_bend_stands_
     beyond = goal_heading(0.0, chord, (), 1e-5)  # a bend of 0.3 rad, its σ about 0.003
     trust = 1.0 - 9e-5 / float(chord @ chord)  # the chord's trust (goal_heading's docstring)
     assert beyond == pytest.approx(trust * 0.6, abs=1e-3)
+
+
+def test_the_exact_goal_heading_keeps_the_polynomial_through_a_smooth_path():
+    """Without noise, points along a circle (steps of 1.2 m turning 0.05 rad a tick): every
+    fit agrees, and the tangent is the quartic's through all of them, as before."""
+    angles = 0.05 * np.arange(4)
+    steps = [1.2 * np.array([math.cos(a), math.sin(a)]) for a in angles]
+    track, chord = tuple(steps[:3]), steps[3]
+    points = np.cumsum([np.zeros(2), *steps], axis=0)
+    points = points - points[3]  # the follower stands at the third, the goal last
+    quartic = _interpolant(3) @ points
+    assert goal_heading(0.1, chord, track, 0.0) == pytest.approx(
+        math.atan2(quartic[1], quartic[0]), abs=1e-12)
+
+
+def test_the_exact_goal_heading_drops_a_fit_the_path_s_turns_cannot_explain():
+    """Follower 4's rod ends on wavy at a comm period of 2.56 s (tick 35): steps of 3.4, 2.1,
+    1.7 m, then a goal 0.9 m ahead, turning 0.11 rad at most. The quartic through them said
+    1.42 rad, the follower turned round and the column behind it broke (follower 5 6.7 m
+    off); the fits through fewer points disagree with it, so the shortest is taken."""
+    track = (np.array([3.447, 0.045]), np.array([2.078, -0.039]), np.array([1.718, 0.046]))
+    chord = np.array([0.923, 0.13])
+    heading = goal_heading(0.0622, chord, track, 0.0, 3.57)
+    assert abs(heading - math.atan2(chord[1], chord[0])) < 0.3
+    _, rows = run_local(RunConfig(surface="wavy", followers=5, ticks=40, comm_period=2.56,
+                                  motion="drive", estimator="persist"))
+    assert max(r["formation_error"] for r in rows if r["agent"] > 0) < 1.5  # 6.74 before
 
 
 def test_chart_turn_inverts_the_metric_angle():
