@@ -328,6 +328,28 @@ def test_arx_leverage_is_the_part_of_the_regressor_outside_the_data():
     assert all(v < 1e-9 for v in seen[5:])  # 5 pairs in general position span them all
 
 
+def test_arx_with_lags_before_its_samples_is_not_fitted_yet():
+    """An order above the samples it has (``--arx-order 20`` with estimation from tick 2, or
+    after a lost tick restarted its chain) indexed its lags before the chain's start: an
+    IndexError ended the run (or a wrapped-round regressor). It is not fitted yet instead,
+    and the run goes on with persist until it is."""
+    from agents.policies import ARX
+    arx = ARX(order=5, window=None)
+    for k in range(4):
+        arx.record(Sensing(tick=k, r=3.0, theta=0.1 * k), np.array([0.1, 0.0]))
+        with pytest.raises(NotReady):
+            arx.propose(Sensing(tick=k + 1, r=3.0, theta=0.1 * k))
+        assert arx.leverage(Sensing(tick=k + 1, r=3.0, theta=0.1 * k)) is None
+    summary, _ = run_local(RunConfig(surface="elliptic", followers=2, ticks=30, seed=44,
+                                     init_ticks=2, estimator="arx", arx_order=20, arx_window=0,
+                                     noise_range=0.01, noise_move=0.01))
+    assert summary["complete"]
+    summary, _ = run_local(RunConfig(surface="wavy", ticks=30, seed=17, init_ticks=2,
+                                     estimator="auto-mix", arx_order=5, arx_window=1,
+                                     noise_range=0.01, noise_bearing=0.005))
+    assert summary["complete"]
+
+
 def test_auto_burn_in_drops_each_candidates_first_score():
     auto = Auto([_Fixed("a", [0.0, 0.0]), _Fixed("b", [1.0, 0.0])], burn_in=1)
     auto.record(_sensing(), np.array([0.4, 0.0]))

@@ -329,6 +329,8 @@ class ARX(Policy):
         """The regressor of the coming prediction, from the pre-move sensing."""
         if self.last_seen is None:
             raise NotFitted(f"{self.name} needs one settled measurement")
+        if len(self.xs) < self.order:  # its lags reach before the chain's start
+            raise NotFitted(f"{self.name} needs {self.order} connected samples to predict")
         return self._regressor(len(self.xs) - 1, u_now=relative(pre) - self.last_seen)
 
     def leverage(self, pre: Sensing) -> float | None:
