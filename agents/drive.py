@@ -238,15 +238,23 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
     if variance == 0.0:  # exact points: the polynomial through them all has the least lag
         tangent = _exact_tangent(points)
     else:  # the longest fit that agrees with every shorter one within their noise (Lepski)
-        seen: list[tuple[float, float]] = []
-        for ticks in range(1, len(track) + 1):
-            candidate, spread = fitted(ticks)
-            angle = forward(candidate)
-            if any(abs(wrap(angle - a)) > LEPSKI * s for a, s in seen):
-                break
-            tangent = candidate
-            seen.append((angle, spread))
+        tangent = _longest_agreeing(
+            (candidate, forward(candidate), LEPSKI * spread)
+            for candidate, spread in map(fitted, range(1, len(track) + 1)))
     return wrap(heading + weight * wrap(forward(tangent) - heading))
+
+
+def _longest_agreeing(fits) -> np.ndarray:
+    """Lepski's rule over ``fits``, shortest first, each ``(tangent, angle, band)``: the
+    tangent of the longest fit whose angle lies within the band of every shorter one (its
+    noise, or its model error), computed no further than the first that does not."""
+    seen: list[tuple[float, float]] = []
+    for candidate, angle, band in fits:
+        if any(abs(wrap(angle - a)) > b for a, b in seen):
+            break
+        tangent = candidate
+        seen.append((angle, band))
+    return tangent
 
 
 def _exact_tangent(points: np.ndarray) -> np.ndarray:
@@ -266,16 +274,10 @@ def _exact_tangent(points: np.ndarray) -> np.ndarray:
     points is taken: its lag is least (docs/drive.md)."""
     steps = np.diff(points, axis=0)
     angles = np.arctan2(steps[:, 1], steps[:, 0])
-    turn = max(abs(wrap(float(b - a))) for a, b in zip(angles[:-1], angles[1:]))
-    seen: list[float] = []
-    for ticks in range(1, len(points) - 1):
-        candidate = _interpolant(ticks) @ points[len(points) - ticks - 2:]
-        angle = math.atan2(candidate[1], candidate[0])
-        if any(abs(wrap(angle - a)) > 2.0 * turn for a in seen):
-            break
-        tangent = candidate
-        seen.append(angle)
-    return tangent
+    band = 2.0 * max(abs(wrap(float(b - a))) for a, b in zip(angles[:-1], angles[1:]))
+    fits = (_interpolant(ticks) @ points[len(points) - ticks - 2:]
+            for ticks in range(1, len(points) - 1))
+    return _longest_agreeing((fit, math.atan2(fit[1], fit[0]), band) for fit in fits)
 
 
 def arc_times(points: np.ndarray) -> np.ndarray:
