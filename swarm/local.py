@@ -114,7 +114,7 @@ def _simulate(config: RunConfig, out_dir: str | Path | None,
             tick_rows = sim.finish_tick(tick)
             rows.extend(tick_rows)
             recorder.add_tick(tick_rows, observations.pop(tick, []), sim.control_rows(tick))
-        if (may_open(through, sim.tick, last, config.pipelined)
+        if (may_open(through, sim.tick, sim.complete, last, config.pipelined)
                 and not sim.ends_before(sim.tick + 1)):
             sim.open_tick(sim.tick + 1)
         ready = [k for k in range(sim.n_agents)

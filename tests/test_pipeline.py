@@ -110,3 +110,25 @@ def test_the_column_really_overlaps_ticks(tmp_path, monkeypatch):
     config = dataclasses.replace(_config(10, pipelined=True), ticks=30)
     assert launch(config, tmp_path / "run", in_process=True)["complete"]
     assert opened_at_first_complete and opened_at_first_complete[0] > 0
+
+
+def test_the_wavefront_is_no_deeper_than_the_column(tmp_path, monkeypatch):
+    """The leader, faster than its column, gets no further ahead of the last complete tick
+    than one tick per agent: without the bound (world.schedule.may_open) it ran ahead without
+    end, and the world kept and iterated over every tick it was ahead by. Measured at every
+    tick's completion, in-process over Zenoh and as processes alike (one service)."""
+    from world.service import WorldService
+
+    depths = []
+    original = WorldService._complete_tick
+
+    def spy(self, tick):
+        depths.append(self.sim.tick - tick)
+        return original(self, tick)
+
+    monkeypatch.setattr(WorldService, "_complete_tick", spy)
+    config = dataclasses.replace(_config(3, pipelined=True), ticks=60, estimator="persist")
+    assert launch(config, tmp_path / "run", in_process=True)["complete"]
+    assert len(depths) == 60
+    assert max(depths) <= 3  # the leader opens at most 4 agents - 1 ticks beyond a completion
+    assert max(depths) > 0  # still a wavefront

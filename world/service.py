@@ -519,7 +519,8 @@ class WorldService:
                         self._complete_tick(tick)
                         opened = False
                         break
-                    if may_open(self._through, self.sim.tick, last, self.config.pipelined):
+                    if may_open(self._through, self.sim.tick, self.sim.complete, last,
+                                self.config.pipelined):
                         tick = self.sim.tick + 1
                         self.sim.open_tick(tick)
                         self._progress = time.monotonic()
