@@ -1,14 +1,14 @@
 """Does a long run's tick cost what its first ticks cost? ``python bench/bench_long_run.py``
 
 Runs one noisy case with follower processes over Zenoh (3 followers, σ 0.02/0.01, actuation
-0.01, ``persist``, seed 1; ``--ticks`` long) and samples it every ``--every`` seconds from
-outside: the ticks written to ``ticks.csv``, the CPU time (user and system, from ``/proc``) of
-the world's process (``swarm run`` hosts it) and of the agents' processes, and the world's
-resident memory. Per window it prints the wall time per tick, the CPU per tick of the world
-and of the agents, and the world's memory; then the last window against the first. With
-``--checkout DIR`` it runs another checkout (``git worktree add /tmp/old COMMIT``), with this
-interpreter. The run is stopped after ``--seconds``. Nothing here is asserted: a shared
-machine's load moves the wall times, less so the CPU per tick.
+0.01, seed 1, ``--estimator``, default ``persist``; ``--ticks`` long) and samples it every
+``--every`` seconds from outside: the ticks written to ``ticks.csv``, the CPU time (user and
+system, from ``/proc``) of the world's process (``swarm run`` hosts it) and of the agents'
+processes, and the world's resident memory. Per window it prints the wall time per tick, the
+CPU per tick of the world and of the agents, and the world's memory; then the last window
+against the first. With ``--checkout DIR`` it runs another checkout (``git worktree add
+/tmp/old COMMIT``), with this interpreter. The run is stopped after ``--seconds``. Nothing here
+is asserted: a shared machine's load moves the wall times, less so the CPU per tick.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parents[1]
 CASE = ["--followers", "3", "--noise-range", "0.02", "--noise-bearing", "0.01", "--noise-move",
-        "0.01", "--seed", "1", "--estimator", "persist"]
+        "0.01", "--seed", "1"]
 TICK = os.sysconf("SC_CLK_TCK")
 PAGE = os.sysconf("SC_PAGE_SIZE")
 
@@ -68,13 +68,15 @@ def main() -> None:
                    "after --seconds anyway)")
     p.add_argument("--seconds", type=float, default=60.0)
     p.add_argument("--every", type=float, default=10.0, help="window length (s)")
+    p.add_argument("--estimator", default="persist")
     args = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run"
         env = {**os.environ, "PYTHONPATH": str(args.checkout)}
-        proc = subprocess.Popen([sys.executable, "-m", "swarm", "run", *CASE, "--ticks",
-                                 str(args.ticks), "--out", str(out)], cwd=args.checkout, env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        command = [sys.executable, "-m", "swarm", "run", *CASE, "--ticks", str(args.ticks),
+                   "--estimator", args.estimator, "--out", str(out)]
+        proc = subprocess.Popen(command, cwd=args.checkout, env=env, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
         agents: set[int] = set()
         try:
             while _ticks(out / "ticks.csv", 4) < 10 and proc.poll() is None:
@@ -103,7 +105,8 @@ def main() -> None:
                     os.kill(agent, 9)
                 except ProcessLookupError:
                     pass
-    print(f"checkout {args.checkout}: {CASE[1]} followers, persist, σ 0.02/0.01, processes")
+    print(f"checkout {args.checkout}: {CASE[1]} followers, {args.estimator}, σ 0.02/0.01, "
+          "processes")
     print("ticks          wall ms/tick  world CPU ms/tick  agents CPU ms/tick  world RSS MiB")
     for a, b in windows:
         n = b[1] - a[1]

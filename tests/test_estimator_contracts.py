@@ -178,7 +178,7 @@ class CountedARX(ARX):
         source = ARX(self.order, self.window, self.affine, self.name)
         # the same data (samples, and the pairs made from them as they came), no fit yet
         source.xs, source.us, source.last_seen = self.xs, self.us, self.last_seen
-        source._pairs = self._pairs
+        source._pairs, source._count, source._summary = self._pairs, self._count, self._summary
         return source
 
     def leverage(self, pre):
@@ -436,5 +436,6 @@ def test_arx_keeps_each_pair_as_a_refit_from_its_samples_would_make_it(order, wi
         rows = range(first, len(arx.us))
         phi = np.array([np.concatenate([part for k in range(order) for part in (
             arx.xs[i - k], arx.us[i - k])] + [np.ones(1)]) for i in rows])
-        _, _, fitted = arx._fit()
+        arx._fit()  # fits (its pairs are what it fits on, up to SUMMARY_PAIRS of them)
+        fitted = np.array([row for row, _ in arx._pairs])
         assert fitted.tolist() == phi.tolist()

@@ -2,6 +2,7 @@
 noise determinism. Run through the in-memory layout (same code as over Zenoh)."""
 from __future__ import annotations
 
+import importlib
 import math
 
 import numpy as np
@@ -348,6 +349,50 @@ def test_arx_with_lags_before_its_samples_is_not_fitted_yet():
                                      estimator="auto-mix", arx_order=5, arx_window=1,
                                      noise_range=0.01, noise_bearing=0.005))
     assert summary["complete"]
+
+
+@pytest.mark.parametrize("order, affine, rank_deficient", [(1, True, False), (2, True, False),
+                                                           (2, False, False), (1, True, True)])
+def test_arx_with_every_pair_fits_from_a_summary_beyond_its_pairs_as_from_the_pairs(
+        monkeypatch, order, affine, rank_deficient):
+    """Every pair kept (window None, ``auto``'s ``arx-o1`` and ``arx-o2``): refitting all of
+    them every tick made a long run's ticks dearer and dearer. Beyond SUMMARY_PAIRS the fit
+    comes from their triangular factor: the same coefficients, rank cut and leverage as the
+    pseudoinverse of every pair (computed here with the threshold out of reach), and the
+    pairs themselves are no longer kept. Rank-deficient: a leader that never moves relative
+    to the follower (x constant, u zero), whose regressors span one dimension."""
+    from agents.policies import ARX
+    classical = importlib.import_module("agents.policies.classical")
+
+    def stream(arx: ARX) -> list[tuple]:
+        rng = np.random.default_rng(11)
+        out = []
+        for k in range(60):
+            r, theta = ((3.0, 0.2) if rank_deficient else
+                        (3.0 + 0.5 * math.sin(0.3 * k) + rng.normal(0, 0.02),
+                         0.4 * math.cos(0.2 * k) + rng.normal(0, 0.01)))
+            target = np.zeros(2) if rank_deficient else rng.normal(0, 0.1, size=2)
+            arx.record(Sensing(tick=k, r=r, theta=theta), target)
+            pre = Sensing(tick=k + 1, r=r + 0.01, theta=theta)
+            try:
+                out.append((arx.propose(pre).offset, arx.leverage(pre)))
+            except NotReady:
+                out.append(None)
+        return out
+
+    monkeypatch.setattr(classical, "SUMMARY_PAIRS", 10**9)
+    reference = ARX(order=order, window=None, affine=affine)
+    expected = stream(reference)
+    monkeypatch.setattr(classical, "SUMMARY_PAIRS", 7)
+    summarised = ARX(order=order, window=None, affine=affine)
+    got = stream(summarised)
+    assert len(summarised._pairs) == 0 and len(reference._pairs) == 60 - order
+    for want, have in zip(expected, got):
+        assert (want is None) == (have is None)
+        if want is not None:
+            np.testing.assert_allclose(have[0], want[0], rtol=1e-9, atol=1e-12)
+            assert have[1] == pytest.approx(want[1], rel=1e-6, abs=1e-9)
+    assert expected[-1] is not None
 
 
 def test_auto_burn_in_drops_each_candidates_first_score():

@@ -256,6 +256,38 @@ class Kalman(RelativeTracker):
 
 
 ONE = np.ones(1)  # the affine regressor's constant
+SUMMARY_PAIRS = 512
+"""How many pairs an ``arx`` that keeps every pair (``window`` None) fits from the pairs
+themselves; beyond it, from their triangular factor (:class:`_Triangular`): the same
+least-squares solution and the same rank cut, at a cost per tick that no longer grows with the
+run (refitting every kept pair made a long ``auto`` run's ticks dearer by about 5 ms per
+thousand ticks with 3 followers). Every run of up to this many ticks is computed as before, to
+the bit."""
+
+
+class _Triangular:
+    """The R factor of ``[Φ | Y]`` over every least-squares row ``(φ, y)`` added so far (at most
+    ``p + 2`` rows of it, whatever the number of rows): ``R[:p, :p]`` has the singular values and
+    right singular vectors of ``Φ``, ``R[:p, p:]`` is ``Qᵀ Y``, so the minimum-norm solution and
+    the projector onto ``Φ``'s row space follow from a ``p × p`` SVD."""
+
+    def __init__(self) -> None:
+        self.r: np.ndarray | None = None
+
+    def add(self, row: np.ndarray, target: np.ndarray) -> None:
+        new = np.concatenate([row, target])[None, :]
+        stacked = new if self.r is None else np.vstack([self.r, new])
+        self.r = np.linalg.qr(stacked, mode="r")
+
+    def fit(self, p: int) -> tuple[np.ndarray, np.ndarray]:
+        """The coefficients ``pinv(Φ) Y`` (p, 2), singular values below :data:`RCOND` of the
+        largest cut as :func:`numpy.linalg.pinv` cuts them, and the projector ``pinv(Φ) Φ``."""
+        r = np.zeros((p, p + 2))
+        r[:len(self.r)] = self.r[:p]
+        u, sv, vt = np.linalg.svd(r[:, :p])
+        kept = sv > RCOND * sv.max() if sv.size and sv.max() > 0 else np.zeros(p, bool)
+        u, sv, vt = u[:, kept], sv[kept], vt[kept]
+        return vt.T @ ((u.T @ r[:, p:]) / sv[:, None]), vt.T @ vt
 
 
 class ARX(Policy):
@@ -288,38 +320,43 @@ class ARX(Policy):
         # each pair's regressor and target, made once when its sample arrives (a pair never
         # changes while it is kept): the newest ``window`` of them, all if None
         self._pairs: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=window)
+        # with every pair kept, their triangular factor and how many there are: beyond
+        # SUMMARY_PAIRS the fit is made from it, and the pairs are no longer kept
+        self._summary = _Triangular() if window is None else None
+        self._count = 0
         # the fit of the data above (coefficients, projector), until they change
-        self._fitted: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._fitted: tuple[np.ndarray, np.ndarray] | None = None
 
     def _regressor(self, end: int, u_now: np.ndarray | None = None) -> np.ndarray:
         """``[x_end, u_end, x_{end-1}, u_{end-1}, ... (, 1)]`` over ``order`` lags of the
         policy's samples, ``u_now`` appended to its ``u`` when given (the coming
         prediction's)."""
-        xs, us = self.xs, self.us
-        if u_now is not None:
-            xs, us = list(xs), [*us, u_now]
         parts = []
-        for k in range(self.order):
-            parts += [xs[end - k], us[end - k]]
+        for k in range(self.order):  # near the deques' end: each index is O(1)
+            i = end - k
+            u = u_now if u_now is not None and i == len(self.us) else self.us[i]
+            parts += [self.xs[i], u]
         if self.affine:
             parts.append(ONE)
         return np.concatenate(parts)
 
-    def _fit(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The least-squares coefficients (p, 2), the pseudoinverse (p, rows) and the fitted
-        regressors (rows, p) (their product projects onto the regressors' span), remembered
-        until ``record`` or ``skip`` changes the data: ``auto`` asks for a proposal twice a tick
-        (its proposal, then its score in ``record``, before the policy learns), from the same
-        data."""
+    def _fit(self) -> tuple[np.ndarray, np.ndarray]:
+        """The least-squares coefficients (p, 2) and the projector onto the fitted regressors'
+        span (p, p), remembered until ``record`` or ``skip`` changes the data: ``auto`` asks
+        for a proposal twice a tick (its proposal, then its score in ``record``, before the
+        policy learns), from the same data."""
         if self._fitted is not None:
             return self._fitted
         # pairs (phi_i -> x_{i+1}), i = order-1 .. j-1, the newest ``window`` of them
-        if not self._pairs:
+        if not self._count:
             raise NotFitted(f"{self.name} needs {self.order + 1} connected samples")
+        if self._summary is not None and self._count > SUMMARY_PAIRS:
+            self._fitted = self._summary.fit(4 * self.order + int(self.affine))
+            return self._fitted
         phi = np.array([row for row, _ in self._pairs])
         target = np.array([x for _, x in self._pairs])
         pinv = np.linalg.pinv(phi, rcond=RCOND)
-        self._fitted = (pinv @ target, pinv, phi)  # (p, 2), and for leverage's projector
+        self._fitted = (pinv @ target, pinv @ phi)
         return self._fitted
 
     def _coefficients(self) -> np.ndarray:
@@ -339,10 +376,10 @@ class ARX(Policy):
         the minimum-norm fit sets most of it to zero). None while the model cannot fit."""
         try:
             phi = self._now(pre)
-            _, pinv, fitted = self._fit()
+            _, projector = self._fit()
         except NotFitted:
             return None
-        return float(np.linalg.norm(phi - (pinv @ fitted) @ phi) / np.linalg.norm(phi))
+        return float(np.linalg.norm(phi - projector @ phi) / np.linalg.norm(phi))
 
     def propose(self, pre: Sensing) -> Proposal:
         phi = self._now(pre)
@@ -361,19 +398,30 @@ class ARX(Policy):
         if self.last_seen is not None:
             self.us.append(seen + np.asarray(target) - self.last_seen)
         else:
-            self.xs.clear()
-            self.us.clear()
-            self._pairs.clear()
+            self._restart()
         self.xs.append(seen)
         self.last_seen = seen
         if len(self.us) >= self.order:  # the pair ending at this sample
-            self._pairs.append((self._regressor(len(self.us) - 1), seen))
+            row = self._regressor(len(self.us) - 1)
+            self._count += 1
+            if self._summary is not None:
+                self._summary.add(row, seen)
+            if self._count <= SUMMARY_PAIRS or self._summary is None:
+                self._pairs.append((row, seen))
+            else:  # fitted from the summary from now on: the pairs are not needed
+                self._pairs.clear()
         return float(seen[0]), float(seen[1])
+
+    def _restart(self) -> None:
+        """A new chain of samples: what was learnt of the old one is dropped."""
+        self.xs.clear()
+        self.us.clear()
+        self._pairs = deque(maxlen=self.window)
+        self._summary = _Triangular() if self.window is None else None
+        self._count = 0
 
     def skip(self) -> None:
         """The leader's displacement over a missed tick is unknown: restart the chain."""
         self._fitted = None
-        self.xs.clear()
-        self.us.clear()
-        self._pairs.clear()
+        self._restart()
         self.last_seen = None
