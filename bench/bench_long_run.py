@@ -5,10 +5,11 @@ Runs one noisy case with follower processes over Zenoh (3 followers, σ 0.02/0.0
 ``--every`` seconds from outside: the ticks written to ``ticks.csv``, the CPU time (user and
 system, from ``/proc``) of the world's process (``swarm run`` hosts it) and of the agents'
 processes, and the world's resident memory. Per window it prints the wall time per tick, the
-CPU per tick of the world and of the agents, and the world's memory; then the last window
-against the first. With ``--checkout DIR`` it runs another checkout (``git worktree add
-/tmp/old COMMIT``), with this interpreter. The run is stopped after ``--seconds``. Nothing here
-is asserted: a shared machine's load moves the wall times, less so the CPU per tick.
+CPU per tick of the world and of the agents, and the world's and the largest agent's memory;
+then the last window against the first. With ``--checkout DIR`` it runs another checkout (``git
+worktree add /tmp/old COMMIT``), with this interpreter. The run is stopped after ``--seconds``.
+Nothing here is asserted: a shared machine's load moves the wall times, less so the CPU per
+tick.
 """
 from __future__ import annotations
 
@@ -84,10 +85,11 @@ def main() -> None:
             windows = []
             start = time.monotonic()
 
-            def sample() -> tuple[float, int, float, float, float]:
+            def sample() -> tuple[float, int, float, float, float, float]:
                 agents.update(_children(proc.pid))
                 return (time.monotonic(), _ticks(out / "ticks.csv", 4), _cpu(proc.pid),
-                        sum(_cpu(a) for a in agents), _rss(proc.pid))
+                        sum(_cpu(a) for a in agents), _rss(proc.pid),
+                        max((_rss(a) for a in agents), default=0.0))
 
             last = sample()
             while time.monotonic() - start < args.seconds and proc.poll() is None:
@@ -107,12 +109,13 @@ def main() -> None:
                     pass
     print(f"checkout {args.checkout}: {CASE[1]} followers, {args.estimator}, σ 0.02/0.01, "
           "processes")
-    print("ticks          wall ms/tick  world CPU ms/tick  agents CPU ms/tick  world RSS MiB")
+    print("ticks          wall ms/tick  world CPU ms/tick  agents CPU ms/tick  world RSS MiB"
+          "  largest agent RSS MiB")
     for a, b in windows:
         n = b[1] - a[1]
         print(f"{a[1]:5d}-{b[1]:<6d}  {1000 * (b[0] - a[0]) / n:12.2f}  "
               f"{1000 * (b[2] - a[2]) / n:17.2f}  {1000 * (b[3] - a[3]) / n:18.2f}  "
-              f"{b[4]:13.1f}")
+              f"{b[4]:13.1f}  {b[5]:21.1f}")
     if len(windows) >= 2:
         (a0, b0), (a1, b1) = windows[0], windows[-1]
         first = (b0[2] - a0[2]) / (b0[1] - a0[1])
@@ -120,7 +123,8 @@ def main() -> None:
         wall0 = (b0[0] - a0[0]) / (b0[1] - a0[1])
         wall1 = (b1[0] - a1[0]) / (b1[1] - a1[1])
         print(f"last window / first: wall per tick {wall1 / wall0:.2f}, world CPU per tick "
-              f"{final / first:.2f}, world memory {b1[4] / b0[4]:.2f}")
+              f"{final / first:.2f}, world memory {b1[4] / b0[4]:.2f}, largest agent's memory "
+              f"{b1[5] / b0[5]:.2f}")
 
 
 if __name__ == "__main__":

@@ -416,26 +416,35 @@ def test_auto_is_no_worse_than_persist_under_honest_noise(surface):
 
 @pytest.mark.parametrize("order, window", [(1, None), (2, None), (2, 4)])
 def test_arx_keeps_each_pair_as_a_refit_from_its_samples_would_make_it(order, window):
-    """ARX makes each pair's regressor once, as its sample arrives; what it fits on is what
-    rebuilding every pair from the kept samples gives (the newest ``window``), across a
-    chain restarted by a lost tick and windows that drop old samples."""
+    """ARX makes each pair's regressor once, as its sample arrives, and keeps of the samples
+    only the lags a regressor needs; what it fits on is what rebuilding every pair from all
+    the samples gives (the newest ``window``), across a chain restarted by a lost tick and
+    windows that drop old pairs."""
+    from agents.policies.base import relative
     from protocol.messages import Sensing
 
     rng = np.random.default_rng(7)
     arx = ARX(order=order, window=window, affine=True)
+    xs, us = [], []  # the chain's samples, all of them: x_i and u_i of the same tick
     for tick in range(30):
         settled = Sensing(tick=tick, r=3.0 + rng.normal(0, 0.1), theta=rng.normal(0, 0.3))
-        arx.record(settled, None if tick == 12 else rng.normal(0, 0.5, 2))
-        n_pairs = len(arx.us) - order + 1
-        if n_pairs < 1:
+        target = None if tick == 12 else rng.normal(0, 0.5, 2)
+        arx.record(settled, target)
+        seen = relative(settled)
+        if target is None:  # lost: the chain restarts at the next sample
+            xs, us = [], []
+            continue
+        if xs:
+            us.append(seen + target - xs[-1])
+        xs.append(seen)
+        assert len(arx.xs) <= order + 1 and len(arx.us) <= order  # lags only
+        rows = [i for i in range(order - 1, len(us))][-window if window else 0:]
+        if not rows:
             with pytest.raises(NotFitted):
                 arx._fit()
             continue
-        first = len(arx.us) - n_pairs if window is None else max(len(arx.us) - n_pairs,
-                                                                  len(arx.us) - window)
-        rows = range(first, len(arx.us))
         phi = np.array([np.concatenate([part for k in range(order) for part in (
-            arx.xs[i - k], arx.us[i - k])] + [np.ones(1)]) for i in rows])
+            xs[i - k], us[i - k])] + [np.ones(1)]) for i in rows])
         arx._fit()  # fits (its pairs are what it fits on, up to SUMMARY_PAIRS of them)
         fitted = np.array([row for row, _ in arx._pairs])
         assert fitted.tolist() == phi.tolist()

@@ -311,11 +311,11 @@ class ARX(Policy):
             raise ValueError(f"window must be >= 1 or None, got {window}")
         self.order, self.window, self.affine = order, window, affine
         self.name = name or "arx"
-        keep = None if window is None else window + order
-        # x_0 .. x_j (measured, or bridged when lost) and u_0 .. u_{j-1}: xs[i] and us[i]
-        # belong to the same tick, also once the oldest are dropped.
-        self.xs: deque[np.ndarray] = deque(maxlen=None if keep is None else keep + 1)
-        self.us: deque[np.ndarray] = deque(maxlen=keep)
+        # the newest samples, x_{j-order} .. x_j and u_{j-order} .. u_{j-1}, as far back as a
+        # regressor's lags reach (each pair's is made once, when its sample arrives): xs[i]
+        # and us[i] belong to the same tick
+        self.xs: deque[np.ndarray] = deque(maxlen=order + 1)
+        self.us: deque[np.ndarray] = deque(maxlen=order)
         self.last_seen: np.ndarray | None = None  # measured relative(settled_j)
         # each pair's regressor and target, made once when its sample arrives (a pair never
         # changes while it is kept): the newest ``window`` of them, all if None
