@@ -178,7 +178,7 @@ class CountedARX(ARX):
         source = ARX(self.order, self.window, self.affine, self.name)
         # the same data (samples, and the pairs made from them as they came), no fit yet
         source.xs, source.us, source.last_seen = self.xs, self.us, self.last_seen
-        source._pairs, source._count, source._summary = self._pairs, self._count, self._summary
+        source._pairs, source._summary = self._pairs, self._summary
         return source
 
     def leverage(self, pre):

@@ -266,28 +266,27 @@ the bit."""
 
 
 class _Triangular:
-    """The R factor of ``[Φ | Y]`` over every least-squares row ``(φ, y)`` added so far (at most
-    ``p + 2`` rows of it, whatever the number of rows): ``R[:p, :p]`` has the singular values and
-    right singular vectors of ``Φ``, ``R[:p, p:]`` is ``Qᵀ Y``, so the minimum-norm solution and
-    the projector onto ``Φ``'s row space follow from a ``p × p`` SVD."""
+    """The R factor of ``[Φ | Y]`` over least-squares rows ``(φ, y)``, made from the rows kept
+    so far and updated row by row (at most ``p + 2`` rows of it, whatever the number of
+    rows): ``R[:p, :p]`` has the singular values and right singular vectors of ``Φ``,
+    ``R[:p, p:]`` is ``Qᵀ Y``, so the minimum-norm solution and the projector onto ``Φ``'s
+    row space follow from a ``p × p`` SVD."""
 
-    def __init__(self) -> None:
-        self.r: np.ndarray | None = None
+    def __init__(self, rows: np.ndarray, targets: np.ndarray) -> None:
+        self.p = rows.shape[1]
+        self.r = np.linalg.qr(np.hstack([rows, targets]), mode="r")
 
     def add(self, row: np.ndarray, target: np.ndarray) -> None:
-        new = np.concatenate([row, target])[None, :]
-        stacked = new if self.r is None else np.vstack([self.r, new])
-        self.r = np.linalg.qr(stacked, mode="r")
+        self.r = np.linalg.qr(np.vstack([self.r, np.concatenate([row, target])]), mode="r")
 
-    def fit(self, p: int) -> tuple[np.ndarray, np.ndarray]:
+    def fit(self) -> tuple[np.ndarray, np.ndarray]:
         """The coefficients ``pinv(Φ) Y`` (p, 2), singular values below :data:`RCOND` of the
         largest cut as :func:`numpy.linalg.pinv` cuts them, and the projector ``pinv(Φ) Φ``."""
-        r = np.zeros((p, p + 2))
-        r[:len(self.r)] = self.r[:p]
-        u, sv, vt = np.linalg.svd(r[:, :p])
-        kept = sv > RCOND * sv.max() if sv.size and sv.max() > 0 else np.zeros(p, bool)
+        p = self.p
+        u, sv, vt = np.linalg.svd(self.r[:p, :p], full_matrices=False)
+        kept = sv > RCOND * sv.max()
         u, sv, vt = u[:, kept], sv[kept], vt[kept]
-        return vt.T @ ((u.T @ r[:, p:]) / sv[:, None]), vt.T @ vt
+        return vt.T @ ((u.T @ self.r[:p, p:]) / sv[:, None]), vt.T @ vt
 
 
 class ARX(Policy):
@@ -320,10 +319,9 @@ class ARX(Policy):
         # each pair's regressor and target, made once when its sample arrives (a pair never
         # changes while it is kept): the newest ``window`` of them, all if None
         self._pairs: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=window)
-        # with every pair kept, their triangular factor and how many there are: beyond
-        # SUMMARY_PAIRS the fit is made from it, and the pairs are no longer kept
-        self._summary = _Triangular() if window is None else None
-        self._count = 0
+        # with every pair kept, once they outnumber SUMMARY_PAIRS: their triangular factor,
+        # which the fit is made from instead (the pairs are no longer kept)
+        self._summary: _Triangular | None = None
         # the fit of the data above (coefficients, projector), until they change
         self._fitted: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -348,11 +346,11 @@ class ARX(Policy):
         if self._fitted is not None:
             return self._fitted
         # pairs (phi_i -> x_{i+1}), i = order-1 .. j-1, the newest ``window`` of them
-        if not self._count:
-            raise NotFitted(f"{self.name} needs {self.order + 1} connected samples")
-        if self._summary is not None and self._count > SUMMARY_PAIRS:
-            self._fitted = self._summary.fit(4 * self.order + int(self.affine))
+        if self._summary is not None:
+            self._fitted = self._summary.fit()
             return self._fitted
+        if not self._pairs:
+            raise NotFitted(f"{self.name} needs {self.order + 1} connected samples")
         phi = np.array([row for row, _ in self._pairs])
         target = np.array([x for _, x in self._pairs])
         pinv = np.linalg.pinv(phi, rcond=RCOND)
@@ -403,22 +401,23 @@ class ARX(Policy):
         self.last_seen = seen
         if len(self.us) >= self.order:  # the pair ending at this sample
             row = self._regressor(len(self.us) - 1)
-            self._count += 1
             if self._summary is not None:
                 self._summary.add(row, seen)
-            if self._count <= SUMMARY_PAIRS or self._summary is None:
-                self._pairs.append((row, seen))
-            else:  # fitted from the summary from now on: the pairs are not needed
+            elif self.window is None and len(self._pairs) == SUMMARY_PAIRS:
+                # fitted from their triangular factor from now on: the pairs are not needed
+                self._summary = _Triangular(np.array([r for r, _ in self._pairs] + [row]),
+                                            np.array([x for _, x in self._pairs] + [seen]))
                 self._pairs.clear()
+            else:
+                self._pairs.append((row, seen))
         return float(seen[0]), float(seen[1])
 
     def _restart(self) -> None:
         """A new chain of samples: what was learnt of the old one is dropped."""
         self.xs.clear()
         self.us.clear()
-        self._pairs = deque(maxlen=self.window)
-        self._summary = _Triangular() if self.window is None else None
-        self._count = 0
+        self._pairs.clear()
+        self._summary = None
 
     def skip(self) -> None:
         """The leader's displacement over a missed tick is unknown: restart the chain."""
