@@ -2,14 +2,14 @@
 
 Runs one noisy case with follower processes over Zenoh (3 followers, σ 0.02/0.01, actuation
 0.01, seed 1, ``--estimator``, default ``persist``; ``--ticks`` long) and samples it every
-``--every`` seconds from outside: the ticks written to ``ticks.csv``, the CPU time (user and
-system, from ``/proc``) of the world's process (``swarm run`` hosts it) and of the agents'
-processes, and the world's resident memory. Per window it prints the wall time per tick, the
-CPU per tick of the world and of the agents, and the world's and the largest agent's memory;
-then the last window against the first. With ``--checkout DIR`` it runs another checkout (``git
-worktree add /tmp/old COMMIT``), with this interpreter. The run is stopped after ``--seconds``.
-Nothing here is asserted: a shared machine's load moves the wall times, less so the CPU per
-tick.
+``--every`` seconds from outside: the ticks its ``summary.json`` counts complete, the CPU time
+(user and system, from ``/proc``) of the world's process (``swarm run`` hosts it) and of the
+agents' processes, and the world's resident memory. Per window it prints the wall time per
+tick, the CPU per tick of the world and of the agents, and the world's and the largest agent's
+memory; then the last window against the first. With ``--checkout DIR`` it runs another
+checkout (``git worktree add /tmp/old COMMIT``), with this interpreter. The run is stopped
+after ``--seconds``. Nothing here is asserted: a shared machine's load moves the wall times,
+less so the CPU per tick.
 """
 from __future__ import annotations
 
@@ -22,6 +22,10 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(HERE))
+
+from tests.waiting import children, stat_fields, ticks_done  # noqa: E402
+
 CASE = ["--followers", "3", "--noise-range", "0.02", "--noise-bearing", "0.01", "--noise-move",
         "0.01", "--seed", "1"]
 TICK = os.sysconf("SC_CLK_TCK")
@@ -30,11 +34,8 @@ PAGE = os.sysconf("SC_PAGE_SIZE")
 
 def _cpu(pid: int) -> float:
     """User and system CPU of process ``pid`` so far (s), 0 once it is gone."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / TICK
+    fields = stat_fields(pid)
+    return 0.0 if fields is None else (int(fields[11]) + int(fields[12])) / TICK
 
 
 def _rss(pid: int) -> float:
@@ -43,23 +44,6 @@ def _rss(pid: int) -> float:
         return int(Path(f"/proc/{pid}/statm").read_text().split()[1]) * PAGE / 2**20
     except OSError:
         return 0.0
-
-
-def _children(pid: int) -> list[int]:
-    try:
-        return [int(c) for c in
-                Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
-    except OSError:
-        return []
-
-
-def _ticks(path: Path, agents: int) -> int:
-    """Complete ticks in ``ticks.csv`` (one row per agent, a header)."""
-    try:
-        with path.open("rb") as f:
-            return max(0, (sum(1 for _ in f) - 1) // agents)
-    except OSError:
-        return 0
 
 
 def main() -> None:
@@ -80,14 +64,14 @@ def main() -> None:
                                 stderr=subprocess.DEVNULL)
         agents: set[int] = set()
         try:
-            while _ticks(out / "ticks.csv", 4) < 10 and proc.poll() is None:
+            while ticks_done(out) < 10 and proc.poll() is None:
                 time.sleep(0.2)
             windows = []
             start = time.monotonic()
 
             def sample() -> tuple[float, int, float, float, float, float]:
-                agents.update(_children(proc.pid))
-                return (time.monotonic(), _ticks(out / "ticks.csv", 4), _cpu(proc.pid),
+                agents.update(children(proc.pid))
+                return (time.monotonic(), ticks_done(out), _cpu(proc.pid),
                         sum(_cpu(a) for a in agents), _rss(proc.pid),
                         max((_rss(a) for a in agents), default=0.0))
 
@@ -99,7 +83,7 @@ def main() -> None:
                     windows.append((last, now))
                 last = now
         finally:
-            agents.update(_children(proc.pid))
+            agents.update(children(proc.pid))
             proc.kill()
             proc.wait()
             for agent in agents:  # its agents, which would wait for a world that is gone
