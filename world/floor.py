@@ -118,9 +118,6 @@ def interval(error: np.ndarray | None, variance: float) -> FloorEvent:
 
 
 DECISION = FloorEvent(DECIDE)
-_IDENTITY = np.eye(4)
-_JITTERED = JITTER * np.eye(2)
-_PICK = {0: np.eye(4)[:2], 2: np.eye(4)[2:]}  # the rows that read s, or w
 
 
 def _inverse(a: float, b: float, d: float) -> tuple[float, float, float]:
@@ -202,14 +199,26 @@ class FloorFilter:
 
     def _update(self, part: slice, error: np.ndarray, covariance: np.ndarray) -> None:
         """A reading of the ``part`` of the state (s or w) with ``error`` and ``covariance``
-        (Joseph form: the covariance stays symmetric and positive)."""
-        (a, b), (_, d) = self.covariance[part, part] + covariance
-        i00, i01, i11 = _inverse(a + JITTER, b, d + JITTER)
-        inverse = np.array([[i00, i01], [i01, i11]])
-        gain = self.covariance[:, part] @ inverse  # (4, 2)
-        self.error = self.error + gain @ (error - self.error[part])
-        keep = _IDENTITY - gain @ _PICK[part.start]
-        self.covariance = keep @ self.covariance @ keep.T + gain @ (covariance + _JITTERED) @ gain.T
+        (Joseph form: the covariance stays symmetric and positive), in floats: with ``H`` the
+        two rows ``part`` picks, ``keep = I − K H`` is the identity less ``K`` in those two
+        columns, so ``keep P`` and ``(keep P) keepᵀ`` are the rank-2 corrections written out
+        (numpy's 4 x 4 products cost most of a noisy run's floor)."""
+        i, j = part.start, part.start + 1
+        p = self.covariance.tolist()
+        r00, r01, r11 = (float(covariance[0, 0]) + JITTER, float(covariance[0, 1]),
+                         float(covariance[1, 1]) + JITTER)
+        i00, i01, i11 = _inverse(p[i][i] + r00, p[i][j] + r01, p[j][j] + r11)
+        gain = [(row[i] * i00 + row[j] * i01, row[i] * i01 + row[j] * i11) for row in p]
+        e = self.error.tolist()
+        v0, v1 = float(error[0]) - e[i], float(error[1]) - e[j]
+        self.error = np.array([e[r] + k0 * v0 + k1 * v1 for r, (k0, k1) in enumerate(gain)])
+        kept = [[p[r][c] - k0 * p[i][c] - k1 * p[j][c] for c in range(4)]
+                for r, (k0, k1) in enumerate(gain)]  # keep P
+        noise = [(k0 * r00 + k1 * r01, k0 * r01 + k1 * r11) for k0, k1 in gain]  # K R
+        self.covariance = np.array(
+            [[row[c] - row[i] * gain[c][0] - row[j] * gain[c][1]
+              + n0 * gain[c][0] + n1 * gain[c][1] for c in range(4)]
+             for row, (n0, n1) in zip(kept, noise)])
 
     def _read_s(self, error: np.ndarray, covariance: np.ndarray) -> None:
         """:meth:`_update` of ``s`` while ``w``'s rows and columns are zero, in floats (the
