@@ -32,6 +32,14 @@ least a tenth of the rod's length, so no branch is singular: a goal a rounding e
 held, not turned to. The speed is the timed cruise speed, times the cosine of the heading
 error (no speed while facing away), rate-limited by the acceleration limit and the stop the
 tick ends with. Chart speed and turn become surface commands through the slope reading.
+In the correction window the turns allow for the arcs they drive: a step that turns by ``τ``
+drives along its start heading plus ``τ/2``, so a robot that turned onto the line only in its
+last step would land ``L τ / 2`` aside of the goal (3.3 mm at a first predicted tick, which
+the follower behind read as a jog of its path and turned by); each window step turns as the
+least-turn-rate plan over the steps left that ends on the line and along it
+(:func:`_arc_turn`), the difference from the law above kept by its Wiener weight against
+the goal's spread, so that under noise, where it is far within what the readings know, it
+changes almost nothing.
 
 Why not the usual laws: Corke's pose controller (``move_to_pose``) and pure pursuit steer on
 the goal's bearing, which is arbitrary where the correction works (the goal a tenth of a
@@ -44,7 +52,6 @@ variance; it starts every tick from the ``pre`` compass reading.
 """
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -171,10 +178,12 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
     the rod it stands at the end of, by the Gauss lemma), so its path is tangent to its
     heading. The path through the track's positions and the goal (one comm period apart) is
     fitted, least squares, and its tangent at the goal is the heading: the fit averages the
-    errors of the ticks it spans instead of passing them on. Under noise the points are placed
-    at their distance along the path (:func:`arc_times`), not at their ticks: the rod ends
+    errors of the ticks it spans instead of passing them on. The points are placed at their
+    distance along the path (:func:`arc_times`), not at their ticks: under noise the rod ends
     jitter along the path far more than across it, and that jitter does not turn a path's
-    tangent. It spans the most past ticks (up to the track's) whose fit agrees with every fit
+    tangent; without noise a column's far end setting off speeds up along a bending path,
+    and a polynomial in time reads the speed's change as a turn. It spans the most past
+    ticks (up to the track's) whose fit agrees with every fit
     over fewer within :data:`LEPSKI` of their declared σ: over ticks long enough for the path
     to bend within the track, the shorter fit's smaller lag wins. The fit is a cubic whose
     cubic term ``c`` is kept by its Wiener weight ``|c|² / (|c|² + var c)`` against its
@@ -259,14 +268,16 @@ def _longest_agreeing(fits) -> np.ndarray:
 
 def _exact_tangent(points: np.ndarray) -> np.ndarray:
     """:func:`goal_heading`'s tangent at the goal through exact ``points`` (the track's, then
-    the goal, one tick apart): the polynomial through the most past ticks whose end tangent
+    the goal; placed by :func:`arc_times`, :func:`_through`): the polynomial through the most
+    past ticks whose end tangent
     agrees with those through fewer within twice the path's largest turn between two
     successive steps — the rule the noisy fit follows (Lepski's), with the fits' model error
     in place of the points' σ.
 
-    Exact points leave a fit no noise, but a model error: a polynomial in time through a path
-    whose rod ends slow down and speed up (a column swinging at a long comm period, its steps
-    3.4, 2.1, 1.7 then 0.9 m) extrapolates far off it (a tangent 1.28 rad from the last step's
+    Exact points leave a fit no noise, but a model error: a polynomial through a path whose
+    rod ends slow down and speed up (a column swinging at a long comm period, its steps
+    3.4, 2.1, 1.7 then 0.9 m) could extrapolate far off it (in time, before the points were
+    placed along the path) (a tangent 1.28 rad from the last step's
     direction, where the steps turn by 0.11 rad at most), the follower turns round, and the
     column behind it breaks. What a fit leaves out is of the order of the path's turn per tick,
     so fits that differ by more than twice it (each one's) are not both right, and the longer
@@ -275,13 +286,12 @@ def _exact_tangent(points: np.ndarray) -> np.ndarray:
     steps = np.diff(points, axis=0)
     angles = np.arctan2(steps[:, 1], steps[:, 0])
     band = 2.0 * max(abs(wrap(float(b - a))) for a, b in zip(angles[:-1], angles[1:]))
-    fits = (_interpolant(ticks) @ points[len(points) - ticks - 2:]
-            for ticks in range(1, len(points) - 1))
+    fits = (_through(points[len(points) - ticks - 2:]) for ticks in range(1, len(points) - 1))
     return _longest_agreeing((fit, math.atan2(fit[1], fit[0]), band) for fit in fits)
 
 
 def arc_times(points: np.ndarray) -> np.ndarray:
-    """Where :func:`goal_heading`'s fit places its points under noise: at their distance along
+    """Where :func:`goal_heading`'s fit places its points: at their distance along
     the polyline through them (the goal, the last, at 1; one unit the mean step). A path's
     tangent does not depend on how fast it is travelled, and the rod ends a follower drives
     onto jitter mostly *along* its path (the leader's heading error swings its rod end by
@@ -323,13 +333,12 @@ def _basis(times: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray]:
     return powers, np.arange(degree + 1, dtype=float)
 
 
-@functools.cache
-def _interpolant(track: int) -> np.ndarray:
-    """The map from the points at ``t = -track … 0, 1`` to the tangent at ``t = 1`` of the
-    polynomial through every one of them (degree ``track + 1``): :func:`goal_heading`'s fit
-    without noise."""
-    basis, derivative = _basis(np.arange(-track, 2, dtype=float), track + 1)
-    return derivative @ np.linalg.inv(basis)
+def _through(points: np.ndarray) -> np.ndarray:
+    """The tangent at the goal (the last point) of the polynomial through every one of
+    ``points``, placed at their distance along the path (:func:`arc_times`):
+    :func:`goal_heading`'s fit without noise."""
+    basis, derivative = _basis(arc_times(points), len(points) - 1)
+    return derivative @ np.linalg.solve(basis, points)
 
 
 @dataclass(frozen=True)
@@ -597,11 +606,34 @@ def step_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: 
     v = direction * _timed_speed(distance, direction * speed, step, end, limits, stretch)
     v = max(-limits.max_speed, min(limits.max_speed, v))
     turn = error
+    if end == len(limits.durations) and end - step > 1 and along > floor:
+        # the window's arcs: a step that turns by τ drives along its start heading plus τ/2
+        angle = wrap((heading if direction > 0.0 else heading + math.pi) - line)
+        arcs = _arc_turn(angle, along, limits.durations[step:end]) + angle
+        shift = 0.5 * arcs * abs(v) * dt / stretch  # what they move the landing aside
+        turn += _weight(shift * shift, floor * floor) * arcs
     omega = metric_angle(slope, heading, heading + turn) / dt
     if abs(omega) > limits.max_turn:  # the chart turn of what it can turn
         omega = math.copysign(limits.max_turn, omega)
         turn = chart_turn(slope, heading, omega * dt)
     return float(v), float(omega), float(turn)
+
+
+def _arc_turn(angle: float, along: float, durations) -> float:
+    """The first step's chart turn in the plan of least turn rates (``Σ (τ_k / δ_k)²``) over
+    the steps left, of ``durations``, that ends on the approach line and along it, from a
+    heading of travel ``angle`` off the line and on it, ``along`` from the goal, at equal
+    speeds and for small angles: step ``k`` (length ``L_k``) turning by ``τ_k`` moves aside by
+    ``L_k`` times its start angle plus ``τ_k / 2``. Turning onto the line in the last step
+    (:func:`step_command`'s law) lands ``L τ / 2`` aside; this plan turns earlier by what
+    makes up for it (``−1.5 angle`` with two steps left)."""
+    dt = np.asarray(durations, dtype=float)
+    length = along * dt / dt.sum()
+    after = np.cumsum(length[::-1])[::-1] - length  # the way left after each step
+    rows = np.vstack([length / 2.0 + after, np.ones_like(length)])
+    wanted = np.array([-angle * length.sum(), -angle])
+    scaled = rows * (dt * dt)
+    return float((scaled.T @ np.linalg.solve(scaled @ rows.T, wanted))[0])
 
 
 def metric_angle(slope: np.ndarray, start: float, end: float) -> float:

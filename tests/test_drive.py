@@ -12,7 +12,6 @@ import pytest
 from agents.drive import (
     HeadingFilter,
     Limits,
-    _interpolant,
     chart_turn,
     goal_heading,
     metric_angle,
@@ -169,15 +168,27 @@ def test_with_no_track_under_noise_the_arc_bends_only_as_far_as_its_bend_stands_
 
 def test_the_exact_goal_heading_keeps_the_polynomial_through_a_smooth_path():
     """Without noise, points along a circle (steps of 1.2 m turning 0.05 rad a tick): every
-    fit agrees, and the tangent is the quartic's through all of them, as before."""
+    fit agrees, and the tangent is the quartic's through all of them (equal steps: their
+    distances along the path are their ticks)."""
     angles = 0.05 * np.arange(4)
     steps = [1.2 * np.array([math.cos(a), math.sin(a)]) for a in angles]
     track, chord = tuple(steps[:3]), steps[3]
     points = np.cumsum([np.zeros(2), *steps], axis=0)
-    points = points - points[3]  # the follower stands at the third, the goal last
-    quartic = _interpolant(3) @ points
+    times = np.arange(-3.0, 2.0)
+    tangent = [np.polyval(np.polyder(np.polyfit(times, points[:, k], 4)), 1.0) for k in (0, 1)]
     assert goal_heading(0.1, chord, track, 0.0) == pytest.approx(
-        math.atan2(quartic[1], quartic[0]), abs=1e-12)
+        math.atan2(tangent[1], tangent[0]), abs=1e-9)
+
+
+def test_the_exact_goal_heading_places_its_points_by_their_distance_along_the_path():
+    """Without noise, a path travelled at a changing speed (a column's far end setting off:
+    steps of 0.2, 0.5, 1.0 m) has the tangent of the path, not of the speed: points on a
+    circle with unequal steps give the circle's tangent at the goal to the fit's order."""
+    radius, arcs = 5.0, np.cumsum([0.0, 0.2, 0.5, 1.0, 1.3])
+    points = radius * np.stack([np.sin(arcs / radius), 1.0 - np.cos(arcs / radius)], axis=1)
+    steps = np.diff(points, axis=0)
+    heading = goal_heading(0.0, steps[-1], tuple(steps[:-1]), 0.0)
+    assert heading == pytest.approx(arcs[-1] / radius, abs=2e-3)  # 0.6 rad
 
 
 def test_the_exact_goal_heading_drops_a_fit_the_path_s_turns_cannot_explain():
