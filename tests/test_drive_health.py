@@ -26,6 +26,17 @@ def _worst(rows: list[dict]) -> dict[int, float]:
     return worst
 
 
+def _farthest_from_teleport(**base) -> tuple[float, list[dict]]:
+    """The largest distance of any follower, at any tick, between the driving run of ``base``
+    and the teleporting one; and the driving run's rows."""
+    _, teleport = run_local(RunConfig(**base))
+    _, rows = run_local(RunConfig(**base, motion="drive"))
+    where = {(r["tick"], r["agent"]): np.array([r["pos_x"], r["pos_y"]]) for r in teleport}
+    return max(float(np.linalg.norm(np.array([r["pos_x"], r["pos_y"]])
+                                    - where[r["tick"], r["agent"]]))
+               for r in rows if r["agent"] > 0), rows
+
+
 # --- the issue's three cases, as regression tests -------------------------------------------
 
 
@@ -76,13 +87,8 @@ def test_without_noise_a_column_on_an_unseen_surface_holds_teleport_s_places():
     3.3 mm aside at tick 4 — its last step turned onto the approach line and drove along
     half the turn — and its successors' goal headings, fitted through that jog, put
     follower 5 0.113 m off."""
-    base = dict(surface="world.random_waves:w7302", followers=5, ticks=24)
-    _, teleport = run_local(RunConfig(**base))
-    _, rows = run_local(RunConfig(**base, motion="drive"))
-    where = {(r["tick"], r["agent"]): np.array([r["pos_x"], r["pos_y"]]) for r in teleport}
-    worst = max(float(np.linalg.norm(np.array([r["pos_x"], r["pos_y"]])
-                                     - where[r["tick"], r["agent"]]))
-                for r in rows if r["agent"] > 0)
+    worst, rows = _farthest_from_teleport(surface="world.random_waves:w7302", followers=5,
+                                          ticks=24)
     assert worst < 0.05
     landing = max(r["formation_error"] for r in rows if r["agent"] == 1)
     assert landing < 1e-3  # 3.3e-3 before
@@ -462,11 +468,6 @@ def test_a_noise_free_elliptic_column_of_five_stays_within_the_bound_of_teleport
     with 5 followers: a drive that aimed its last steps at the goal heading ignoring how the
     bowl turns a straight drive in the chart settled 0.006-0.008 rad off it for ticks on end
     (follower 5 0.105 m off at worst); with the terrain's turn fed forward (``drift``), 0.049."""
-    base = dict(surface="elliptic", followers=5, ticks=150, estimator="persist")
-    _, teleport = run_local(RunConfig(**base))
-    _, rows = run_local(RunConfig(**base, motion="drive"))
-    where = {(r["tick"], r["agent"]): np.array([r["pos_x"], r["pos_y"]]) for r in teleport}
-    apart = max(float(np.linalg.norm(np.array([r["pos_x"], r["pos_y"]])
-                                     - where[r["tick"], r["agent"]]))
-                for r in rows if r["agent"] > 0)
+    apart, _ = _farthest_from_teleport(surface="elliptic", followers=5, ticks=150,
+                                       estimator="persist")
     assert apart < 0.05, apart
