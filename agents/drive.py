@@ -35,11 +35,10 @@ tick ends with. Chart speed and turn become surface commands through the slope r
 In the correction window the turns allow for the arcs they drive: a step that turns by ``τ``
 drives along its start heading plus ``τ/2``, so a robot that turned onto the line only in its
 last step would land ``L τ / 2`` aside of the goal (3.3 mm at a first predicted tick, which
-the follower behind read as a jog of its path and turned by); each window step turns as the
-least-turn-rate plan over the steps left that ends on the line and along it
-(:func:`_arc_turn`), the difference from the law above kept by its Wiener weight against
-the goal's spread, so that under noise, where it is far within what the readings know, it
-changes almost nothing.
+the follower behind read as a jog of its path and turned by); the window's second-to-last
+step turns further by what makes the last arc end on the line (:func:`_arc_turn`), kept by
+its Wiener weight against the goal's spread, so that under noise, where it is far within
+what the readings know, it changes almost nothing.
 
 Why not the usual laws: Corke's pose controller (``move_to_pose``) and pure pursuit steer on
 the goal's bearing, which is arbitrary where the correction works (the goal a tenth of a
@@ -509,16 +508,16 @@ class HeadingFilter:
         return self.heading
 
 
-def _timed_speed(distance: float, speed: float, step: int, end: int, limits: Limits,
-                 stretch: float) -> float:
-    """The speed (m of arc per time unit, along the way to the goal) of step ``step`` in the
-    least-peak speed profile of the tick's steps left that covers ``distance`` (m of chart)
-    and stops by the end of step ``end - 1``: each later step's speed is the cruise speed
-    ``V`` clipped to what the acceleration limit allows from ``speed`` (the last step's) and
-    to what still stops in time (``accel_limit ×`` the time left, plus one step's). The
-    covered distance is piecewise linear in ``V``: ``V`` is solved exactly. A distance the profile
-    cannot cover gives the fastest step; one it must overshoot, the slowest. ``stretch``: m of arc
-    per m of chart."""
+def _timed_speeds(distance: float, speed: float, step: int, end: int, limits: Limits,
+                  stretch: float) -> np.ndarray:
+    """The speeds (m of arc per time unit, along the way to the goal) of steps ``step`` to
+    ``end - 1`` in the least-peak speed profile of the tick's steps left that covers
+    ``distance`` (m of chart) and stops by the end of step ``end - 1``: each step's speed is
+    the cruise speed ``V`` clipped to what the acceleration limit allows from ``speed`` (the
+    last step's) and to what still stops in time (``accel_limit ×`` the time left, plus one
+    step's). The covered distance is piecewise linear in ``V``: ``V`` is solved exactly. A
+    distance the profile cannot cover gives the fastest steps; one it must overshoot, the
+    slowest. ``stretch``: m of arc per m of chart."""
     dt = np.asarray(limits.durations[step:max(end, step + 1)])
     change = np.cumsum(limits.max_accel * dt) if math.isfinite(limits.max_accel) \
         else np.full(dt.shape, math.inf)
@@ -542,7 +541,7 @@ def _timed_speed(distance: float, speed: float, step: int, end: int, limits: Lim
             j = int(np.searchsorted(covered, distance))
             share = (distance - covered[j - 1]) / (covered[j] - covered[j - 1])
             cruise = points[j - 1] + share * (points[j] - points[j - 1])
-    return stretch * float(min(max(cruise, lo[0]), hi[0]))
+    return stretch * np.clip(cruise, lo, hi)
 
 
 def step_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: np.ndarray,
@@ -603,15 +602,13 @@ def step_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: 
     distance = math.hypot(offset[0], offset[1]) * max(math.cos(error), 0.0)
     along_slope = slope[0] * math.cos(heading) + slope[1] * math.sin(heading)
     stretch = math.sqrt(1.0 + along_slope * along_slope)  # m of arc per m of chart
-    v = direction * _timed_speed(distance, direction * speed, step, end, limits, stretch)
+    speeds = _timed_speeds(distance, direction * speed, step, end, limits, stretch)
+    v = direction * float(speeds[0])
     v = max(-limits.max_speed, min(limits.max_speed, v))
     turn = error
-    if end == len(limits.durations) and end - step > 1 and along > floor:
-        # the window's arcs: a step that turns by τ drives along its start heading plus τ/2
-        angle = wrap((heading if direction > 0.0 else heading + math.pi) - line)
-        arcs = _arc_turn(angle, along, limits.durations[step:end]) + angle
-        shift = 0.5 * arcs * abs(v) * dt / stretch  # what they move the landing aside
-        turn += _weight(shift * shift, floor * floor) * arcs
+    if end == len(limits.durations) and end - step == 2:  # the window's last two arcs
+        turn += _arc_turn(wrap((heading if direction > 0.0 else heading + math.pi) - line),
+                          np.abs(speeds) * limits.durations[step:end] / stretch, floor)
     omega = metric_angle(slope, heading, heading + turn) / dt
     if abs(omega) > limits.max_turn:  # the chart turn of what it can turn
         omega = math.copysign(limits.max_turn, omega)
@@ -619,21 +616,21 @@ def step_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: 
     return float(v), float(omega), float(turn)
 
 
-def _arc_turn(angle: float, along: float, durations) -> float:
-    """The first step's chart turn in the plan of least turn rates (``Σ (τ_k / δ_k)²``) over
-    the steps left, of ``durations``, that ends on the approach line and along it, from a
-    heading of travel ``angle`` off the line and on it, ``along`` from the goal, at equal
-    speeds and for small angles: step ``k`` (length ``L_k``) turning by ``τ_k`` moves aside by
-    ``L_k`` times its start angle plus ``τ_k / 2``. Turning onto the line in the last step
-    (:func:`step_command`'s law) lands ``L τ / 2`` aside; this plan turns earlier by what
-    makes up for it (``−1.5 angle`` with two steps left)."""
-    dt = np.asarray(durations, dtype=float)
-    length = along * dt / dt.sum()
-    after = np.cumsum(length[::-1])[::-1] - length  # the way left after each step
-    rows = np.vstack([length / 2.0 + after, np.ones_like(length)])
-    wanted = np.array([-angle * length.sum(), -angle])
-    scaled = rows * (dt * dt)
-    return float((scaled.T @ np.linalg.solve(scaled @ rows.T, wanted))[0])
+def _arc_turn(angle: float, lengths: np.ndarray, floor: float) -> float:
+    """What the window's second-to-last step turns beyond :func:`step_command`'s law, whose
+    last step turns onto the approach line from a heading of travel ``angle`` off it: a step
+    that turns by ``τ`` drives along its start heading plus ``τ/2``, so that last arc lands
+    ``L₂ angle / 2`` aside (small angles). The two steps, of chart ``lengths`` ``(L₁, L₂)``
+    (the timed profile's), end on the line and along it if the first turns
+    ``−angle L₁ / (L₁ + L₂)`` further (``1.5 angle`` in all for equal steps). The extra turn is
+    kept by its Wiener weight, the aside it makes up against ``floor`` (three times the goal's
+    spread): under noise it is millimetres against centimetres and changes next to nothing."""
+    first, last = float(lengths[0]), float(lengths[-1])
+    if not first + last > 0.0:
+        return 0.0
+    extra = -angle * first / (first + last)
+    aside = 0.5 * last * angle
+    return _weight(aside * aside, floor * floor) * extra
 
 
 def metric_angle(slope: np.ndarray, start: float, end: float) -> float:
