@@ -169,12 +169,6 @@ def _trust(square: float, floor: float) -> float:
 
 def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...],
                  variance: float, spacing: float = 1.0) -> float:
-    """:func:`path_heading`'s heading (the path's tangent at the goal)."""
-    return path_heading(heading, chord, track, variance, spacing)[0]
-
-
-def path_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...],
-                 variance: float, spacing: float = 1.0) -> tuple[float, float]:
     """The heading to settle with after moving along ``chord`` (xy, from the tick's start),
     from a start with heading ``heading``; ``track`` holds the follower's last displacements,
     one per tick, oldest first (:class:`Track`; may be empty).
@@ -225,11 +219,11 @@ def path_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
     square = float(chord @ chord)
     weight = _trust(square, floor)
     if weight == 0.0:
-        return heading, 0.0
+        return heading
     if not track:  # the arc's bend beyond the chord, by its Wiener weight (exact without noise)
         bend = wrap(forward(chord) - heading)
         spread = variance / square  # the bend's: the chord's angle's and the start's
-        return wrap(heading + weight * bend * (1.0 + _weight(bend * bend, spread))), 0.0
+        return wrap(heading + weight * bend * (1.0 + _weight(bend * bend, spread)))
     positions = [np.zeros(2)]
     for step in reversed(track):
         positions.insert(0, positions[0] - step)
@@ -249,14 +243,13 @@ def path_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
         spread = math.sqrt(0.5 * variance * float(fit.tangent @ fit.tangent))
         return tangent, (spread / length if length > 0.0 else math.inf)
 
-    model = 0.0
     if variance == 0.0:  # exact points: the polynomial through them all has the least lag
-        tangent, model = _exact_tangent(points)
+        tangent = _exact_tangent(points)
     else:  # the longest fit that agrees with every shorter one within their noise (Lepski)
         tangent = _longest_agreeing(
             (candidate, forward(candidate), LEPSKI * spread)
             for candidate, spread in map(fitted, range(1, len(track) + 1)))
-    return wrap(heading + weight * wrap(forward(tangent) - heading)), model
+    return wrap(heading + weight * wrap(forward(tangent) - heading))
 
 
 def _longest_agreeing(fits) -> np.ndarray:
@@ -292,11 +285,8 @@ def _exact_tangent(points: np.ndarray) -> np.ndarray:
     steps = np.diff(points, axis=0)
     angles = np.arctan2(steps[:, 1], steps[:, 0])
     band = 2.0 * max(abs(wrap(float(b - a))) for a, b in zip(angles[:-1], angles[1:]))
-    fits = [_through(points[len(points) - ticks - 2:]) for ticks in range(1, len(points) - 1)]
-    angles = [math.atan2(fit[1], fit[0]) for fit in fits]
-    tangent = _longest_agreeing(zip(fits, angles, [band] * len(fits)))
-    chosen = math.atan2(tangent[1], tangent[0])
-    return tangent, max(wrap(a - chosen) ** 2 for a in angles)
+    fits = (_through(points[len(points) - ticks - 2:]) for ticks in range(1, len(points) - 1))
+    return _longest_agreeing((fit, math.atan2(fit[1], fit[0]), band) for fit in fits)
 
 
 def arc_times(points: np.ndarray) -> np.ndarray:
@@ -427,16 +417,15 @@ class Track:
         ``chord`` the direction from the leader to it: the path's tangent
         (:func:`goal_heading`) fused with the heading it settled with last time turned as the
         chord turned since (:class:`Settled`)."""
-        return self.fuse(*path_heading(compass, step, previous, self.chord_variance,
-                                       self.spacing), step, chord)
+        return self.fuse(goal_heading(compass, step, previous, self.chord_variance,
+                                      self.spacing), step, chord)
 
-    def fuse(self, path: float, model: float, step: np.ndarray, chord: np.ndarray) -> Settled:
-        """:meth:`heading` from the path's tangent ``path`` at the end of ``step`` and, without
-        noise, its model error's variance ``model`` (:func:`path_heading`, which a caller
-        asking for one goal many times works out once)."""
+    def fuse(self, path: float, step: np.ndarray, chord: np.ndarray) -> Settled:
+        """:meth:`heading` from the path's tangent ``path`` at the end of ``step``
+        (:func:`goal_heading`, which a caller asking for one goal many times works out once)."""
         angle = math.atan2(chord[1], chord[0])
         length = float(step @ step)
-        noise = model if self.chord_variance == 0.0 else (
+        noise = 0.0 if self.chord_variance == 0.0 else (
             math.inf if length == 0.0 else self.chord_variance / length)
         last = self.settled
         if last is None:
@@ -769,17 +758,17 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
     leader.add(np.zeros(2), relative(pre))
 
     owner = limits if track is None else track  # whose declared chord variance and rod length
-    paths: dict[bytes, tuple[float, float]] = {}  # the path's tangent per goal (and model)
+    paths: dict[bytes, float] = {}  # the path's tangent per goal: the move phase keeps one
 
     def heading_at(point: np.ndarray) -> float:
         step = point - landed
         path = paths.get(key := step.tobytes())
         if path is None:
-            path = paths[key] = path_heading(pre.compass, step, previous,
+            path = paths[key] = goal_heading(pre.compass, step, previous,
                                              owner.chord_variance, owner.spacing)
         if track is None:
-            return path[0]
-        return track.fuse(*path, step, point - leader.estimate()[0]).heading
+            return path
+        return track.fuse(path, step, point - leader.estimate()[0]).heading
 
     moved, travelled = pre, np.zeros(2)
     reserve = settings.control_steps + settings.snap_steps // 2  # the move phase's end
