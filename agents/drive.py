@@ -268,15 +268,14 @@ def _longest_agreeing(fits) -> np.ndarray:
 def _exact_tangent(points: np.ndarray) -> np.ndarray:
     """:func:`goal_heading`'s tangent at the goal through exact ``points`` (the track's, then
     the goal; placed by :func:`arc_times`, :func:`_through`): the polynomial through the most
-    past ticks whose end tangent
-    agrees with those through fewer within twice the path's largest turn between two
-    successive steps — the rule the noisy fit follows (Lepski's), with the fits' model error
-    in place of the points' σ.
+    past ticks whose end tangent agrees with those through fewer within twice the path's
+    largest turn between two successive steps — the rule the noisy fit follows (Lepski's),
+    with the fits' model error in place of the points' σ.
 
-    Exact points leave a fit no noise, but a model error: a polynomial through a path whose
-    rod ends slow down and speed up (a column swinging at a long comm period, its steps
-    3.4, 2.1, 1.7 then 0.9 m) could extrapolate far off it (in time, before the points were
-    placed along the path) (a tangent 1.28 rad from the last step's
+    Exact points leave a fit no noise, but a model error: a polynomial in time through a path
+    whose rod ends slow down and speed up (a column swinging at a long comm period, its steps
+    3.4, 2.1, 1.7 then 0.9 m; before stop 44 placed the points along the path) extrapolated far
+    off it (a tangent 1.28 rad from the last step's
     direction, where the steps turn by 0.11 rad at most), the follower turns round, and the
     column behind it breaks. What a fit leaves out is of the order of the path's turn per tick,
     so fits that differ by more than twice it (each one's) are not both right, and the longer
@@ -335,8 +334,12 @@ def _basis(times: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray]:
 def _through(points: np.ndarray) -> np.ndarray:
     """The tangent at the goal (the last point) of the polynomial through every one of
     ``points``, placed at their distance along the path (:func:`arc_times`):
-    :func:`goal_heading`'s fit without noise."""
-    basis, derivative = _basis(arc_times(points), len(points) - 1)
+    :func:`goal_heading`'s fit without noise. Two points in one place (a step of no length)
+    have no distance between them to tell them apart, so then every point keeps its tick."""
+    times = arc_times(points)
+    if not np.all(np.diff(times) > 0.0):
+        times = np.arange(2 - len(points), 2, dtype=float)
+    basis, derivative = _basis(times, len(points) - 1)
     return derivative @ np.linalg.solve(basis, points)
 
 

@@ -191,6 +191,24 @@ def test_the_exact_goal_heading_places_its_points_by_their_distance_along_the_pa
     assert heading == pytest.approx(arcs[-1] / radius, abs=2e-3)  # 0.6 rad
 
 
+def test_the_exact_goal_heading_of_a_path_that_stood_still_for_a_tick():
+    """Without noise, a track with a step of no length (the follower's rod end did not move
+    that tick): placed by their distance along the path two points would coincide and the
+    polynomial through them would not exist (the fit raised); they keep their ticks, and
+    the heading is the polynomial's through them at their ticks."""
+    track = (np.array([1.0, 0.0]), np.zeros(2), np.array([1.0, 0.1]))
+    chord = np.array([1.0, 0.15])
+    points = np.cumsum([np.zeros(2), *track, chord], axis=0)
+    times = np.arange(-3.0, 2.0)
+    heading = goal_heading(0.0, chord, track, 0.0)
+    fits = [np.polyder(np.polyfit(times[-n:], points[-n:, k], n - 1)) for k in (0, 1)
+            for n in (3, 4, 5)]
+    candidates = [math.atan2(np.polyval(fits[3 + i], 1.0), np.polyval(fits[i], 1.0))
+                  for i in range(3)]
+    assert math.isfinite(heading)
+    assert min(abs(heading - c) for c in candidates) < 1e-9
+
+
 def test_the_exact_goal_heading_drops_a_fit_the_path_s_turns_cannot_explain():
     """Follower 4's rod ends on wavy at a comm period of 2.56 s (tick 35): steps of 3.4, 2.1,
     1.7 m, then a goal 0.9 m ahead, turning 0.11 rad at most. The quartic through them said

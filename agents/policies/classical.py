@@ -345,10 +345,10 @@ class ARX(Policy):
         policy learns), from the same data."""
         if self._fitted is not None:
             return self._fitted
-        # pairs (phi_i -> x_{i+1}), i = order-1 .. j-1, the newest ``window`` of them
         if self._summary is not None:
             self._fitted = self._summary.fit()
             return self._fitted
+        # pairs (phi_i -> x_{i+1}), i = order-1 .. j-1, the newest ``window`` of them
         if not self._pairs:
             raise NotFitted(f"{self.name} needs {self.order + 1} connected samples")
         phi = np.array([row for row, _ in self._pairs])
