@@ -609,7 +609,7 @@ def step_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: 
     v = direction * float(speeds[0])
     v = max(-limits.max_speed, min(limits.max_speed, v))
     turn = error
-    if end == len(limits.durations) and end - step == 2:  # the window's last two arcs
+    if end == len(limits.durations) and end - step == 2:  # the tick's last two arcs
         turn += _arc_turn(wrap((heading if direction > 0.0 else heading + math.pi) - line),
                           np.abs(speeds) * limits.durations[step:end] / stretch, floor)
     omega = metric_angle(slope, heading, heading + turn) / dt
