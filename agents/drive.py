@@ -38,7 +38,13 @@ last step would land ``L τ / 2`` aside of the goal (3.3 mm at a first predicted
 the follower behind read as a jog of its path and turned by); the window's second-to-last
 step turns further by what makes the last arc end on the line (:func:`_arc_turn`), kept by
 its Wiener weight against the goal's spread, so that under noise, where it is far within
-what the readings know, it changes almost nothing.
+what the readings know, it changes almost nothing. Two things the terrain does within a step
+are allowed for too, each learnt from the tick's own steps and kept only beyond three times
+its declared noise: the chart turn it adds to the commanded one (the step commands that much
+less, :meth:`HeadingFilter.drift`, so it drives along, not only ends on, the turn the law
+wants) and the steepening of the slope along the way (the step is planned with the slope
+half-way along it, :func:`slope_ahead`, so its chart length is what the law wants): noise-free
+on the elliptic bowl the window's landing fell from 1.1 mm to 0.1 mm rms.
 
 Why not the usual laws: Corke's pose controller (``move_to_pose``) and pure pursuit steer on
 the goal's bearing, which is arbitrary where the correction works (the goal a tenth of a
@@ -549,7 +555,8 @@ def _timed_speeds(distance: float, speed: float, step: int, end: int, limits: Li
 
 def step_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: np.ndarray,
                  goal_heading: float, spread: float, speed: float, step: int,
-                 limits: Limits, end: int | None = None) -> tuple[float, float, float]:
+                 limits: Limits, end: int | None = None,
+                 drift: float = 0.0) -> tuple[float, float, float]:
     """The speed and turn rate of control step ``step`` (module docstring), within the limits,
     and the chart turn it means (for the heading filter).
 
@@ -572,12 +579,16 @@ def step_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: 
     limits : Limits
     end : int, optional
         The step by which to be at the goal and at rest (default: the tick's end).
+    drift : float
+        How much the terrain turns the chart heading per metre of arc beyond what is
+        commanded (rad/m, :meth:`HeadingFilter.drift`): the step commands that much less, so
+        that it turns, and drives along, what the law wants.
 
     Returns
     -------
     v, omega, turn : float
         m of arc per time unit and rad per time unit (within the limits), and the chart turn
-        (rad) over the step.
+        (rad) over the step they command (the terrain's drift not included).
     """
     if not 0 <= step < len(limits.durations):
         raise ValueError(f"step must be in 0..{len(limits.durations) - 1}, got {step}")
@@ -612,11 +623,30 @@ def step_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: 
     if end == len(limits.durations) and end - step == 2:  # the tick's last two arcs
         turn += _arc_turn(wrap((heading if direction > 0.0 else heading + math.pi) - line),
                           np.abs(speeds) * limits.durations[step:end] / stretch, floor)
+    turn -= drift * abs(v) * dt  # the terrain turns it the rest of the way
     omega = metric_angle(slope, heading, heading + turn) / dt
     if abs(omega) > limits.max_turn:  # the chart turn of what it can turn
         omega = math.copysign(limits.max_turn, omega)
         turn = chart_turn(slope, heading, omega * dt)
     return float(v), float(omega), float(turn)
+
+
+def slope_ahead(start: np.ndarray, slope: np.ndarray, driven: float, ahead: float,
+                sigma: float) -> np.ndarray:
+    """The slope ``ahead`` m of arc on (half-way along the next step, for
+    :func:`step_command`): the reading ``slope`` plus its change per metre over the tick so
+    far, from the reading ``start`` ``driven`` m of arc back, kept by its weight
+    ``1 − 9v / |Δ|²`` above three times its declared spread (:func:`_trust`; ``v``: both
+    readings' tilt noise ``σ`` through ``tan′ = 1 + s²``, both coordinates together). A step
+    on a slope that steepens drives fewer metres of chart than its start slope says (0.6 mm in
+    a 0.31 m step on the elliptic bowl, what the window's last step landed short by), and a
+    slope changes steadily along a tick's way; without noise the change is exact, under noise
+    one within it is left out, as :meth:`HeadingFilter.drift` leaves out a turn."""
+    if driven <= 0.0 or ahead <= 0.0:
+        return slope
+    change = slope - start
+    spread = sigma * sigma * float(np.sum((1.0 + start * start) ** 2 + (1.0 + slope * slope) ** 2))
+    return slope + _trust(float(change @ change), 9.0 * spread) * change * (ahead / driven)
 
 
 def _arc_turn(angle: float, lengths: np.ndarray, floor: float) -> float:
@@ -777,12 +807,10 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
     reserve = settings.control_steps + settings.snap_steps // 2  # the move phase's end
     for step in range(settings.tick_steps):
         wanted, end = heading_at(target), reserve if step < settings.control_steps else None
-        v, omega, turn = step_command(position, filtered.heading, slope, target, wanted,
-                                      spread, speed, step, limits, end)
-        ahead = filtered.drift() * abs(v) * limits.durations[step]
-        if ahead:  # the terrain will turn it that much more on the way: aim short of it
-            v, omega, turn = step_command(position, filtered.heading, slope, target,
-                                          wrap(wanted - ahead), spread, speed, step, limits, end)
+        ahead = slope_ahead(np.asarray(pre.slope), slope, filtered.driven,
+                            0.5 * abs(speed) * limits.durations[step], limits.sigma_bearing)
+        v, omega, turn = step_command(position, filtered.heading, ahead, target, wanted,
+                                      spread, speed, step, limits, end, filtered.drift())
         given = (float(target[0]), float(target[1])) if step == 0 else None
         reply = act(Control(tick=pre.tick, step=step, speed=v, turn=omega, goal=given))
         odometry = np.asarray(reply.odometry)

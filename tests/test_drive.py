@@ -15,6 +15,7 @@ from agents.drive import (
     chart_turn,
     goal_heading,
     metric_angle,
+    slope_ahead,
     step_command,
 )
 from agents.follower import follower_tick
@@ -130,6 +131,32 @@ def test_the_timed_drive_lands_on_a_goal_ahead_at_rest():
         speed, heading = v, math.atan2(h[1], h[0])
     assert abs(speed) <= limits.max_accel * limits.durations[-1] + 1e-12
     assert np.abs(p - goal).max() < 1e-9
+
+
+def test_a_step_commands_less_the_turn_the_terrain_adds():
+    """With the terrain turning the chart heading by ``r`` rad per metre, a step commands the
+    turn the law wants less ``r`` times its arc, so that it turns (and drives along) what the
+    law wants; its speed is the same."""
+    limits = _limits()
+    goal, args = np.array([0.6, 0.08]), (0.05, 0.0, 0.9, 9, limits)
+    v0, omega0, turn0 = step_command(np.zeros(2), 0.05, np.zeros(2), goal, *args)
+    v, omega, turn = step_command(np.zeros(2), 0.05, np.zeros(2), goal, *args, drift=0.02)
+    assert v == v0 and turn0 != 0.0
+    assert turn == pytest.approx(turn0 - 0.02 * abs(v) * limits.durations[9], rel=1e-12)
+    assert omega == pytest.approx(turn / limits.durations[9], rel=1e-12)  # flat: chart = metric
+
+
+def test_a_step_is_planned_with_the_slope_half_way_along_it():
+    """The slope ``ahead`` m on, from its change per metre over the tick so far: exact without
+    noise; a change within three times the tilt readings' declared spread is left out, one far
+    beyond it kept almost whole."""
+    start, now = np.array([0.3, -0.1]), np.array([0.33, -0.12])
+    assert np.allclose(slope_ahead(start, now, 1.5, 0.15, 0.0), now + (now - start) * 0.1)
+    assert np.array_equal(slope_ahead(start, now, 0.0, 0.15, 0.0), now)  # nothing driven yet
+    assert np.array_equal(slope_ahead(start, now, 1.5, 0.15, 0.02), now)  # within the noise
+    far = np.array([1.3, -0.9])
+    kept = slope_ahead(start, far, 1.5, 0.15, 0.001) - far
+    assert np.allclose(kept, (far - start) * 0.1, rtol=1e-3)
 
 
 def test_a_goal_a_rounding_error_away_turns_nothing():
