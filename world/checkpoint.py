@@ -54,24 +54,12 @@ def new_start() -> str:
     return secrets.token_hex(8)
 
 
-def encode(*, run_id: str, start: str, sim: dict, offsets: dict[str, int],
-           wall_time: float) -> str:
-    """The checkpoint's text: what :func:`write` puts in the file."""
+def save(out_dir: Path, *, run_id: str, start: str, sim: dict, offsets: dict[str, int],
+         wall_time: float) -> None:
+    """Replace the checkpoint atomically (after the tick's rows are on disk)."""
     body = {"schema": SCHEMA, "run_id": run_id, "start": start, "sim": sim,
             "offsets": offsets, "wall_time": wall_time}
-    return checked_text(body, "sha256") + "\n"
-
-
-def save(out_dir: Path, **body) -> None:
-    """Replace the checkpoint atomically with the one of ``body`` (:func:`encode`'s
-    arguments)."""
-    write(out_dir, encode(**body))
-
-
-def write(out_dir: Path, text: str) -> None:
-    """Replace the checkpoint atomically with ``text`` (:func:`encode`; after the tick's rows
-    are on disk)."""
-    write_atomic(out_dir / STATE_FILE, text)
+    write_atomic(out_dir / STATE_FILE, checked_text(body, "sha256") + "\n")
 
 
 def load(out_dir: Path, run_id: str) -> dict:

@@ -301,19 +301,8 @@ class RunRecorder:
             raise RuntimeError("this recorder has no results folder")
         if final:
             (self.out_dir / RESERVE_FILE).unlink(missing_ok=True)
-        self.write_summary_text(self.summary_text(complete=complete, reason=reason,
-                                                  wall_time=wall_time))
-
-    def summary_text(self, *, complete: bool, reason: str = "", wall_time: float = 0.0) -> str:
-        """``summary.json``'s text as :meth:`write_summary` writes it, taken now."""
-        return json.dumps(self.summary(complete=complete, reason=reason, wall_time=wall_time),
-                          indent=2) + "\n"
-
-    def write_summary_text(self, text: str) -> None:
-        """Replace ``summary.json`` atomically with ``text`` (:meth:`summary_text`)."""
-        if self.out_dir is None:
-            raise RuntimeError("this recorder has no results folder")
-        write_atomic(self.out_dir / SUMMARY_FILE, text)
+        summary = self.summary(complete=complete, reason=reason, wall_time=wall_time)
+        write_atomic(self.out_dir / SUMMARY_FILE, json.dumps(summary, indent=2) + "\n")
 
 
 def observation_row(agent: int, msg) -> dict:

@@ -140,7 +140,7 @@ class WorldService:
             self.recorder.open()
             self._journal = checkpoint.Journal(self.out_dir, run, self.start)
             self._journal.open()
-            self._checkpoint(0.0)()  # a world killed before tick 0 completes resumes from here
+            self._save_state(0.0)  # a world killed before tick 0 completes resumes from here
         self.on_tick = on_tick
         self.view = ViewPublisher(session, config, surface, self.sim.ideal, out_dir)
         self.ros2 = None  # the run's ROS 2 topics (design §10), with --ros2
@@ -472,29 +472,21 @@ class WorldService:
         self._got_through(agent, self.sim.tick)
         self._missed_pub.put(encode(Missed(tick=self.sim.tick, agent=agent)))
 
-    def _complete_tick(self, tick: int) -> Callable[[], None]:
+    def _complete_tick(self, tick: int) -> list[dict]:
         """(Lock held.) Every agent is through ``tick``: append its rows, observations and
-        control steps in agent order, take the checkpoint and the running summary (the
-        checkpoint only ever describes complete ticks) and publish what was recorded, with the
-        formation health it counted. Returns the call that writes the checkpoint and then the
-        summary, which the caller makes once it has let go of the lock: the requests of the
-        ticks under way are answered meanwhile, not held up by the disk. Only this thread
-        completes ticks, so each tick's files are written before the next tick's are taken."""
+        control steps in agent order, then checkpoint (the checkpoint only ever describes
+        complete ticks); then publish what was recorded, with the formation health it counted."""
         rows = self.sim.finish_tick(tick)
         controls = self.sim.control_rows(tick)
         shown = self.recorder.add_tick(rows, sorted(self._obs.pop(tick, {}).items()), controls)
         self._rods.pop(tick, None)
         wall = self._wall()  # the checkpoint and the summary tell the same time
-        save = self._checkpoint(wall)
-        summary = self.recorder.summary_text(complete=False, reason="running", wall_time=wall)
+        self._save_state(wall)
+        self.recorder.write_summary(complete=False, reason="running", wall_time=wall)
         self.view.publish_tick(shown)
         if self.ros2 is not None:
             self.ros2.publish_tick(shown, controls)
-
-        def write() -> None:
-            save()
-            self.recorder.write_summary_text(summary)
-        return write
+        return rows
 
     def _stalled(self) -> str:
         """(Lock held.) Why a lockstep run that made no progress for ``agent_timeout`` ends."""
@@ -524,7 +516,7 @@ class WorldService:
                         return None
                     if min(self._through) > self.sim.complete:
                         tick = self.sim.complete + 1
-                        write = self._complete_tick(tick)
+                        self._complete_tick(tick)
                         opened = False
                         break
                     if may_open(self._through, self.sim.tick, self.sim.complete, last,
@@ -540,9 +532,7 @@ class WorldService:
                     self._cond.wait(left)
             if opened:
                 self._tick_pub.put(encode(TickStart(tick=tick, t=self.sim.time_of(tick))))
-                continue
-            write()
-            if self.on_tick is not None:
+            elif self.on_tick is not None:
                 self.on_tick(tick)
 
     def _run_realtime_tick(self, tick: int) -> str | None:
@@ -573,7 +563,7 @@ class WorldService:
                 return self._ended
             if self.sim.over:
                 return self.sim.end_detail
-            self._complete_tick(tick)()  # a realtime tick waits for its start time anyway
+            self._complete_tick(tick)
             next_start = self._tick_started + self.period
             while self._ended is None and (left := next_start - time.monotonic()) > 0:
                 self._cond.wait(left)
@@ -595,20 +585,12 @@ class WorldService:
         """Wall time of the run so far, earlier starts included."""
         return self._wall_before + (time.monotonic() - self._started)
 
-    def _checkpoint(self, wall_time: float) -> Callable[[], None]:
-        """(Lock held.) The checkpoint after the last complete tick (its rows are on disk),
-        taken now; the call returned writes it, then lets the journal drop the requests it
-        covers (under the lock: it may be made after the lock was let go)."""
-        text = checkpoint.encode(run_id=self.config.run_id, start=self.start,
-                                 sim=self.sim.state(), offsets=self.recorder.offsets,
-                                 wall_time=float(wall_time))
-        complete = self.sim.complete
-
-        def write() -> None:
-            checkpoint.write(self.out_dir, text)
-            with self._cond:
-                self._journal.keep_after(complete)
-        return write
+    def _save_state(self, wall_time: float) -> None:
+        """(Lock held.) The checkpoint after the last complete tick (its rows are on disk)."""
+        checkpoint.save(self.out_dir, run_id=self.config.run_id, start=self.start,
+                        sim=self.sim.state(), offsets=self.recorder.offsets,
+                        wall_time=float(wall_time))
+        self._journal.keep_after(self.sim.complete)
 
     def run(self) -> dict:
         """Wait for the agents, run every tick, write the results; return the summary.
