@@ -784,7 +784,8 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
         previous = ()
     filtered = HeadingFilter(pre.compass, limits)
     rod = _Fixed(limits)
-    position, slope, speed = np.zeros(2), np.asarray(pre.slope), 0.0
+    start_slope = np.asarray(pre.slope)  # what slope_ahead measures the slope's change from
+    position, slope, speed = np.zeros(2), start_slope, 0.0
     target, spread = np.asarray(goal, dtype=float), math.sqrt(0.5 * limits.chord_variance)
 
     leader = _Fixed(limits)
@@ -807,7 +808,7 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
     reserve = settings.control_steps + settings.snap_steps // 2  # the move phase's end
     for step in range(settings.tick_steps):
         wanted, end = heading_at(target), reserve if step < settings.control_steps else None
-        ahead = slope_ahead(np.asarray(pre.slope), slope, filtered.driven,
+        ahead = slope_ahead(start_slope, slope, filtered.driven,
                             0.5 * abs(speed) * limits.durations[step], limits.sigma_bearing)
         v, omega, turn = step_command(position, filtered.heading, ahead, target, wanted,
                                       spread, speed, step, limits, end, filtered.drift())

@@ -26,15 +26,21 @@ def _worst(rows: list[dict]) -> dict[int, float]:
     return worst
 
 
+def _apart(teleport: list[dict], rows: list[dict]) -> np.ndarray:
+    """Every follower-tick's distance between where a driving run's ``rows`` put a follower
+    and where the same run teleporting did (``teleport``'s rows)."""
+    where = {(r["tick"], r["agent"]): np.array([r["pos_x"], r["pos_y"]]) for r in teleport}
+    return np.array([np.linalg.norm(np.array([r["pos_x"], r["pos_y"]])
+                                    - where[r["tick"], r["agent"]])
+                     for r in rows if r["agent"] > 0])
+
+
 def _farthest_from_teleport(**base) -> tuple[float, list[dict]]:
     """The largest distance of any follower, at any tick, between the driving run of ``base``
     and the teleporting one; and the driving run's rows."""
     _, teleport = run_local(RunConfig(**base))
     _, rows = run_local(RunConfig(**base, motion="drive"))
-    where = {(r["tick"], r["agent"]): np.array([r["pos_x"], r["pos_y"]]) for r in teleport}
-    return max(float(np.linalg.norm(np.array([r["pos_x"], r["pos_y"]])
-                                    - where[r["tick"], r["agent"]]))
-               for r in rows if r["agent"] > 0), rows
+    return float(_apart(teleport, rows).max()), rows
 
 
 # --- the issue's three cases, as regression tests -------------------------------------------
@@ -226,15 +232,8 @@ def _to_teleport(base: dict, steps: tuple[int, ...]) -> list[np.ndarray]:
     """Per number of control steps (the other options default), every follower-tick's
     distance from where the same run teleporting put that follower (noise-free, m)."""
     _, teleport = run_local(RunConfig(**base))
-    where = {(r["agent"], r["tick"]): np.array([r["pos_x"], r["pos_y"]])
-             for r in teleport if r["agent"]}
-    out = []
-    for n in steps:
-        _, rows = run_local(RunConfig(**base, motion="drive", control_steps=n))
-        out.append(np.array([np.linalg.norm(np.array([r["pos_x"], r["pos_y"]])
-                                            - where[r["agent"], r["tick"]])
-                             for r in rows if r["agent"]]))
-    return out
+    return [_apart(teleport, run_local(RunConfig(**base, motion="drive", control_steps=n))[1])
+            for n in steps]
 
 
 def test_the_distance_to_teleport_does_not_grow_with_the_control_steps():
@@ -308,23 +307,23 @@ def test_where_a_follower_landed_off_its_rod_end_does_not_enter_its_track():
     assert not np.allclose(np.array(off.displacements())[-1], np.zeros(2))
 
 
-def _winding(points: int) -> tuple[np.ndarray, tuple, np.ndarray, float]:
+def _winding(points: int) -> tuple[np.ndarray, np.ndarray, tuple, np.ndarray, float]:
     """``points`` positions on the winding path ``y = 0.5 sin(x / 2)``, 1.2 m apart in x, the
-    goal last at ``x = 1.2``: the positions, the track's displacements, the last chord and the
-    path's direction at the goal."""
+    goal last at ``x = 1.2``: the positions, their distances along the polyline through them,
+    the track's displacements, the last chord and the path's direction at the goal."""
     x = 1.2 * np.arange(2 - points, 2, dtype=float)
     where = np.stack([x, 0.5 * np.sin(x / 2.0)], axis=1)
     steps = np.diff(where, axis=0)
-    return where, tuple(steps[:-1]), steps[-1], math.atan(0.25 * math.cos(0.6))
+    along = np.concatenate(([0.0], np.cumsum(np.hypot(*steps.T))))
+    return where, along, tuple(steps[:-1]), steps[-1], math.atan(0.25 * math.cos(0.6))
 
 
 def test_the_goal_headings_fit_follows_a_winding_path_without_noise():
     """Without noise the fit's tangent at the goal is the winding path's to a few
     milliradians, where a least-squares quadratic through the same points lags by a tenth of
     a radian (the quadratic's lag was what put wavy's noise-free column off)."""
-    where, track, chord, true = _winding(5)
+    where, along, track, chord, true = _winding(5)
     assert abs(goal_heading(0.0, chord, track, 0.0) - true) < 0.006
-    along = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(where, axis=0).T))))
     fit = np.polyfit(along, where, 2)
     tangent = 2 * fit[0] * along[-1] + fit[1]
     assert abs(math.atan2(tangent[1], tangent[0]) - true) > 0.1  # a quadratic's lag
@@ -354,8 +353,7 @@ def test_without_noise_the_goal_heading_is_the_polynomial_through_every_point():
     """Without noise the fit passes through every point of the full track, each placed at its
     distance along the path (the polyline's), so its tangent at the goal is that
     polynomial's; the least-squares cubic over the same points is further off."""
-    where, track, chord, true = _winding(5)
-    along = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(where, axis=0).T))))
+    where, along, track, chord, true = _winding(5)
     coefficients = np.polyfit(along, where, 4)
     tangent = [np.polyval(np.polyder(coefficients[:, k]), along[-1]) for k in (0, 1)]
     got = goal_heading(0.0, chord, track, 0.0)
