@@ -88,6 +88,17 @@ declared to it): the heading filter's process noise per radian turned."""
 TRANSPORT = 0.1
 """How much a robot's chart heading may change per metre driven without a command (rad/m):
 the parallel transport over the terrain, the heading filter's process noise."""
+JERKS = (1e-6, 1e-5, 1e-4, 1e-3, 1e-2)
+"""The path filter's bank (:class:`PathFilter`): variances of the white jerk of the path's
+tangent angle, rad² per tick⁶, a decade apart, from a path that barely bends to one whose
+turn per tick changes by a tenth of a radian a tick. How fast a path's bend changes is the
+hidden surface's, so it is not fixed: the readings weigh the filters (as ``ekf``'s jerks)."""
+PATH_MEMORY = 0.8
+"""How fast the path filter's bank forgets a tick's evidence (``ekf``'s memory: about five
+ticks), so a path whose bending changes is followed."""
+JUDGED = 3
+"""How many ticks each path tangent (the fit's, the filter's) must have been judged on
+before the track follows the one with the smaller error (:meth:`Track.tangent`)."""
 
 
 @dataclass(frozen=True)
@@ -349,6 +360,82 @@ def _through(points: np.ndarray) -> np.ndarray:
     return derivative @ np.linalg.solve(basis, points)
 
 
+def middle_tangent(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """The tangent (unnormalised) at the middle of three points of a path, ``before`` and
+    ``after`` the steps into and out of it: the quadratic through them placed at their
+    distance along the path (:func:`arc_times`), ``b² · before + a² · after`` for steps of
+    lengths ``a`` and ``b`` (the mean of the two for equal steps). It has no lag, so it is
+    what the track judges its goal tangents against, one tick late (:meth:`Track.record`)."""
+    a, b = float(before @ before), float(after @ after)
+    return b * before + a * after
+
+
+class PathFilter:
+    """The tangent of the path of rod ends a follower drove onto, filtered over its whole
+    track: a bank of Kalman filters (one per jerk of :data:`JERKS`) on the tangent's angle
+    ``θ``, its change per tick ``θ'`` and that change's change ``θ''`` (a white jerk), whose
+    reading is each tick's step direction — the chord's, which on a smooth path is the tangent
+    half a tick back, ``θ − θ'/2 + θ''/8`` — with the variance of the step's two ends across
+    it: each a rod end read from nearby (``σ_r²/2`` per coordinate) and the move's odometry
+    (``point_variance`` per coordinate together), over the step's squared length. The bank's
+    filters are weighted by the likelihood of every chord each predicted, old ticks discounted
+    by :data:`PATH_MEMORY` (multiple-model adaptive estimation, as ``ekf``). Angles are axial:
+    a chord is a line, whichever way along it a step went.
+
+    Where :func:`goal_heading`'s fit spans the last :data:`TRACK` ticks, this follows the path
+    from its start, so on a path that winds smoothly its tangent lags less at the same noise;
+    where the path turns abruptly the fit's short span follows better. Which of the two the
+    track follows is judged on the path itself (:meth:`Track.tangent`). State as data: the
+    arrays below, a function of the steps recorded (:meth:`advanced`)."""
+
+    _F = np.array([[1.0, 1.0, 0.5], [0.0, 1.0, 1.0], [0.0, 0.0, 1.0]])
+    _H = np.array([1.0, -0.5, 0.125])
+    _Q = np.array(JERKS)[:, None, None] * np.array(
+        [[1 / 20, 1 / 8, 1 / 6], [1 / 8, 1 / 3, 1 / 2], [1 / 6, 1 / 2, 1.0]])
+
+    def __init__(self, point_variance: float) -> None:
+        self.point_variance = point_variance
+        self.state: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def advanced(self, step: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The bank's state (means, covariances, log-likelihood scores) after ``step`` (xy,
+        shape (2,)); the filter itself is left as it is."""
+        angle = math.atan2(step[1], step[0])
+        noise = self.point_variance / max(float(step @ step), MIN_CHORD**2)
+        if self.state is None:  # the first chord: the tangent's angle within it, no bend yet
+            count = len(JERKS)
+            return (np.tile([angle, 0.0, 0.0], (count, 1)),
+                    np.tile(np.diag([noise + 1e-2, 1e-2, 1e-3]), (count, 1, 1)),
+                    np.zeros(count))
+        mean, covariance, score = self.state
+        mean = mean @ self._F.T
+        covariance = self._F @ covariance @ self._F.T + self._Q
+        seen = mean @ self._H
+        innovation = np.arctan(np.tan(angle - seen))  # axial: the chord's line
+        spread = np.einsum("i,bij,j->b", self._H, covariance, self._H) + noise
+        gain = covariance @ self._H / spread[:, None]
+        mean = mean + gain * innovation[:, None]
+        covariance = covariance - gain[:, :, None] * (covariance @ self._H)[:, None, :]
+        score = PATH_MEMORY * score - 0.5 * (innovation**2 / spread + np.log(spread))
+        return mean, covariance, score
+
+    @staticmethod
+    def angle(state: tuple[np.ndarray, np.ndarray, np.ndarray]) -> float:
+        """The bank's tangent angle in ``state``: its filters' angles weighted by their
+        likelihoods (axially, about the first's)."""
+        mean, _, score = state
+        weights = np.exp(score - score.max())
+        first = float(mean[0, 0])
+        return first + float(weights @ np.arctan(np.tan(mean[:, 0] - first))) / float(
+            weights.sum())
+
+    def record(self, step: np.ndarray) -> None:
+        self.state = self.advanced(step)
+
+    def reset(self) -> None:
+        self.state = None
+
+
 @dataclass(frozen=True)
 class Settled:
     """The heading a follower settled with (rad, chart), its variance, and the angle of the
@@ -377,7 +464,7 @@ class Track:
 
     def __init__(self, comm_period: float, length: int = 0, sigma_range: float = 0.0,
                  sigma_bearing: float = 0.0, spacing: float = 1.0,
-                 chord_variance: float = 0.0) -> None:
+                 chord_variance: float = 0.0, odometry_variance: float = 0.0) -> None:
         self.comm_period = comm_period
         self.length = length or TRACK
         self.sigma_range, self.sigma_bearing = sigma_range, sigma_bearing
@@ -385,11 +472,16 @@ class Track:
         self.steps: list[np.ndarray] = []
         self.landed = np.zeros(2)  # where the last rod end was from where it settled
         self.settled: Settled | None = None
+        # under noise, the path filter and how the fit's and its tangents fared (Track.tangent)
+        self.path = (PathFilter(sigma_range**2 + 2.0 * odometry_variance)
+                     if chord_variance > 0.0 else None)
+        self.proposed: tuple[float, float] | None = None
+        self.judged, self.errors = 0, np.zeros(2)
 
     @classmethod
     def from_settings(cls, settings: AgentSettings) -> Track:
         return cls(settings.comm_period, 0, settings.noise_range, settings.noise_bearing,
-                   settings.spacing, chord_variance(settings))
+                   settings.spacing, chord_variance(settings), move_variance(settings))
 
     def chord_variance_angle(self) -> float:
         """The declared variance (rad²) of the chord's angle: the leader read at the rod's
@@ -401,6 +493,16 @@ class Track:
         self.steps.clear()
         self.landed = np.zeros(2)
         self.settled = None
+        self.proposed = None
+        if self.path is not None:
+            self.path.reset()
+
+    def reset(self) -> None:
+        """Forget everything learnt, the judged errors of the path's tangents too (which a
+        missed tick, :meth:`skip`, keeps: they describe the path's kind, not its last ticks):
+        a rejoining follower rebuilds it all from its replay log."""
+        self.skip()
+        self.judged, self.errors = 0, np.zeros(2)
 
     def record(self, settled: Sensing) -> None:
         if settled.velocity is None:
@@ -413,12 +515,55 @@ class Track:
                 self.sigma_range, self.sigma_bearing, math.sqrt(float(landed @ landed))))
         step = (self.comm_period * np.asarray(settled.velocity, dtype=float)
                 + landed - self.landed)
+        previous = tuple(self.steps)
         if settled.compass is not None and settled.rod is not None:
             chord = -relative(settled)  # from the leader to the rod end
-            self.settled = self.heading(settled.compass, step, chord, tuple(self.steps))
+            self.settled = self.heading(settled.compass, step, chord, previous)
+        if self.path is not None:
+            self._judge(settled.compass, step, previous)
+            self.path.record(step)
         self.steps.append(step)
         self.landed = landed
         del self.steps[:-self.length]
+
+    def _judge(self, compass: float | None, step: np.ndarray,
+               previous: tuple[np.ndarray, ...]) -> None:
+        """Judge the tangents the fit and the filter gave for the last tick's rod end against
+        the lag-free one through it (:func:`middle_tangent`, now that the step beyond it is
+        known), and remember both of this tick's for the next."""
+        if self.proposed is not None and previous:
+            middle = middle_tangent(previous[-1], step)
+            truth = math.atan2(middle[1], middle[0])
+            off = np.arctan(np.tan(np.array(self.proposed) - truth))  # axial
+            self.errors += off * off
+            self.judged += 1
+        self.proposed = None
+        if compass is not None and previous and self.path.state is not None:
+            self.proposed = (goal_heading(compass, step, previous, self.chord_variance,
+                                          self.spacing),
+                             self._filtered(compass, step))
+
+    def _filtered(self, compass: float, step: np.ndarray) -> float:
+        """The path filter's tangent at the end of ``step``, on the heading's side and
+        trusted as :func:`goal_heading` trusts its fit (a step within its noise turns
+        nothing)."""
+        angle = PathFilter.angle(self.path.advanced(step))
+        weight = _trust(float(step @ step),
+                        9.0 * self.chord_variance + (MIN_CHORD * self.spacing) ** 2)
+        return wrap(compass + weight * math.atan(math.tan(angle - compass)))
+
+    def tangent(self, compass: float, step: np.ndarray,
+                previous: tuple[np.ndarray, ...]) -> float:
+        """The path's tangent at the end of ``step``: :func:`goal_heading`'s fit over the last
+        ticks or, under noise, once both have been judged on :data:`JUDGED` ticks and the path
+        filter's tangents erred less on average (against the lag-free tangent through each
+        past rod end, :meth:`_judge`: the same noisy reference for both, so their difference
+        is the lag and noise each adds), the filter's over the whole track
+        (:class:`PathFilter`)."""
+        if (self.path is not None and self.path.state is not None and previous
+                and self.judged >= JUDGED and self.errors[1] < self.errors[0]):
+            return self._filtered(compass, step)
+        return goal_heading(compass, step, previous, self.chord_variance, self.spacing)
 
     def heading(self, compass: float, step: np.ndarray, chord: np.ndarray,
                 previous: tuple[np.ndarray, ...]) -> Settled:
@@ -426,8 +571,7 @@ class Track:
         ``chord`` the direction from the leader to it: the path's tangent
         (:func:`goal_heading`) fused with the heading it settled with last time turned as the
         chord turned since (:class:`Settled`)."""
-        return self.fuse(goal_heading(compass, step, previous, self.chord_variance,
-                                      self.spacing), step, chord)
+        return self.fuse(self.tangent(compass, step, previous), step, chord)
 
     def fuse(self, path: float, step: np.ndarray, chord: np.ndarray) -> Settled:
         """:meth:`heading` from the path's tangent ``path`` at the end of ``step``
@@ -798,8 +942,9 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
         step = point - landed
         path = paths.get(key := step.tobytes())
         if path is None:
-            path = paths[key] = goal_heading(pre.compass, step, previous,
-                                             owner.chord_variance, owner.spacing)
+            path = paths[key] = (goal_heading(pre.compass, step, previous,
+                                              owner.chord_variance, owner.spacing)
+                                 if track is None else track.tangent(pre.compass, step, previous))
         if track is None:
             return path
         return track.fuse(path, step, point - leader.estimate()[0]).heading

@@ -197,7 +197,7 @@ def _join(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Polic
         state.append(kept[-1])
         last = through
     replay(policy, kept)
-    track.skip()
+    track.reset()
     _replay_track(track, kept)
     if entries:
         log.info("follower %d: restored %d ticks of history from %s", agent_id, len(kept),
