@@ -161,6 +161,18 @@ def wrap(angle: float) -> float:
     return math.atan2(math.sin(angle), math.cos(angle))
 
 
+def axial(angle):
+    """``angle`` (rad, a float or an array) as a line's: the representative within
+    ``(−π/2, π/2)`` of its class modulo π, the direction either way along the line nearest 0.
+    A path's tangent is a line: the path filter takes the way along it nearest the heading,
+    and a chord driven backwards is the same line. (:func:`goal_heading`'s ``forward`` takes
+    ``asin(sin(·))`` instead, the same within ±π/2 and a mirror image beyond: left as it is,
+    since changing it moves every noisy drive number, docs/drive.md *Stop 46*.)"""
+    if isinstance(angle, float):
+        return math.atan(math.tan(angle))
+    return np.arctan(np.tan(angle))
+
+
 def _cross(a: np.ndarray, b: np.ndarray) -> float:
     return float(a[0] * b[1] - a[1] * b[0])
 
@@ -411,7 +423,7 @@ class PathFilter:
         mean = mean @ self._F.T
         covariance = self._F @ covariance @ self._F.T + self._Q
         seen = mean @ self._H
-        innovation = np.arctan(np.tan(angle - seen))  # axial: the chord's line
+        innovation = axial(angle - seen)  # the chord's line
         spread = np.einsum("i,bij,j->b", self._H, covariance, self._H) + noise
         gain = covariance @ self._H / spread[:, None]
         mean = mean + gain * innovation[:, None]
@@ -426,7 +438,7 @@ class PathFilter:
         mean, _, score = state
         weights = np.exp(score - score.max())
         first = float(mean[0, 0])
-        return first + float(weights @ np.arctan(np.tan(mean[:, 0] - first))) / float(
+        return first + float(weights @ axial(mean[:, 0] - first)) / float(
             weights.sum())
 
     def record(self, step: np.ndarray) -> None:
@@ -534,7 +546,7 @@ class Track:
         if self.proposed is not None and previous:
             middle = middle_tangent(previous[-1], step)
             truth = math.atan2(middle[1], middle[0])
-            off = np.arctan(np.tan(np.array(self.proposed) - truth))  # axial
+            off = axial(np.array(self.proposed) - truth)
             self.errors += off * off
             self.judged += 1
         self.proposed = None
@@ -550,7 +562,7 @@ class Track:
         angle = PathFilter.angle(self.path.advanced(step))
         weight = _trust(float(step @ step),
                         9.0 * self.chord_variance + (MIN_CHORD * self.spacing) ** 2)
-        return wrap(compass + weight * math.atan(math.tan(angle - compass)))
+        return wrap(compass + weight * axial(angle - compass))
 
     def tangent(self, compass: float, step: np.ndarray,
                 previous: tuple[np.ndarray, ...]) -> float:
