@@ -432,14 +432,17 @@ class PathFilter:
         return mean, covariance, score
 
     @staticmethod
-    def angle(state: tuple[np.ndarray, np.ndarray, np.ndarray]) -> float:
-        """The bank's tangent angle in ``state``: its filters' angles weighted by their
-        likelihoods (axially, about the first's)."""
-        mean, _, score = state
+    def estimate(state: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[float, float]:
+        """The bank's tangent angle in ``state`` and its variance: its filters' angles
+        weighted by their likelihoods (axially, about the first's), and their variances plus
+        their spread about that mean, so weighted."""
+        mean, covariance, score = state
         weights = np.exp(score - score.max())
+        weights /= weights.sum()
         first = float(mean[0, 0])
-        return first + float(weights @ axial(mean[:, 0] - first)) / float(
-            weights.sum())
+        offsets = axial(mean[:, 0] - first)
+        middle = float(weights @ offsets)
+        return first + middle, float(weights @ (covariance[:, 0, 0] + (offsets - middle) ** 2))
 
     def record(self, step: np.ndarray) -> None:
         self.state = self.advanced(step)
@@ -454,8 +457,12 @@ class Settled:
     chord from its leader to its rod end then: a one-state filter over ticks whose prediction
     turns the heading as the chord turned (the rod turns with the column, and the chord is
     read to the rod end, not to where the follower landed) and whose update is the path's
-    tangent (:func:`goal_heading`, variance: the chord's declared variance over the step's
-    squared length); its process noise is :data:`TRANSPORT` per metre driven."""
+    tangent (:meth:`Track.tangent`; variance: the fit's, the chord's declared variance over
+    the step's squared length; the path filter's, its own); its process noise is
+    :data:`TRANSPORT` per metre driven. The chord turns with the leader's own heading error
+    (its rod continues that heading), so where the prior weighs much a follower copies its
+    predecessor's swing: the path filter's variance, smaller than one chord's where it has
+    averaged a long track, keeps that weight down on short steps (docs/drive.md, *Stop 46*)."""
 
     heading: float
     variance: float
@@ -553,29 +560,31 @@ class Track:
         if compass is not None and previous and self.path.state is not None:
             self.proposed = (goal_heading(compass, step, previous, self.chord_variance,
                                           self.spacing),
-                             self._filtered(compass, step))
+                             self._filtered(compass, step)[0])
 
-    def _filtered(self, compass: float, step: np.ndarray) -> float:
+    def _filtered(self, compass: float, step: np.ndarray) -> tuple[float, float]:
         """The path filter's tangent at the end of ``step``, on the heading's side and
         trusted as :func:`goal_heading` trusts its fit (a step within its noise turns
-        nothing)."""
-        angle = PathFilter.angle(self.path.advanced(step))
+        nothing), and the filter's variance of it (rad²)."""
+        angle, variance = PathFilter.estimate(self.path.advanced(step))
         weight = _trust(float(step @ step),
                         9.0 * self.chord_variance + (MIN_CHORD * self.spacing) ** 2)
-        return wrap(compass + weight * axial(angle - compass))
+        return wrap(compass + weight * axial(angle - compass)), variance
 
     def tangent(self, compass: float, step: np.ndarray,
-                previous: tuple[np.ndarray, ...]) -> float:
-        """The path's tangent at the end of ``step``: :func:`goal_heading`'s fit over the last
-        ticks or, under noise, once both have been judged on :data:`JUDGED` ticks and the path
+                previous: tuple[np.ndarray, ...]) -> tuple[float, float | None]:
+        """The path's tangent at the end of ``step`` and its variance (rad²; None for the
+        fit's, which :meth:`fuse` declares): :func:`goal_heading`'s fit over the last ticks
+        or, under noise, once both have been judged on :data:`JUDGED` ticks and the path
         filter's tangents erred less on average (against the lag-free tangent through each
         past rod end, :meth:`_judge`: the same noisy reference for both, so their difference
         is the lag and noise each adds), the filter's over the whole track
-        (:class:`PathFilter`)."""
+        (:class:`PathFilter`) with the filter's own variance: it has averaged the whole
+        track, where the fit's declared variance is one chord's."""
         if (self.path is not None and self.path.state is not None and previous
                 and self.judged >= JUDGED and self.errors[1] < self.errors[0]):
             return self._filtered(compass, step)
-        return goal_heading(compass, step, previous, self.chord_variance, self.spacing)
+        return goal_heading(compass, step, previous, self.chord_variance, self.spacing), None
 
     def heading(self, compass: float, step: np.ndarray, chord: np.ndarray,
                 previous: tuple[np.ndarray, ...]) -> Settled:
@@ -583,15 +592,19 @@ class Track:
         ``chord`` the direction from the leader to it: the path's tangent
         (:func:`goal_heading`) fused with the heading it settled with last time turned as the
         chord turned since (:class:`Settled`)."""
-        return self.fuse(self.tangent(compass, step, previous), step, chord)
+        return self.fuse(*self.tangent(compass, step, previous), step, chord)
 
-    def fuse(self, path: float, step: np.ndarray, chord: np.ndarray) -> Settled:
-        """:meth:`heading` from the path's tangent ``path`` at the end of ``step``
-        (:func:`goal_heading`, which a caller asking for one goal many times works out once)."""
+    def fuse(self, path: float, variance: float | None, step: np.ndarray,
+             chord: np.ndarray) -> Settled:
+        """:meth:`heading` from the path's tangent ``path`` at the end of ``step`` and its
+        ``variance`` (:meth:`tangent`, which a caller asking for one goal many times works out
+        once; None: the fit's, the chord's declared variance over the step's squared length)."""
         angle = math.atan2(chord[1], chord[0])
         length = float(step @ step)
         noise = 0.0 if self.chord_variance == 0.0 else (
             math.inf if length == 0.0 else self.chord_variance / length)
+        if variance is not None and length > 0.0:
+            noise = variance
         last = self.settled
         if last is None:
             return Settled(path, noise, angle)
@@ -948,18 +961,19 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
     leader.add(np.zeros(2), relative(pre))
 
     owner = limits if track is None else track  # whose declared chord variance and rod length
-    paths: dict[bytes, float] = {}  # the path's tangent per goal: the move phase keeps one
+    # the path's tangent and its variance per goal (Track.tangent): the move phase keeps one
+    paths: dict[bytes, tuple[float, float | None]] = {}
 
     def heading_at(point: np.ndarray) -> float:
         step = point - landed
         path = paths.get(key := step.tobytes())
         if path is None:
-            path = paths[key] = (goal_heading(pre.compass, step, previous,
-                                              owner.chord_variance, owner.spacing)
+            path = paths[key] = ((goal_heading(pre.compass, step, previous,
+                                               owner.chord_variance, owner.spacing), None)
                                  if track is None else track.tangent(pre.compass, step, previous))
         if track is None:
-            return path
-        return track.fuse(path, step, point - leader.estimate()[0]).heading
+            return path[0]
+        return track.fuse(*path, step, point - leader.estimate()[0]).heading
 
     moved, travelled = pre, np.zeros(2)
     reserve = settings.control_steps + settings.snap_steps // 2  # the move phase's end
