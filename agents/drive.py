@@ -387,9 +387,9 @@ class PathFilter:
     track: a bank of Kalman filters (one per jerk of :data:`JERKS`) on the tangent's angle
     ``θ``, its change per tick ``θ'`` and that change's change ``θ''`` (a white jerk), whose
     reading is each tick's step direction — the chord's, which on a smooth path is the tangent
-    half a tick back, ``θ − θ'/2 + θ''/8`` — with the variance of the step's two ends across
-    it: each a rod end read from nearby (``σ_r²/2`` per coordinate) and the move's odometry
-    (``point_variance`` per coordinate together), over the step's squared length. The bank's
+    half a tick back, ``θ − θ'/2 + θ''/8`` — with the variance of the step across it over its
+    squared length: ``point_variance``, the step's two rod ends each read from nearby
+    (``σ_r²/2`` across) and the tick's odometry (its declared variance per coordinate). The bank's
     filters are weighted by the likelihood of every chord each predicted, old ticks discounted
     by :data:`PATH_MEMORY` (multiple-model adaptive estimation, as ``ekf``). Angles are axial:
     a chord is a line, whichever way along it a step went.
@@ -492,7 +492,7 @@ class Track:
         self.landed = np.zeros(2)  # where the last rod end was from where it settled
         self.settled: Settled | None = None
         # under noise, the path filter and how the fit's and its tangents fared (Track.tangent)
-        self.path = (PathFilter(sigma_range**2 + 2.0 * odometry_variance)
+        self.path = (PathFilter(sigma_range**2 + odometry_variance)
                      if chord_variance > 0.0 else None)
         self.proposed: tuple[float, float] | None = None
         self.judged, self.errors = 0, np.zeros(2)
