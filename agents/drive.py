@@ -189,6 +189,13 @@ def beyond_noise(vector: np.ndarray, variance: float) -> np.ndarray:
     return _weight(float(vector @ vector), 9.0 * variance) * vector
 
 
+def _chord_floor(variance: float, spacing: float) -> float:
+    """The squared length below which a chord of declared ``variance`` (both coordinates
+    together) says nothing of its direction: three times its spread, and at least
+    :data:`MIN_CHORD` of the rod's length ``spacing`` (so a rounding error turns nothing)."""
+    return 9.0 * variance + (MIN_CHORD * spacing) ** 2
+
+
 def _trust(square: float, floor: float) -> float:
     """``1 − floor / square`` above ``floor``, 0 below: how much a vector of squared length
     ``square`` says of its direction when its noise has squared spread ``floor`` (continuous,
@@ -238,7 +245,7 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
     (``variance``: the chord's declared spread, both coordinates together): the heading turns
     smoothly from ``heading`` (a chord of nothing, or of noise) to the fit (a chord well above
     its spread), so a chord of a rounding error turns nothing."""
-    floor = 9.0 * variance + (MIN_CHORD * spacing) ** 2
+    floor = _chord_floor(variance, spacing)
 
     def forward(vector: np.ndarray) -> float:  # its direction, on the heading's side
         return heading + math.asin(max(-1.0, min(1.0, math.sin(
@@ -495,7 +502,7 @@ class Track:
         self.path = (PathFilter(sigma_range**2 + odometry_variance)
                      if chord_variance > 0.0 else None)
         self.proposed: tuple[float, float] | None = None
-        self.judged, self.errors = 0, np.zeros(2)
+        self.reset()
 
     @classmethod
     def from_settings(cls, settings: AgentSettings) -> Track:
@@ -534,45 +541,52 @@ class Track:
                 self.sigma_range, self.sigma_bearing, math.sqrt(float(landed @ landed))))
         step = (self.comm_period * np.asarray(settled.velocity, dtype=float)
                 + landed - self.landed)
-        previous = tuple(self.steps)
-        if settled.compass is not None and settled.rod is not None:
+        previous, compass = tuple(self.steps), settled.compass
+        advanced = both = None
+        if self.path is not None:  # the filter's state after this step, and both tangents
+            advanced = self.path.advanced(step)
+            if compass is not None and previous and self.path.state is not None:
+                both = (goal_heading(compass, step, previous, self.chord_variance,
+                                     self.spacing), self._filtered(compass, step, advanced))
+        if compass is not None and settled.rod is not None:
             chord = -relative(settled)  # from the leader to the rod end
-            self.settled = self.heading(settled.compass, step, chord, previous)
+            self.settled = self.heading(compass, step, chord, previous, both)
         if self.path is not None:
-            self._judge(settled.compass, step, previous)
-            self.path.record(step)
+            self._judge(step, previous, both)
+            self.path.state = advanced
         self.steps.append(step)
         self.landed = landed
         del self.steps[:-self.length]
 
-    def _judge(self, compass: float | None, step: np.ndarray,
-               previous: tuple[np.ndarray, ...]) -> None:
+    def _judge(self, step: np.ndarray, previous: tuple[np.ndarray, ...],
+               both: tuple[float, tuple[float, float]] | None) -> None:
         """Judge the tangents the fit and the filter gave for the last tick's rod end against
         the lag-free one through it (:func:`middle_tangent`, now that the step beyond it is
-        known), and remember both of this tick's for the next."""
+        known), and remember this tick's, ``both`` (the fit's; the filter's with its
+        variance), for the next."""
         if self.proposed is not None and previous:
             middle = middle_tangent(previous[-1], step)
             truth = math.atan2(middle[1], middle[0])
             off = axial(np.array(self.proposed) - truth)
             self.errors += off * off
             self.judged += 1
-        self.proposed = None
-        if compass is not None and previous and self.path.state is not None:
-            self.proposed = (goal_heading(compass, step, previous, self.chord_variance,
-                                          self.spacing),
-                             self._filtered(compass, step)[0])
+        self.proposed = None if both is None else (both[0], both[1][0])
 
-    def _filtered(self, compass: float, step: np.ndarray) -> tuple[float, float]:
+    def _filtered(self, compass: float, step: np.ndarray,
+                  state: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                  ) -> tuple[float, float]:
         """The path filter's tangent at the end of ``step``, on the heading's side and
         trusted as :func:`goal_heading` trusts its fit (a step within its noise turns
-        nothing), and the filter's variance of it (rad²)."""
-        angle, variance = PathFilter.estimate(self.path.advanced(step))
-        weight = _trust(float(step @ step),
-                        9.0 * self.chord_variance + (MIN_CHORD * self.spacing) ** 2)
+        nothing), and the filter's variance of it (rad²); ``state``: the filter's after
+        ``step`` if already worked out (:meth:`PathFilter.advanced`)."""
+        angle, variance = PathFilter.estimate(self.path.advanced(step) if state is None
+                                              else state)
+        weight = _trust(float(step @ step), _chord_floor(self.chord_variance, self.spacing))
         return wrap(compass + weight * axial(angle - compass)), variance
 
-    def tangent(self, compass: float, step: np.ndarray,
-                previous: tuple[np.ndarray, ...]) -> tuple[float, float | None]:
+    def tangent(self, compass: float, step: np.ndarray, previous: tuple[np.ndarray, ...],
+                both: tuple[float, tuple[float, float]] | None = None
+                ) -> tuple[float, float | None]:
         """The path's tangent at the end of ``step`` and its variance (rad²; None for the
         fit's, which :meth:`fuse` declares): :func:`goal_heading`'s fit over the last ticks
         or, under noise, once both have been judged on :data:`JUDGED` ticks and the path
@@ -580,19 +594,23 @@ class Track:
         past rod end, :meth:`_judge`: the same noisy reference for both, so their difference
         is the lag and noise each adds), the filter's over the whole track
         (:class:`PathFilter`) with the filter's own variance: it has averaged the whole
-        track, where the fit's declared variance is one chord's."""
+        track, where the fit's declared variance is one chord's. ``both``: the two, if
+        already worked out for this step (:meth:`record`)."""
         if (self.path is not None and self.path.state is not None and previous
                 and self.judged >= JUDGED and self.errors[1] < self.errors[0]):
-            return self._filtered(compass, step)
+            return both[1] if both is not None else self._filtered(compass, step)
+        if both is not None:
+            return both[0], None
         return goal_heading(compass, step, previous, self.chord_variance, self.spacing), None
 
     def heading(self, compass: float, step: np.ndarray, chord: np.ndarray,
-                previous: tuple[np.ndarray, ...]) -> Settled:
+                previous: tuple[np.ndarray, ...],
+                both: tuple[float, tuple[float, float]] | None = None) -> Settled:
         """The heading to settle with at the end of ``step`` (from the last rod end), with
-        ``chord`` the direction from the leader to it: the path's tangent
-        (:func:`goal_heading`) fused with the heading it settled with last time turned as the
+        ``chord`` the direction from the leader to it: the path's tangent (:meth:`tangent`;
+        ``both`` as there) fused with the heading it settled with last time turned as the
         chord turned since (:class:`Settled`)."""
-        return self.fuse(*self.tangent(compass, step, previous), step, chord)
+        return self.fuse(*self.tangent(compass, step, previous, both), step, chord)
 
     def fuse(self, path: float, variance: float | None, step: np.ndarray,
              chord: np.ndarray) -> Settled:
