@@ -164,10 +164,10 @@ def wrap(angle: float) -> float:
 def axial(angle):
     """``angle`` (rad, a float or an array) as a line's: the representative within
     ``(−π/2, π/2)`` of its class modulo π, the direction either way along the line nearest 0.
-    A path's tangent is a line: the path filter takes the way along it nearest the heading,
-    and a chord driven backwards is the same line. (:func:`goal_heading`'s ``forward`` takes
-    ``asin(sin(·))`` instead, the same within ±π/2 and a mirror image beyond: left as it is,
-    since changing it moves every noisy drive number, docs/drive.md *Stop 46*.)"""
+    A path's tangent is a line: the path filter and :func:`goal_heading` take the way along it
+    nearest the heading, and a chord driven backwards is the same line (until stop 47
+    ``goal_heading`` took ``asin(sin(·))``, the same within ±π/2 and the line's mirror image
+    beyond)."""
     if isinstance(angle, float):
         return math.atan(math.tan(angle))
     return np.arctan(np.tan(angle))
@@ -248,8 +248,7 @@ def goal_heading(heading: float, chord: np.ndarray, track: tuple[np.ndarray, ...
     floor = _chord_floor(variance, spacing)
 
     def forward(vector: np.ndarray) -> float:  # its direction, on the heading's side
-        return heading + math.asin(max(-1.0, min(1.0, math.sin(
-            math.atan2(vector[1], vector[0]) - heading))))
+        return heading + axial(math.atan2(vector[1], vector[0]) - heading)
 
     chord = np.asarray(chord, dtype=float)
     square = float(chord @ chord)

@@ -179,6 +179,16 @@ def test_the_goal_heading_follows_the_chords():
     assert goal_heading(0.2, 0.01 * chord, (previous,), 1e-4) == 0.2
 
 
+def test_a_path_driven_backwards_gives_its_own_line_not_its_mirror_image():
+    """A follower reversing along a straight line at 0.1 rad (its steps point at π + 0.1)
+    with its heading at 0: the tangent on the heading's side is the same line, 0.1, and not
+    its mirror image across the heading's normal (−0.1, what ``asin(sin(·))`` gave before
+    stop 47), with or without noise."""
+    back = -np.array([math.cos(0.1), math.sin(0.1)])
+    for variance in (0.0, 1e-4):
+        assert goal_heading(0.0, back, (back, back), variance) == pytest.approx(0.1, abs=1e-3)
+
+
 def test_with_no_track_under_noise_the_arc_bends_only_as_far_as_its_bend_stands_out():
     """A column setting off: no past step, one chord. Without noise the goal heading is the
     arc's end tangent, the start heading plus twice the bend. Under noise a bend within the
