@@ -19,6 +19,12 @@
    could know — the chord alone (``χ``, the direction from the rod's start to its end) and the
    circular-arc rule ``2χ − n`` (``n`` the rod's start direction). A goal heading built on a
    rule inherits its error at every follower, noise-free.
+3. **Local against global** (the same case driving and teleporting): each follower's mean
+   distance from the rod end of its predecessor's *actual* pose (local: how well it keeps
+   its own rod end) and from the ideal formation (global: issue #30's formation error). A
+   driving follower's heading error turns its rod and moves every rod end behind it, so the
+   global error grows down a driving column faster than the local one (docs/drive.md,
+   *Stop 47*).
 
 Figures depend on nothing but the configuration; nothing here is asserted.
 """
@@ -26,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -124,6 +131,30 @@ def rule_errors(name: str, followers: int, ticks: int, spacing: float,
     return {"chord": np.array(chord), "arc rule": np.array(arc)}
 
 
+def local_and_global(config: RunConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Per follower, the mean over the run's ticks of its distance from the rod end of its
+    predecessor's actual pose, and of its formation error (the ideal formation's distance;
+    ticks without one left out)."""
+    _, rows = run_local(config)
+    surface = make_surface(config.surface)
+    row = {(r["tick"], r["agent"]): r for r in rows}
+    ticks = sorted({t for t, _ in row})
+    local, formation = [], []
+    for k in range(1, config.followers + 1):
+        near, far = [], []
+        for j in ticks:
+            before, here = row[j, k - 1], row[j, k]
+            end, _ = geometry.rod_end(surface, [before["pos_x"], before["pos_y"]],
+                                      [before["heading_x"], before["heading_y"]],
+                                      config.spacing, config.side_sign)
+            near.append(math.hypot(here["pos_x"] - end[0], here["pos_y"] - end[1]))
+            if here["formation_error"] is not None:
+                far.append(here["formation_error"])
+        local.append(np.mean(near))
+        formation.append(np.mean(far))
+    return np.array(local), np.array(formation)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--surface", default="wavy")
@@ -155,6 +186,12 @@ def main() -> None:
     for rule, e in rule_errors(args.surface, args.followers, args.ticks, config.spacing,
                                config.comm_period).items():
         print(f"| {rule} | {np.abs(e).mean():.4f} | {np.abs(e).max():.4f} |")
+    print(f"\nlocal against global, mean over the ticks (m), followers 1-{args.followers}")
+    print("| motion | local | global |\n|---|---|---|")
+    for motion in ("drive", "teleport"):
+        local, formation = local_and_global(dataclasses.replace(config, motion=motion))
+        print(f"| {motion} | {' '.join(f'{x:.3f}' for x in local)} | "
+              f"{' '.join(f'{x:.3f}' for x in formation)} |")
 
 
 if __name__ == "__main__":
