@@ -57,6 +57,7 @@ variance; it starts every tick from the ``pre`` compass reading.
 """
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -93,6 +94,24 @@ JERKS = (1e-6, 1e-5, 1e-4, 1e-3, 1e-2)
 tangent angle, rad² per tick⁶, a decade apart, from a path that barely bends to one whose
 turn per tick changes by a tenth of a radian a tick. How fast a path's bend changes is the
 hidden surface's, so it is not fixed: the readings weigh the filters (as ``ekf``'s jerks)."""
+SWINGS = (8, 12, 16, 24, 32)
+"""The path filter's swinging models (:class:`PathFilter`): periods, in ticks, of a turn that
+swings to and fro — the path of a column crossing waves turns left and right and left again
+as each wave passes under it (on wavy, follower 1's turn per tick swings with a period of
+about 16 ticks), which a white jerk takes for a bend that goes on. From a swing a tick's chord
+barely resolves (8 ticks: four chords a half period) to one slow enough that the jerk models
+follow it anyway (32); how the ground waves is the hidden surface's, so the readings weigh
+them with the jerk models."""
+SWING_DECAY = 0.97
+"""How much of a swing's amplitude the path filter's swinging models expect to be left after
+a tick (its turn is an AR(2) process with poles ``SWING_DECAY · e^{±2πi / period}``): a swing
+that halves over about 23 ticks, two to three periods, so one wave train is followed and a
+path that stops swinging is not expected to go on. Chosen before any run; stop 47 measured
+0.9 and 0.99 besides (docs/drive.md)."""
+SWING_NOISES = (1e-5, 1e-4)
+"""Variances (rad² per tick²) of the new turn each swinging model expects a tick, two levels
+a decade apart (the lower two of :data:`JERKS`' orders of a turn's change): a gentle and a
+strong swell."""
 PATH_MEMORY = 0.8
 """How fast the path filter's bank forgets a tick's evidence (``ekf``'s memory: about five
 ticks), so a path whose bending changes is followed."""
@@ -388,17 +407,55 @@ def middle_tangent(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     return b * before + a * after
 
 
+@functools.lru_cache(maxsize=8)
+def _path_models(jerks: tuple[float, ...], swings: tuple[float, ...]
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The path filter's transitions, process noises and chord readings, one per filter
+    (:class:`PathFilter`): the white jerks first, then each swing period at each noise."""
+    transitions, noises, readings = [], [], []
+    for jerk in jerks:
+        transitions.append([[1.0, 1.0, 0.5], [0.0, 1.0, 1.0], [0.0, 0.0, 1.0]])
+        noises.append(jerk * np.array([[1 / 20, 1 / 8, 1 / 6], [1 / 8, 1 / 3, 1 / 2],
+                                       [1 / 6, 1 / 2, 1.0]]))
+        readings.append([1.0, -0.5, 0.125])
+    for period in swings:
+        keep = 2.0 * SWING_DECAY * math.cos(2.0 * math.pi / period)
+        back = -SWING_DECAY**2
+        for level in SWING_NOISES:  # (θ, r_j, r_{j-1}) -> (θ + r_{j+1}, r_{j+1}, r_j)
+            transitions.append([[1.0, keep, back], [0.0, keep, back], [0.0, 1.0, 0.0]])
+            noises.append(level * np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0],
+                                            [0.0, 0.0, 0.0]]))
+            readings.append([1.0, -0.5, 0.0])
+    arrays = tuple(np.array(x, dtype=float) for x in (transitions, noises, readings))
+    for array in arrays:
+        array.flags.writeable = False
+    return arrays
+
+
 class PathFilter:
     """The tangent of the path of rod ends a follower drove onto, filtered over its whole
-    track: a bank of Kalman filters (one per jerk of :data:`JERKS`) on the tangent's angle
-    ``θ``, its change per tick ``θ'`` and that change's change ``θ''`` (a white jerk), whose
-    reading is each tick's step direction — the chord's, which on a smooth path is the tangent
-    half a tick back, ``θ − θ'/2 + θ''/8`` — with the variance of the step across it over its
-    squared length: ``point_variance``, the step's two rod ends each read from nearby
-    (``σ_r²/2`` across) and the tick's odometry (its declared variance per coordinate). The bank's
-    filters are weighted by the likelihood of every chord each predicted, old ticks discounted
-    by :data:`PATH_MEMORY` (multiple-model adaptive estimation, as ``ekf``). Angles are axial:
-    a chord is a line, whichever way along it a step went.
+    track: a bank of Kalman filters on the tangent's angle ``θ`` and how it turns, whose
+    reading is each tick's step direction (the chord's) with the variance of the step across
+    it over its squared length: ``point_variance``, the step's two rod ends each read from
+    nearby (``σ_r²/2`` across) and the tick's odometry (its declared variance per coordinate).
+    Two kinds of model, each filter one level:
+
+    - **a white jerk** (one filter per :data:`JERKS`): the state is ``θ``, its change per tick
+      ``θ'`` and that change's change ``θ''``; a chord is the tangent half a tick back,
+      ``θ − θ'/2 + θ''/8``;
+    - **a swinging turn** (one filter per period of :data:`SWINGS` and noise of
+      :data:`SWING_NOISES`, stop 47): the turn per tick ``r`` is an AR(2) process,
+      ``r_{j+1} = 2 ρ cos(2π/P) r_j − ρ² r_{j−1}`` plus a new turn, ``ρ`` =
+      :data:`SWING_DECAY`: a path that turns left and right and left again as the waves under
+      the column pass, with its course free to drift. The state is ``θ`` and the last two
+      ticks' turns; a chord is ``θ − r/2``, ``r`` the turn of the tick it spans.
+
+    The filters are weighted by the likelihood of every chord each predicted, old ticks
+    discounted by :data:`PATH_MEMORY` (multiple-model adaptive estimation, as ``ekf``, whose
+    rods swing too). Angles are axial: a chord is a line, whichever way along it a step went.
+    With the jerk models alone (stop 46) a winding path's tangent lagged the more the faster
+    its turn swung; on a path turning ``0.25 sin(2πj/16)`` rad, rod ends read with σ 0.01,
+    the bank erred 16 mrad rms, with the swings 10 (``tests/test_drive_health.py``).
 
     Where :func:`goal_heading`'s fit spans the last :data:`TRACK` ticks, this follows the path
     from its start, so on a path that winds smoothly its tangent lags less at the same noise;
@@ -406,13 +463,10 @@ class PathFilter:
     track follows is judged on the path itself (:meth:`Track.tangent`). State as data: the
     arrays below, a function of the steps recorded (:meth:`advanced`)."""
 
-    _F = np.array([[1.0, 1.0, 0.5], [0.0, 1.0, 1.0], [0.0, 0.0, 1.0]])
-    _H = np.array([1.0, -0.5, 0.125])
-    _Q = np.array(JERKS)[:, None, None] * np.array(
-        [[1 / 20, 1 / 8, 1 / 6], [1 / 8, 1 / 3, 1 / 2], [1 / 6, 1 / 2, 1.0]])
-
-    def __init__(self, point_variance: float) -> None:
+    def __init__(self, point_variance: float, jerks: tuple[float, ...] = JERKS,
+                 swings: tuple[float, ...] = SWINGS) -> None:
         self.point_variance = point_variance
+        self._F, self._Q, self._H = _path_models(tuple(jerks), tuple(swings))
         self.state: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def advanced(self, step: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -421,19 +475,20 @@ class PathFilter:
         angle = math.atan2(step[1], step[0])
         noise = self.point_variance / max(float(step @ step), MIN_CHORD**2)
         if self.state is None:  # the first chord: the tangent's angle within it, no bend yet
-            count = len(JERKS)
+            count = len(self._F)
             return (np.tile([angle, 0.0, 0.0], (count, 1)),
                     np.tile(np.diag([noise + 1e-2, 1e-2, 1e-3]), (count, 1, 1)),
                     np.zeros(count))
         mean, covariance, score = self.state
-        mean = mean @ self._F.T
-        covariance = self._F @ covariance @ self._F.T + self._Q
-        seen = mean @ self._H
+        mean = np.einsum("bij,bj->bi", self._F, mean)
+        covariance = self._F @ covariance @ self._F.transpose(0, 2, 1) + self._Q
+        seen = np.einsum("bi,bi->b", self._H, mean)
         innovation = axial(angle - seen)  # the chord's line
-        spread = np.einsum("i,bij,j->b", self._H, covariance, self._H) + noise
-        gain = covariance @ self._H / spread[:, None]
+        across = np.einsum("bij,bj->bi", covariance, self._H)
+        spread = np.einsum("bi,bi->b", self._H, across) + noise
+        gain = across / spread[:, None]
         mean = mean + gain * innovation[:, None]
-        covariance = covariance - gain[:, :, None] * (covariance @ self._H)[:, None, :]
+        covariance = covariance - gain[:, :, None] * across[:, None, :]
         score = PATH_MEMORY * score - 0.5 * (innovation**2 / spread + np.log(spread))
         return mean, covariance, score
 
