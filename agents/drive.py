@@ -97,8 +97,9 @@ hidden surface's, so it is not fixed: the readings weigh the filters (as ``ekf``
 SWINGS = (8, 12, 16, 24, 32)
 """The path filter's swinging models (:class:`PathFilter`): periods, in ticks, of a turn that
 swings to and fro — the path of a column crossing waves turns left and right and left again
-as each wave passes under it (on wavy, follower 1's turn per tick swings with a period of
-about 16 ticks), which a white jerk takes for a bend that goes on. From a swing a tick's chord
+as each wave passes under it (the ideal column's turn per tick swings with a period of about
+13.5 ticks on wavy, 7.5 on the held-out egg_crate), which a white jerk takes for a bend that
+goes on. From a swing a tick's chord
 barely resolves (8 ticks: four chords a half period) to one slow enough that the jerk models
 follow it anyway (32); how the ground waves is the hidden surface's, so the readings weigh
 them with the jerk models."""
