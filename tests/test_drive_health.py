@@ -554,7 +554,8 @@ def test_a_column_on_short_steps_does_not_copy_its_predecessors_swings():
     declared variance, the heading followed the chord's turn from the leader — which turns
     with the leader's own heading error — and the swings grew down the column: the last
     follower 0.53 m off on average, 2.7 m at worst. With the path filter's own variance,
-    0.25 m and 1.3 m (still beyond the 1 m tolerance: docs/drive.md, *Stop 46*)."""
+    0.25 m and 1.3 m; with its swinging turns (stop 47), 0.19 m and 1.02 m (still just beyond
+    the 1 m tolerance: docs/drive.md, *Stop 46*, *Stop 47*)."""
     config = RunConfig(surface="world.held_out:twisted_saddle", followers=5, ticks=150,
                        seed=538, noise_range=0.05, noise_bearing=0.03, estimator="persist",
                        motion="drive")
@@ -567,7 +568,8 @@ def test_a_column_on_short_steps_does_not_copy_its_predecessors_swings():
 def test_the_path_filter_holds_a_noisy_wavy_column_closer():
     """Wavy, 3 followers, σ 0.01/0.005, seed 0, persist: with the fit alone the last
     follower was 0.058 m off on average (its heading lagging the winding path); with the
-    path filter followed where it erred less, 0.038."""
+    path filter followed where it erred less, 0.038; with its swinging turns (stop 47),
+    0.031."""
     config = RunConfig(surface="wavy", followers=3, ticks=150, seed=0, noise_range=0.01,
                        noise_bearing=0.005, estimator="persist", motion="drive")
     _, rows = run_local(config)
