@@ -66,6 +66,7 @@ import numpy as np
 
 from agents.policies import move_variance, reading_variance
 from agents.policies.base import polar, relative
+from agents.policies.tracker import JERK_DT
 from protocol.config import AgentSettings
 from protocol.messages import ActSensing, Control, Sensing
 from protocol.sensing import reading_variance as sensor_variance
@@ -416,8 +417,7 @@ def _path_models(jerks: tuple[float, ...], swings: tuple[float, ...]
     transitions, noises, readings = [], [], []
     for jerk in jerks:
         transitions.append([[1.0, 1.0, 0.5], [0.0, 1.0, 1.0], [0.0, 0.0, 1.0]])
-        noises.append(jerk * np.array([[1 / 20, 1 / 8, 1 / 6], [1 / 8, 1 / 3, 1 / 2],
-                                       [1 / 6, 1 / 2, 1.0]]))
+        noises.append(jerk * JERK_DT)  # a white jerk over one tick, as ekf's leader
         readings.append([1.0, -0.5, 0.125])
     for period in swings:
         keep = 2.0 * SWING_DECAY * math.cos(2.0 * math.pi / period)

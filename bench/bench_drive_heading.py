@@ -79,18 +79,31 @@ def _noting_goal_headings(noted: dict[tuple[int, int], float]):
         drive.step_command, follower.drive_tick = plain_command, plain_tick
 
 
-def settled_rod_errors(config: RunConfig) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray],
-                                                   dict[int, np.ndarray]]:
-    """Per follower, one per tick (initial ticks included): the chart angle from its
-    predecessor's actual rod end tangent to its own settled rod; the goal heading's error
-    (against the heading at the actual rod end); the execution's (settled against goal)."""
+def _poses(rows: list[dict]) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
+    """Each agent's settled pose per tick, ``(tick, agent) -> (position, heading)``."""
+    return {(r["tick"], r["agent"]): (np.array([r["pos_x"], r["pos_y"]]),
+                                      np.array([r["heading_x"], r["heading_y"]]))
+            for r in rows}
+
+
+def noted_drive(config: RunConfig) -> tuple[list[dict], dict[tuple[int, int], float]]:
+    """The driving run's ticks and each driving tick's last goal heading
+    (:func:`_noting_goal_headings`)."""
     noted: dict[tuple[int, int], float] = {}
     with _noting_goal_headings(noted):
         _, rows = run_local(config)
+    return rows, noted
+
+
+def settled_rod_errors(config: RunConfig, rows: list[dict], noted: dict[tuple[int, int], float]
+                       ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray],
+                                  dict[int, np.ndarray]]:
+    """Per follower, one per tick (initial ticks included), from the driving run's ``rows``
+    and goal headings ``noted`` (:func:`noted_drive`): the chart angle from its
+    predecessor's actual rod end tangent to its own settled rod; the goal heading's error
+    (against the heading at the actual rod end); the execution's (settled against goal)."""
     surface = make_surface(config.surface)
-    pose = {(r["tick"], r["agent"]): (np.array([r["pos_x"], r["pos_y"]]),
-                                      np.array([r["heading_x"], r["heading_y"]]))
-            for r in rows}
+    pose = _poses(rows)
     ticks = sorted({t for t, _ in pose})
     errors: dict[int, np.ndarray] = {}
     goals: dict[int, np.ndarray] = {}
@@ -131,25 +144,24 @@ def rule_errors(name: str, followers: int, ticks: int, spacing: float,
     return {"chord": np.array(chord), "arc rule": np.array(arc)}
 
 
-def local_and_global(config: RunConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Per follower, the mean over the run's ticks of its distance from the rod end of its
-    predecessor's actual pose, and of its formation error (the ideal formation's distance;
-    ticks without one left out)."""
-    _, rows = run_local(config)
+def local_and_global(config: RunConfig, rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    """Per follower of the run whose ticks are ``rows``, the mean over the ticks of its
+    distance from the rod end of its predecessor's actual pose, and of its formation error
+    (the ideal formation's distance; ticks without one left out)."""
     surface = make_surface(config.surface)
-    row = {(r["tick"], r["agent"]): r for r in rows}
-    ticks = sorted({t for t, _ in row})
+    pose = _poses(rows)
+    ticks = sorted({t for t, _ in pose})
+    formation_errors = {(r["tick"], r["agent"]): r["formation_error"] for r in rows
+                        if r["agent"] > 0}  # the leader's row has positions only
     local, formation = [], []
     for k in range(1, config.followers + 1):
         near, far = [], []
         for j in ticks:
-            before, here = row[j, k - 1], row[j, k]
-            end, _ = geometry.rod_end(surface, [before["pos_x"], before["pos_y"]],
-                                      [before["heading_x"], before["heading_y"]],
-                                      config.spacing, config.side_sign)
-            near.append(math.hypot(here["pos_x"] - end[0], here["pos_y"] - end[1]))
-            if here["formation_error"] is not None:
-                far.append(here["formation_error"])
+            end, _ = geometry.rod_end(surface, *pose[j, k - 1], config.spacing,
+                                      config.side_sign)
+            near.append(float(np.hypot(*(pose[j, k][0] - end))))
+            if formation_errors[j, k] is not None:
+                far.append(formation_errors[j, k])
         local.append(np.mean(near))
         formation.append(np.mean(far))
     return np.array(local), np.array(formation)
@@ -171,7 +183,8 @@ def main() -> None:
           "settled rod vs its predecessor's end tangent (rad), estimated ticks")
     print("| follower | mean | rms | worst | goal heading: median / rms / worst | "
           "execution: median / rms / worst |\n|---|---|---|---|---|---|")
-    errors, goals, executions = settled_rod_errors(config)
+    rows, noted = noted_drive(config)
+    errors, goals, executions = settled_rod_errors(config, rows, noted)
 
     def spread(e: np.ndarray) -> str:
         return (f"{np.median(np.abs(e)):.4f} / {math.sqrt((e * e).mean()):.4f} / "
@@ -188,8 +201,9 @@ def main() -> None:
         print(f"| {rule} | {np.abs(e).mean():.4f} | {np.abs(e).max():.4f} |")
     print(f"\nlocal against global, mean over the ticks (m), followers 1-{args.followers}")
     print("| motion | local | global |\n|---|---|---|")
-    for motion in ("drive", "teleport"):
-        local, formation = local_and_global(dataclasses.replace(config, motion=motion))
+    teleport = dataclasses.replace(config, motion="teleport")
+    for motion, ticks in (("drive", rows), ("teleport", run_local(teleport)[1])):
+        local, formation = local_and_global(config, ticks)
         print(f"| {motion} | {' '.join(f'{x:.3f}' for x in local)} | "
               f"{' '.join(f'{x:.3f}' for x in formation)} |")
 
