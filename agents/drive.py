@@ -23,7 +23,13 @@ S-curve instead of a manoeuvre on the spot.
 the latest estimates, without gains: the robot steers along the *approach line*, the line
 through the goal along the goal heading, aiming at the point of the line half-way between its
 own projection and the goal (a parabola tangent to the line at the goal, so it arrives on it);
-a goal behind is driven to in reverse, keeping the heading. The aim is turned from the line by
+a goal behind is driven to in reverse, keeping the heading. Which way it travels is the
+nearer for its heading, unless its heading is turned more than a right angle from the goal
+heading (a detour to a wild goal, say): then it is the way that ends on the goal heading, so
+the robot turns round first (no speed while facing away, below) rather than settle reversed,
+which would point its rod to the wrong side and mirror the column behind it (found on
+``world.random_waves:w7302``: followers 3-5 held 2-4 rods' lengths off for 140 ticks; the goal
+heading's own side is :func:`on_side`'s). The aim is turned from the line by
 at most what the time left can turn back, so the heading the robot settles with — which sets
 the rod of the follower behind it (design §3) — is the goal heading whatever the offset; an
 offset the time cannot correct is corrected in part. Offsets within the reading's spread are
@@ -192,6 +198,23 @@ def axial(angle):
     if isinstance(angle, float):
         return math.atan(math.tan(angle))
     return np.arctan(np.tan(angle))
+
+
+def on_side(heading: float, chord: float, side: int) -> float:
+    """``heading`` (rad), or the opposite direction of its line, whichever has the chord from
+    the leader to the rod end (angle ``chord``) on the rods' ``side`` (+1 left, -1 right; 0
+    leaves it as it is). A follower at its rod end continues its leader's rod, which points to
+    that side of its heading (design §3), so a path's tangent — a line, driven either way —
+    has one direction the formation allows whatever the robot's own heading is: a follower that
+    turned round to reach a wild goal would otherwise settle reversed, its rod pointing the
+    other way, and the column behind it would keep a mirrored formation (found on
+    ``world.random_waves:w7302``, 5 followers, σ 0.05/0.03, seed 0: followers 3-5 held 2, 2
+    and 4 rods' lengths from their places for 140 ticks). The chord is about a right angle
+    from the heading in formation (the metric keeps which side is which), so only a heading
+    on the wrong side is turned."""
+    if side * math.sin(chord - heading) < 0.0:
+        return wrap(heading + math.pi)
+    return heading
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> float:
@@ -545,8 +568,10 @@ class Track:
 
     def __init__(self, comm_period: float, length: int = 0, sigma_range: float = 0.0,
                  sigma_bearing: float = 0.0, spacing: float = 1.0,
-                 chord_variance: float = 0.0, odometry_variance: float = 0.0) -> None:
+                 chord_variance: float = 0.0, odometry_variance: float = 0.0,
+                 side: int = 0) -> None:
         self.comm_period = comm_period
+        self.side = side  # which hand the rods point to (+1 left, -1 right; 0 not said)
         self.length = length or TRACK
         self.sigma_range, self.sigma_bearing = sigma_range, sigma_bearing
         self.spacing, self.chord_variance = spacing, chord_variance
@@ -562,7 +587,8 @@ class Track:
     @classmethod
     def from_settings(cls, settings: AgentSettings) -> Track:
         return cls(settings.comm_period, 0, settings.noise_range, settings.noise_bearing,
-                   settings.spacing, chord_variance(settings), move_variance(settings))
+                   settings.spacing, chord_variance(settings), move_variance(settings),
+                   settings.side_sign)
 
     def chord_variance_angle(self) -> float:
         """The declared variance (rad²) of the chord's angle: the leader read at the rod's
@@ -673,6 +699,7 @@ class Track:
         ``variance`` (:meth:`tangent`, which a caller asking for one goal many times works out
         once; None: the fit's, the chord's declared variance over the step's squared length)."""
         angle = math.atan2(chord[1], chord[0])
+        path = on_side(path, angle, self.side)
         length = float(step @ step)
         noise = 0.0 if self.chord_variance == 0.0 else (
             math.inf if length == 0.0 else self.chord_variance / length)
@@ -681,7 +708,7 @@ class Track:
         last = self.settled
         if last is None:
             return Settled(path, noise, angle)
-        prior = wrap(last.heading + wrap(angle - last.chord))
+        prior = on_side(wrap(last.heading + wrap(angle - last.chord)), angle, self.side)
         spread = last.variance + 2.0 * self.chord_variance_angle() + TRANSPORT**2 * length
         gain = 1.0 if noise == 0.0 else spread / (spread + noise)  # 0 for an infinite noise
         heading = path if gain == 1.0 else wrap(prior + gain * wrap(path - prior))
@@ -852,7 +879,10 @@ def step_command(position: np.ndarray, heading: float, slope: np.ndarray, goal: 
     bend = max(-room, min(room, bend))
     course = wrap(line + bend)  # the direction to travel
     error = wrap(course - heading)
-    direction = 1.0 if math.cos(error) >= 0.0 else -1.0
+    # which way to travel: the nearer one for the heading, unless the heading is turned more
+    # than a right angle from the goal's; then the one that ends on the goal's (turning first)
+    ends = error if math.cos(wrap(goal_heading - heading)) >= 0.0 else wrap(course - goal_heading)
+    direction = 1.0 if math.cos(ends) >= 0.0 else -1.0
     if direction < 0.0:
         error = wrap(error + math.pi)
     distance = math.hypot(offset[0], offset[1]) * max(math.cos(error), 0.0)

@@ -353,6 +353,35 @@ class StreamingEDMD:
         psi = self._line if z is None else self._lift(self._check_measurement(z))
         return K[: self._dim] @ psi
 
+    def noise_gain(self, z: ArrayLike | None = None) -> float:
+        """The statistical leverage ``h = psi^T (X W X^T + ridge I)^+ psi`` of the lifted
+        sample a prediction starts from (`z` as in `predict`): how many readings' worth of
+        noise the fit carries into that prediction (not :meth:`Policy.leverage
+        <agents.policies.base.Policy.leverage>`, the share of a regressor outside the data's
+        span, which ``auto`` scales young scores by). With readings of noise variance ``s`` in the
+        measured block, a least-squares prediction ``K psi`` errs by ``s h`` from the fit
+        alone (forgetting counted as fewer pairs), where reusing the newest reading, as
+        ``persist`` does, errs by ``s``. Below 1 the data determine the prediction better
+        than one reading; far above it ``psi`` lies where the pairs barely reach (too few of
+        them, or a direction only their noise spans), and the fit's coefficients there are
+        the noise's. Pseudoinverse directions, as in the fit: below ``rcond`` they count as
+        absent.
+
+        Raises
+        ------
+        RuntimeError
+            Before ``delays + 2`` measurements have been observed.
+        """
+        self._fitted_K()
+        psi = self._line if z is None else self._lift(self._check_measurement(z))
+        if self._P is not None:  # online, recursing: P is that inverse
+            return float(psi @ self._P @ psi)
+        x, _ = self._weighted_pairs()
+        gram = x @ x.T
+        if self.ridge > 0.0:
+            gram = gram + self.ridge * np.eye(gram.shape[0])
+        return float(psi @ np.linalg.pinv(gram, rcond=self.rcond**2, hermitian=True) @ psi)
+
     # ------------------------------------------------------------------ internals
 
     def _check_measurement(self, z: ArrayLike) -> FloatArray:

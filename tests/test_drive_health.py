@@ -19,9 +19,12 @@ from agents.drive import (
     axial,
     goal_heading,
     middle_tangent,
+    on_side,
+    step_command,
     wrap,
 )
 from agents.follower import at_rod_end
+from agents.policies.base import Persist, Proposal
 from protocol.config import CORRECTION_SHARE, AgentSettings, RunConfig, estimator_options
 from protocol.messages import Control, Sensing, Snap
 from swarm.cli import main as swarm_main
@@ -81,6 +84,72 @@ def test_case_b_sideways_offsets_do_not_ratchet():
     assert summary["complete"] and not summary["formation_broken"]
     assert max(_worst(rows).values()) < 1.0
     assert summary["followers"]["3"]["mean_formation_error"] < 0.25
+
+
+def test_a_driving_edmds_cold_start_under_noise_is_no_worse_than_persists():
+    """EDMD-b's first fits under noise come from three or four pairs of readings that barely
+    differ (wavy, 5 followers, σ 0.05/0.03, seed 2): they set its bearing's coefficients to
+    the noise's (tens), and the column drove 2.24 m out at tick 5 where persist's is 1.10 m
+    out at worst. A driving follower now follows only a prediction the pairs determine
+    beyond one reading's noise (:meth:`agents.estimators.StreamingEDMD.noise_gain`), persist
+    standing in, counted, until they do."""
+    base = dict(surface="wavy", followers=5, ticks=10, motion="drive", noise_range=0.05,
+                noise_bearing=0.03, seed=2)
+    _, persist = run_local(RunConfig(**base, estimator="persist"))
+    summary, edmd = run_local(RunConfig(**base))
+    assert summary["estimator"] == "edmd" and summary["dictionary"] == "b"
+    assert sum(f["fallback_ticks"] for f in summary["followers"].values()) > 0
+    assert max(_worst(edmd).values()) <= max(_worst(persist).values()) + 1e-9
+
+
+class WildOnce(Persist):
+    """A plug-in that proposes what persist does, except at tick 6: a goal 2 m to the south
+    of it (in the local frame), as a diverging estimate might."""
+
+    name = "wild-once"
+
+    def __init__(self, settings=None):
+        super().__init__()
+
+    def propose(self, pre):
+        proposal = super().propose(pre)
+        if pre.tick != 6:
+            return proposal
+        return Proposal(np.asarray(proposal.offset) + [0.0, -2.0], proposal.prediction)
+
+
+def test_a_follower_sent_to_a_wild_goal_does_not_settle_reversed():
+    """A detour to a wild goal turned followers more than a right angle; the control law,
+    which only keeps the robot's axis on the line, then settled them reversed, their rods
+    pointing the other way: on wavy (3 followers, σ 0.01/0.005) followers 2 and 3 held 7.0
+    and 14.0 m (two and four rods' lengths) off for good. The goal heading now has the side
+    the rods point to, and a robot turned away from it turns round: the column stays within
+    the default tolerance throughout (0.13 m at worst)."""
+    summary, rows = run_local(RunConfig(
+        surface="wavy", followers=3, ticks=30, motion="drive", noise_range=0.01,
+        noise_bearing=0.005, estimator="tests.test_drive_health:WildOnce"))
+    assert not summary["formation_broken"]
+    assert max(r["formation_error"] for r in rows if r["agent"] and r["tick"] >= 15) < 0.2
+
+
+def test_a_path_s_tangent_takes_the_direction_that_has_the_rod_on_its_side():
+    """:func:`on_side`: a line's direction with the chord from the leader to the rod end on
+    the rods' side (left for +1); a heading already on it is kept as it is."""
+    assert on_side(0.1, math.pi / 2, 1) == 0.1
+    assert on_side(0.1, math.pi / 2, -1) == pytest.approx(0.1 - math.pi)
+    assert on_side(math.pi - 0.2, math.pi / 2, 1) == pytest.approx(-0.2)
+    assert on_side(0.3, 1.0, 0) == 0.3
+
+
+def test_a_robot_turned_away_from_its_goal_heading_turns_round_before_driving():
+    """Heading 2.8 rad from the goal heading, the goal ahead along it: the law drove there in
+    reverse, keeping the robot's axis on the line and so its reversed heading; it now turns
+    (at its limit) and does not drive while facing away."""
+    limits = Limits.from_settings(AgentSettings.from_config(RunConfig(motion="drive",
+                                                                      max_speed=1.0)))
+    v, omega, _ = step_command(np.zeros(2), 2.8, np.zeros(2), np.array([1.0, 0.0]), 0.0,
+                               0.01, 0.0, 0, limits)
+    assert v == 0.0 and omega == pytest.approx(-2.0)
 
 
 def test_case_c_no_spin_without_noise():

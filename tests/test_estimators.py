@@ -453,3 +453,51 @@ def test_online_forgetting_without_ridge_does_not_wind_up(options: dict) -> None
     assert recursive_steps > 50  # the recursion ran, and was stopped in time
     assert largest_p < 1e10
     assert not online.recursive
+
+
+@pytest.mark.parametrize("online", [False, True])
+@pytest.mark.parametrize("config", ["plain", "ridge", "window", "delays", "affine"])
+def test_noise_gain_is_the_fits_variance_over_one_readings(online: bool, config: str) -> None:
+    """``noise_gain`` is ``psi^T (X X^T + ridge I)^-1 psi`` from all the pairs at once, for the
+    newest sample and for a given ``z``; and it is what it stands for: with white noise of
+    variance s added to the pairs' outputs, the fit's prediction varies by ``s h``."""
+    options = CONFIGS[config]
+    data = linear_stream(40, seed=3)
+    est = StreamingEDMD(online=online, **options)
+    for z in data:
+        est.observe(z)
+    delays, tail = options.get("delays", 0), [1.0] if options.get("affine") else []
+    lifted = np.hstack([data[delays - k: len(data) - k] for k in range(delays + 1)]
+                       + [np.ones((len(data) - delays, 1))] * len(tail))
+    window = options.get("window")
+    x = lifted[:-1][-window:] if window else lifted[:-1]
+    gram = x.T @ x + options.get("ridge", 0.0) * np.eye(x.shape[1])
+    given = np.r_[[0.3, -0.2], lifted[-1][:2 * delays], tail]  # z pushed into the delay line
+    for psi, z in ((lifted[-1], None), (given, [0.3, -0.2])):
+        expected = psi @ np.linalg.solve(gram, psi)
+        assert est.noise_gain(z) == pytest.approx(expected, rel=1e-9)
+    if config == "plain":  # the variance it names, by Monte Carlo over the outputs' noise
+        rng = np.random.default_rng(5)
+        y = lifted[1:]
+        predictions = [((y + 0.1 * rng.normal(size=y.shape)).T
+                        @ np.linalg.pinv(x.T)) @ lifted[-1] for _ in range(4000)]
+        variance = np.var(np.array(predictions), axis=0).mean()
+        assert variance / 0.01 == pytest.approx(est.noise_gain(), rel=0.1)
+
+
+def test_noise_gain_is_large_where_only_the_noise_spans_the_pairs() -> None:
+    """Pairs spread along one direction, the other spanned only by noise of 1e-3: a sample
+    like theirs has leverage below 1, one a noise step aside far above it."""
+    rng = np.random.default_rng(0)
+    est = StreamingEDMD()
+    for t in range(6):
+        est.observe([1.0 + 0.2 * t, 1e-3 * rng.normal()])
+    assert est.noise_gain([1.5, 0.0]) < 1.0
+    assert est.noise_gain([1.5, 0.01]) > 10.0
+
+
+def test_noise_gain_before_a_fit_says_what_is_needed() -> None:
+    est = StreamingEDMD()
+    est.observe([1.0, 2.0])
+    with pytest.raises(RuntimeError, match="needs 2 observed samples"):
+        est.noise_gain()

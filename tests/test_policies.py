@@ -557,3 +557,30 @@ def test_a_plugin_that_proposes_nan_is_replaced_by_persist_not_followed():
     fine, wild = (policy.propose(Sensing(tick=t, r=1.5, theta=0.0)) for t in (1, 2))
     assert not fine.fallback and fine.followed == "nan-proposer"
     assert wild.fallback and wild.followed == "persist" and np.allclose(wild.offset, [0.5, 0.0])
+
+
+def test_a_driving_edmd_under_noise_follows_only_what_its_pairs_determine():
+    """The standalone EDMD a driving follower runs with declared noise (``determined``):
+    while its fit would carry more noise into the prediction than one reading holds
+    (leverage > 1: two pairs of readings that barely differ, then a reading a noise step
+    aside), persist stands in, flagged; once the pairs span that step, the fit is followed.
+    Teleporting or noise-free, the paper's Algorithm 1 is followed as published."""
+    def settings(**options):
+        return AgentSettings.from_config(RunConfig(**options))
+    noisy = dict(noise_range=0.02, noise_bearing=0.01)
+    assert make_policy(settings(motion="drive", **noisy)).policy.determined
+    assert not make_policy(settings(motion="drive")).policy.determined
+    assert not make_policy(settings(**noisy)).policy.determined
+    policy = make_policy(settings(motion="drive", **noisy))
+    for t, (r, theta) in enumerate([(3.50, 1.50), (3.51, 1.501), (3.50, 1.502), (3.52, 1.40)]):
+        policy.learn(Sensing(tick=t, r=r, theta=theta, rod=(0.0, 0.0)), np.zeros(2))
+    assert policy.policy.edmd.noise_gain() > 1.0
+    proposal = policy.propose(Sensing(tick=4, r=3.5, theta=1.4))
+    assert proposal.fallback and proposal.followed == "persist"
+    for t in range(5, 12):  # the bearing swings on: the pairs span it
+        theta = 1.4 + 0.1 * (-1) ** t
+        policy.learn(Sensing(tick=t, r=3.5 + 0.05 * (t % 3), theta=theta, rod=(0.0, 0.0)),
+                     np.zeros(2))
+    assert policy.policy.edmd.noise_gain() < 1.0
+    proposal = policy.propose(Sensing(tick=12, r=3.5, theta=1.5))
+    assert not proposal.fallback and proposal.followed == "edmd-b"

@@ -225,6 +225,7 @@ def make_policy(settings: AgentSettings) -> Policy:
     elif name == "edmd":
         policy = paper_edmd(
             settings.dictionary, settings.comm_period, settings.velocity,
+            determined=settings.drives and reading_variance(settings) > 0,
             online=settings.online, delays=settings.delays, affine=settings.affine,
             forget=settings.forget, window=settings.window or None, ridge=settings.ridge,
         )

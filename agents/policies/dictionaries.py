@@ -222,15 +222,26 @@ class EDMDPolicy(Policy):
         What is lifted and how a prediction becomes a move.
     name : str, optional
         Defaults to ``edmd-<dictionary>`` plus the non-default estimator options.
+    determined : bool, default False
+        Propose only a prediction the data determine beyond the readings' noise: one whose
+        leverage (:meth:`StreamingEDMD.noise_gain`) is at most 1, so the fit carries less of
+        the noise into it than the newest reading holds. Otherwise :class:`NotFitted` is
+        raised, and :class:`agents.policies.base.FallbackToPersist` has ``persist`` (the
+        newest reading reused) stand in, counted as a fallback tick. Without noise leverage
+        costs nothing, so it is off (the paper's Algorithm 1 as published); a driving
+        follower with declared noise turns it on (:func:`agents.policies.make_policy`,
+        design §4).
     **estimator
         Keyword arguments of :class:`StreamingEDMD` (online, delays, affine, forget, window,
         ridge).
     """
 
-    def __init__(self, dictionary: Dictionary, name: str | None = None, **estimator) -> None:
+    def __init__(self, dictionary: Dictionary, name: str | None = None,
+                 determined: bool = False, **estimator) -> None:
         self.dictionary = dictionary
         self.edmd = StreamingEDMD(**estimator)
         self.name = name or edmd_name(dictionary, **estimator)
+        self.determined = determined
 
     def _predict(self) -> np.ndarray:
         query = self.dictionary.query()
@@ -244,6 +255,9 @@ class EDMDPolicy(Policy):
 
     def propose(self, pre: Sensing) -> Proposal:
         z = self._predict()
+        if self.determined and (gain := self.edmd.noise_gain(self.dictionary.query())) > 1:
+            raise NotFitted(f"leverage {gain:.3g} > 1: the pairs do not determine the "
+                            "prediction beyond the readings' noise")
         return Proposal(self.dictionary.offset(pre, z), tuple(float(x) for x in z))
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
@@ -265,7 +279,9 @@ class EDMDPolicy(Policy):
 
 
 def paper_edmd(letter: str, comm_period: float, velocity: str = "lagged",
-               **estimator) -> EDMDPolicy:
-    """EDMD on dictionary ``letter`` named as before the split (``edmd-b``, ``edmd-c-lagged``)."""
+               determined: bool = False, **estimator) -> EDMDPolicy:
+    """EDMD on dictionary ``letter`` named as before the split (``edmd-b``, ``edmd-c-lagged``);
+    ``determined`` as :class:`EDMDPolicy`'s."""
     dictionary = make_dictionary(letter, comm_period, velocity, **estimator)
-    return EDMDPolicy(dictionary, name=f"edmd-{dictionary.name}", **estimator)
+    return EDMDPolicy(dictionary, name=f"edmd-{dictionary.name}", determined=determined,
+                      **estimator)
