@@ -25,6 +25,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from protocol.config import RunConfig  # noqa: E402
+from swarm.drive_study import WORST_TICK, drive_bound  # noqa: E402
 from swarm.local import run_local  # noqa: E402
 
 SURFACES = ["wavy", "elliptic", "hyperbolic", "gaussian-hill", "ripple",
@@ -67,13 +68,15 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=20)
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args()
+    if args.runs < 1 or args.workers < 1:
+        parser.error("--runs and --workers must be at least 1")
     cases = draw(args.seed, args.runs)
     missed = 0
     print("| case | last, drive | bound | worst, drive | both bounds |\n|---|---|---|---|---|")
     with ProcessPoolExecutor(args.workers) as pool:
         for case, (last, teleport, worst) in zip(cases, pool.map(measure, cases)):
-            bound = 2.0 * teleport + 0.05
-            held = last <= bound and worst <= 1.0
+            bound = drive_bound(teleport)
+            held = last <= bound and worst <= WORST_TICK
             missed += not held
             print(f"| {case['surface']}, {case['followers']} followers, σ "
                   f"{case['noise_range']}/{case['noise_bearing']}, {case['estimator']}, seed "

@@ -329,10 +329,20 @@ def _steps_table(rows: list[dict], spec: DriveStudySpec, block: str, title: str,
     return lines
 
 
+WORST_TICK = 1.0
+"""Issue #30's bound on the worst tick of any follower of a driving column (m)."""
+
+
+def drive_bound(teleport: float) -> float:
+    """Issue #30's bound on a driving column's last follower's mean formation error: twice
+    the same column's teleporting, ``teleport``, plus 0.05 m."""
+    return 2 * teleport + 0.05
+
+
 def within_bound(drive: float, teleport: float) -> bool:
-    """Issue #30's bound on a driving column's last follower: its mean formation error
-    ``drive`` is at most twice the same column's teleporting, ``teleport``, plus 0.05 m."""
-    return drive <= 2 * teleport + 0.05
+    """Whether a driving column's last follower's mean formation error ``drive`` is within
+    :func:`drive_bound` of the teleporting column's ``teleport``."""
+    return drive <= drive_bound(teleport)
 
 
 def _noise_table(rows: list[dict], spec: DriveStudySpec) -> list[str]:

@@ -244,7 +244,10 @@ class EDMDPolicy(Policy):
         self.determined = determined
 
     def _predict(self) -> np.ndarray:
-        query = self.dictionary.query()
+        return self._predict_from(self.dictionary.query())
+
+    def _predict_from(self, query: np.ndarray | None) -> np.ndarray:
+        """The prediction from the dictionary's ``query`` (None: the newest sample)."""
         return self.edmd.predict() if query is None else self.edmd.predict(query)
 
     def _predict_or_none(self) -> np.ndarray | None:
@@ -254,10 +257,11 @@ class EDMDPolicy(Policy):
             return None
 
     def propose(self, pre: Sensing) -> Proposal:
-        z = self._predict()
-        if self.determined and (gain := self.edmd.noise_gain(self.dictionary.query())) > 1:
+        query = self.dictionary.query()
+        if self.determined and (gain := self.edmd.noise_gain(query)) > 1:
             raise NotFitted(f"leverage {gain:.3g} > 1: the pairs do not determine the "
                             "prediction beyond the readings' noise")
+        z = self._predict_from(query)
         return Proposal(self.dictionary.offset(pre, z), tuple(float(x) for x in z))
 
     def record(self, settled: Sensing, target: np.ndarray | None) -> tuple[float, ...]:
