@@ -24,7 +24,10 @@
    its own rod end) and from the ideal formation (global: issue #30's formation error). A
    driving follower's heading error turns its rod and moves every rod end behind it, so the
    global error grows down a driving column faster than the local one (docs/drive.md,
-   *Stop 47*).
+   *Stop 47*). The global error split in two, rms over the ticks: **along the travel** (the
+   ideal heading's direction, across the ideal rod) and **along the rod** — a heading error
+   turns a rod and so moves every rod end behind it along the travel, while a follower's
+   landing errors move it both ways (*Stop 49*).
 
 Figures depend on nothing but the configuration; nothing here is asserted.
 """
@@ -144,27 +147,40 @@ def rule_errors(name: str, followers: int, ticks: int, spacing: float,
     return {"chord": np.array(chord), "arc rule": np.array(arc)}
 
 
-def local_and_global(config: RunConfig, rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+def local_and_global(config: RunConfig, rows: list[dict]
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per follower of the run whose ticks are ``rows``, the mean over the ticks of its
     distance from the rod end of its predecessor's actual pose, and of its formation error
-    (the ideal formation's distance; ticks without one left out)."""
+    (the ideal formation's distance; ticks without one left out); and the rms over the ticks
+    of its offset from its ideal position along the travel and along the rod (the offset's
+    components across and along the chord from its ideal predecessor to it)."""
     surface = make_surface(config.surface)
     pose = _poses(rows)
     ticks = sorted({t for t, _ in pose})
+    ideal = geometry.ideal_formation(surface, config.leader_start, config.followers,
+                                     config.spacing, config.comm_period, max(ticks) + 1,
+                                     config.side_sign)
     formation_errors = {(r["tick"], r["agent"]): r["formation_error"] for r in rows
                         if r["agent"] > 0}  # the leader's row has positions only
-    local, formation = [], []
+    local, formation, travel, rod = [], [], [], []
     for k in range(1, config.followers + 1):
-        near, far = [], []
+        near, far, parts = [], [], []
         for j in ticks:
             end, _ = geometry.rod_end(surface, *pose[j, k - 1], config.spacing,
                                       config.side_sign)
             near.append(float(np.hypot(*(pose[j, k][0] - end))))
             if formation_errors[j, k] is not None:
                 far.append(formation_errors[j, k])
+                chord = ideal[k, j, :2] - ideal[k - 1, j, :2]
+                chord = chord / np.hypot(*chord)
+                offset = pose[j, k][0] - ideal[k, j, :2]
+                parts.append((chord[0] * offset[1] - chord[1] * offset[0], chord @ offset))
         local.append(np.mean(near))
         formation.append(np.mean(far))
-    return np.array(local), np.array(formation)
+        travel_rod = np.sqrt(np.mean(np.square(parts), axis=0))
+        travel.append(travel_rod[0])
+        rod.append(travel_rod[1])
+    return np.array(local), np.array(formation), np.array(travel), np.array(rod)
 
 
 def main() -> None:
@@ -200,12 +216,12 @@ def main() -> None:
                                config.comm_period).items():
         print(f"| {rule} | {np.abs(e).mean():.4f} | {np.abs(e).max():.4f} |")
     print(f"\nlocal against global, mean over the ticks (m), followers 1-{args.followers}")
-    print("| motion | local | global |\n|---|---|---|")
+    print("| motion | local | global | global along the travel (rms) | along the rod (rms) |"
+          "\n|---|---|---|---|---|")
     teleport = dataclasses.replace(config, motion="teleport")
     for motion, ticks in (("drive", rows), ("teleport", run_local(teleport)[1])):
-        local, formation = local_and_global(config, ticks)
-        print(f"| {motion} | {' '.join(f'{x:.3f}' for x in local)} | "
-              f"{' '.join(f'{x:.3f}' for x in formation)} |")
+        print(f"| {motion} | " + " | ".join(" ".join(f"{x:.3f}" for x in part)
+                                            for part in local_and_global(config, ticks)) + " |")
 
 
 if __name__ == "__main__":
