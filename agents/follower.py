@@ -157,7 +157,7 @@ def _replay_track(track: Track, entries: list[Entry]) -> None:
 
 
 def _join(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Policy, last: int,
-          state_dir: str | Path | None, again: bool, track: Track
+          state_dir: str | Path | None, again: bool, track: Track | None
           ) -> tuple[StateLog | None, Policy, int, int, AgentSettings]:
     """Join the run, or join it ``again`` after :class:`agents.link.Rejoin`; return the state
     log (None without a state dir), the policy, the last tick it is through, the last tick
@@ -197,8 +197,9 @@ def _join(link: AgentLink, settings: AgentSettings, agent_id: int, policy: Polic
         state.append(kept[-1])
         last = through
     replay(policy, kept)
-    track.reset()
-    _replay_track(track, kept)
+    if track is not None:
+        track.reset()
+        _replay_track(track, kept)
     if entries:
         log.info("follower %d: restored %d ticks of history from %s", agent_id, len(kept),
                  state.path)
@@ -219,7 +220,7 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
     if not 1 <= agent_id <= settings.followers:
         raise ValueError(f"--id must be in 1..{settings.followers} for this run, got {agent_id}")
     policy = make_policy(settings)
-    track = Track.from_settings(settings)
+    track = Track.from_settings(settings) if settings.drives else None  # a teleport's is unused
     link = AgentLink.for_agent(session, settings, agent_id)
     state, last, again = None, -1, False
     try:
@@ -237,13 +238,15 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
                         raise AgentAbort(f"tick {tick} is past this run's {settings.ticks} ticks")
                     for _ in range(skips):
                         policy.skip()
-                        track.skip()
+                        if track is not None:
+                            track.skip()
                     last = tick - 1
                     try:
                         outcome = follower_tick(link, policy, settings, tick, limits, track)
                     except MarkedMissed:  # the tick passed without it: bridged, as replay does
                         policy.skip()
-                        track.skip()
+                        if track is not None:
+                            track.skip()
                         entry = Entry(tick=tick, skips=skips, settled=None, target=None)
                         outcome = None
                     else:

@@ -758,7 +758,7 @@ def dump_config(config: RunConfig, path: str | os.PathLike[str]) -> None:
     write_atomic(Path(path), "\n".join(lines) + "\n")
 
 
-def _canonical(body: dict) -> str:
+def canonical_json(body: dict) -> str:
     """``body``'s canonical JSON: sorted keys, no spaces, no NaN or infinity."""
     return json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
 
@@ -770,7 +770,7 @@ def _digest(canonical: str) -> str:
 def json_checksum(body: dict) -> str:
     """SHA-256 (hex) of ``body``'s canonical JSON (sorted keys, no spaces): the checksum of
     every state file (the world's checkpoint, a follower's replay log lines)."""
-    return _digest(_canonical(body))
+    return _digest(canonical_json(body))
 
 
 def checked_text(body: dict, key: str) -> str:
@@ -779,8 +779,14 @@ def checked_text(body: dict, key: str) -> str:
     log). ``key`` must not be one of ``body``'s."""
     if key in body:
         raise ValueError(f"the checksum's key {key!r} is already in the body")
-    canonical = _canonical(body)
-    return f'{canonical[:-1]}{"," if body else ""}{json.dumps(key)}:"{_digest(canonical)}"}}'
+    return checked_canonical(canonical_json(body), key)
+
+
+def checked_canonical(canonical: str, key: str) -> str:
+    """:func:`checked_text` of the map whose canonical JSON is ``canonical`` (for a writer that
+    composes it itself, on a hot path; ``key`` not among its keys)."""
+    empty = canonical == "{}"
+    return f'{canonical[:-1]}{"" if empty else ","}{json.dumps(key)}:"{_digest(canonical)}"}}'
 
 
 def checked_json(text: str | bytes, key: str) -> dict:

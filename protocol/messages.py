@@ -604,9 +604,10 @@ def error_payload(tick: int, problem: str, code: str = "bad-request") -> bytes:
     return encode(ErrorReply(tick=tick, error=safe_text(problem), code=code))
 
 
-def to_body(msg: Message) -> dict[str, Any]:
-    """``msg`` as the plain map the codec sends (JSON-ready: lists, floats, str, bool, None)."""
-    return msgpack.unpackb(encode(msg), raw=False)
+def to_body(msg: Message, *, check: bool = True) -> dict[str, Any]:
+    """``msg`` as the plain map the codec sends (JSON-ready: lists, floats, str, bool, None);
+    ``check=False`` as for :func:`encode` (a message already decoded with full validation)."""
+    return msgpack.unpackb(encode(msg, check=check), raw=False)
 
 
 def from_body(body: Any, expected: type[Message]) -> Message:

@@ -40,6 +40,30 @@ def test_a_move_adds_its_noise_and_odometry_reads_it_back():
     assert np.abs(f.error[:2]).max() < 1e-6
 
 
+def test_the_compiled_update_is_the_kalman_update_in_joseph_form():
+    """``floor._joseph`` (the written-out update) against the textbook matrices: gain
+    ``K = P Hᵀ S⁻¹``, error ``e + K (y − H e)``, covariance ``(I − K H) P (I − K H)ᵀ + K R Kᵀ``,
+    for readings of s and of w, on random covariances (seed printed)."""
+    seed = int(np.random.SeedSequence().entropy % 2**32)
+    print(f"seed {seed}")
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        a, b = rng.normal(size=(4, 4)), rng.normal(size=(2, 2))
+        p, r = a @ a.T, b @ b.T * 0.1
+        e, y = rng.normal(size=4), rng.normal(size=2)
+        start = int(rng.integers(0, 2)) * 2
+        h = np.zeros((2, 4))
+        h[0, start], h[1, start + 1] = 1.0, 1.0
+        gain = p @ h.T @ np.linalg.inv(h @ p @ h.T + r)
+        keep = np.eye(4) - gain @ h
+        f = floor.FloorFilter()
+        f.covariance, f.error = p.copy(), e.copy()
+        f._update(slice(start, start + 2), y, r)
+        assert np.allclose(f.error, e + gain @ (y - h @ e), rtol=1e-9, atol=1e-12)
+        assert np.allclose(f.covariance, keep @ p @ keep.T + gain @ r @ gain.T,
+                           rtol=1e-8, atol=1e-12)
+
+
 def test_without_noise_the_floor_is_exactly_zero():
     summary, rows = run_local(RunConfig(surface="wavy", estimator="persist", followers=2))
     assert all(r["floor_range"] == 0.0 for r in rows if r["agent"] > 0)

@@ -2,6 +2,7 @@
 noise keyed by the world's count, and the rod end read only by looking, every look counted."""
 from __future__ import annotations
 
+import concurrent.futures
 import math
 
 import numpy as np
@@ -245,14 +246,28 @@ def test_a_redone_tick_that_acts_otherwise_is_refused():
 
 
 def test_a_noise_block_is_numpys_draw_of_its_key_seeded_faster():
-    """The world seeds a block from its key's 32-bit words (``world.noise._words``) instead of
-    handing numpy the list: the same draws, whatever size the ints (a seed up to 2**63 - 1)."""
+    """The world hashes a block's key itself (``SeedSequence``'s algorithm, compiled) and sets
+    a kept generator's state by ``PCG64``'s seeding rule instead of handing numpy the list: the
+    same draws, whatever the key's length and the size of its ints (a seed up to 2**63 - 1)."""
     from world.noise import _block, _words
     keys = [(0, 0, 0), (1, 2, 3, 0, 1), (2**32 - 1, 5, 6), (2**32, 5, 6), (2**40 + 7, 0, 0, 0, 1),
             (2**63 - 1, 9, 149, 0, 40)]
+    seed = int(np.random.SeedSequence().entropy % 2**32)
+    print(f"seed {seed}")  # and random keys of 1 to 6 ints of every size
+    rng = np.random.default_rng(seed)
+    keys += [tuple(int(part) >> int(rng.integers(0, 63))
+                   for part in rng.integers(0, 2**63 - 1, size=rng.integers(1, 7)))
+             for _ in range(300)]
     for key in keys:
-        assert np.array_equal(_block.__wrapped__(key, 48),
-                              np.random.default_rng(list(key)).standard_normal(48)), key
+        for size in (48, 192):
+            assert np.array_equal(_block.__wrapped__(key, size),
+                                  np.random.default_rng(list(key)).standard_normal(size)), key
+    def draw(offset: int) -> bool:  # threads drawing at once share the one generator safely
+        return all(np.array_equal(_block.__wrapped__((offset, k, 1), 48),
+                                  np.random.default_rng([offset, k, 1]).standard_normal(48))
+                   for k in range(200))
+    with concurrent.futures.ThreadPoolExecutor(4) as pool:
+        assert all(pool.map(draw, range(8)))
     assert _words((2**32 + 3, 0)) == [3, 1, 0]
     with pytest.raises(ValueError, match="non-negative"):
         _words((1, -1))

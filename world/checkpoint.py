@@ -28,7 +28,14 @@ import secrets
 from pathlib import Path
 
 from protocol.cli import Refused
-from protocol.config import checked_json, checked_line, checked_lines, checked_text
+from protocol.config import (
+    canonical_json,
+    checked_canonical,
+    checked_json,
+    checked_line,
+    checked_lines,
+    checked_text,
+)
 from protocol.folder import AppendFile, write_atomic
 from protocol.messages import ACTIONS, ProtocolError, from_body, to_body
 from protocol.record import RESULT_FILES, SUMMARY_FILE
@@ -131,7 +138,19 @@ def _request_body(request) -> dict:
     message), as JSON."""
     if isinstance(request, tuple):
         return {"sense": request[1]}
-    return {"act": to_body(request)}
+    return {"act": to_body(request, check=False)}  # the world decoded it, validated
+
+
+def _entry_json(agent: int, tick: int, index: int, request) -> str:
+    """The canonical JSON of :meth:`Journal._body` (sorted keys, no spaces), composed directly:
+    a line per request the world answers, so a general encoder's cost counts (ints print as
+    JSON does; an action's own map still goes through the encoder)."""
+    if isinstance(request, tuple):
+        inner = '{"sense":true}' if request[1] else '{"sense":false}'
+    else:
+        inner = f'{{"act":{canonical_json(to_body(request, check=False))}}}'
+    return (f'{{"agent":{int(agent)},"index":{int(index)},"request":{inner},'
+            f'"tick":{int(tick)}}}')
 
 
 def _request(body):
@@ -176,7 +195,7 @@ class Journal:
         the answer leaves it)."""
         if self._file is None:  # the world is closing: nothing more is answered
             raise OSError(errno.EBADF, "the journal is closed", str(self.path))
-        line = checked_line(self._body(agent, tick, index, request))
+        line = checked_canonical(_entry_json(agent, tick, index, request), "sum") + "\n"
         self._file.append(line.encode("utf-8"))
         self._lines.append((tick, line))
 

@@ -39,6 +39,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 PRIOR_VARIANCE = 1e6
@@ -120,6 +121,7 @@ def interval(error: np.ndarray | None, variance: float) -> FloorEvent:
 DECISION = FloorEvent(DECIDE)
 
 
+@numba.njit(cache=True)
 def _inverse(a: float, b: float, d: float) -> tuple[float, float, float]:
     """The inverse of the symmetric ``[[a, b], [b, d]]`` (a reading's predicted covariance),
     as its entries ``(00, 01, 11)``.
@@ -143,6 +145,37 @@ def _inverse(a: float, b: float, d: float) -> tuple[float, float, float]:
         a, d = a + SINGULAR * (a + d), d + SINGULAR * (a + d)
         det = a * d - b * b
     return d / det, -b / det, a / det
+
+
+@numba.njit(cache=True)
+def _joseph(p: np.ndarray, e: np.ndarray, i: int, y0: float, y1: float, r00: float,
+            r01: float, r11: float) -> None:
+    """The Kalman update, in place, of error ``e`` (4,) and covariance ``p`` (4, 4) by a
+    reading of state entries ``i`` and ``i + 1`` (s or w) with error ``(y0, y1)`` and
+    covariance ``[[r00, r01], [r01, r11]]``, in Joseph form (the covariance stays symmetric
+    and positive). With ``H`` the two rows the reading picks, ``keep = I − K H`` is the
+    identity less ``K`` in those two columns, so ``keep P`` and ``(keep P) keepᵀ + K R Kᵀ`` are
+    rank-2 corrections, written out (numpy's 4 x 4 products cost most of a noisy run's floor);
+    compiled, a loop of scalar operations (no reassociation: the same floats as written)."""
+    j = i + 1
+    i00, i01, i11 = _inverse(p[i, i] + r00, p[i, j] + r01, p[j, j] + r11)
+    gain = np.empty((4, 2))
+    for r in range(4):
+        gain[r, 0] = p[r, i] * i00 + p[r, j] * i01
+        gain[r, 1] = p[r, i] * i01 + p[r, j] * i11
+    v0, v1 = y0 - e[i], y1 - e[j]
+    for r in range(4):
+        e[r] = e[r] + gain[r, 0] * v0 + gain[r, 1] * v1
+    kept = np.empty((4, 4))  # keep P
+    for r in range(4):
+        for c in range(4):
+            kept[r, c] = p[r, c] - gain[r, 0] * p[i, c] - gain[r, 1] * p[j, c]
+    for r in range(4):
+        n0 = gain[r, 0] * r00 + gain[r, 1] * r01  # K R
+        n1 = gain[r, 0] * r01 + gain[r, 1] * r11
+        for c in range(4):
+            p[r, c] = (kept[r, c] - kept[r, i] * gain[c, 0] - kept[r, j] * gain[c, 1]
+                       + n0 * gain[c, 0] + n1 * gain[c, 1])
 
 
 class FloorFilter:
@@ -199,26 +232,10 @@ class FloorFilter:
 
     def _update(self, part: slice, error: np.ndarray, covariance: np.ndarray) -> None:
         """A reading of the ``part`` of the state (s or w) with ``error`` and ``covariance``
-        (Joseph form: the covariance stays symmetric and positive), in floats: with ``H`` the
-        two rows ``part`` picks, ``keep = I − K H`` is the identity less ``K`` in those two
-        columns, so ``keep P`` and ``(keep P) keepᵀ`` are the rank-2 corrections written out
-        (numpy's 4 x 4 products cost most of a noisy run's floor)."""
-        i, j = part.start, part.start + 1
-        p = self.covariance.tolist()
-        r00, r01, r11 = (float(covariance[0, 0]) + JITTER, float(covariance[0, 1]),
-                         float(covariance[1, 1]) + JITTER)
-        i00, i01, i11 = _inverse(p[i][i] + r00, p[i][j] + r01, p[j][j] + r11)
-        gain = [(row[i] * i00 + row[j] * i01, row[i] * i01 + row[j] * i11) for row in p]
-        e = self.error.tolist()
-        v0, v1 = float(error[0]) - e[i], float(error[1]) - e[j]
-        self.error = np.array([e[r] + k0 * v0 + k1 * v1 for r, (k0, k1) in enumerate(gain)])
-        kept = [[p[r][c] - k0 * p[i][c] - k1 * p[j][c] for c in range(4)]
-                for r, (k0, k1) in enumerate(gain)]  # keep P
-        noise = [(k0 * r00 + k1 * r01, k0 * r01 + k1 * r11) for k0, k1 in gain]  # K R
-        self.covariance = np.array(
-            [[row[c] - row[i] * gain[c][0] - row[j] * gain[c][1]
-              + n0 * gain[c][0] + n1 * gain[c][1] for c in range(4)]
-             for row, (n0, n1) in zip(kept, noise)])
+        (:func:`_joseph`, in place)."""
+        _joseph(self.covariance, self.error, part.start, float(error[0]), float(error[1]),
+                float(covariance[0, 0]) + JITTER, float(covariance[0, 1]),
+                float(covariance[1, 1]) + JITTER)
 
     def _read_s(self, error: np.ndarray, covariance: np.ndarray) -> None:
         """:meth:`_update` of ``s`` while ``w``'s rows and columns are zero, in floats (the

@@ -23,7 +23,9 @@ most of a draw's cost) — blocks are remembered for the few ticks that still as
 from __future__ import annotations
 
 import functools
+import threading
 
+import numba
 import numpy as np
 
 # The leader reading's range and bearing, odometry, the move's actuation; then (added with the
@@ -116,13 +118,84 @@ def _check(channel: str, sigma: float, size: int) -> None:
 @functools.lru_cache(maxsize=8192)
 def _block(key: tuple[int, ...], size: int) -> np.ndarray:
     """``size`` standard normals of one key (read-only; remembered for a while): those of
-    ``numpy.random.default_rng(list(key))``, seeded from the key's words directly
-    (:func:`_words`), which skips most of numpy's coercion of a list (a block per reading
-    makes seeding the world's largest cost per request)."""
-    seeded = np.random.SeedSequence(np.array(_words(key), dtype=np.uint32))
-    block = np.random.Generator(np.random.PCG64(seeded)).standard_normal(size)
+    ``numpy.random.default_rng(list(key))``. numpy's own path (a ``SeedSequence`` hashing the
+    key, a fresh ``PCG64`` seeded from it) costs about 10 µs, most of it in Python-level
+    bookkeeping; a block per reading made it the world's largest cost per request. So the
+    key's words (:func:`_words`) are hashed by :func:`_seed_words` (``SeedSequence``'s
+    algorithm, compiled), the generator's state follows by ``PCG64``'s own seeding rule
+    (:func:`_pcg64_state`), and one kept generator draws from it: the same numbers
+    (``tests/test_sensing.py`` checks them against numpy's path) at about half the cost."""
+    state = _pcg64_state(*(int(w) for w in _seed_words(np.array(_words(key), dtype=np.uint32))))
+    with _GENERATOR_LOCK:
+        _GENERATOR.bit_generator.state = state
+        block = _GENERATOR.standard_normal(size)
     block.flags.writeable = False
     return block
+
+
+# one generator, re-seeded for every block; a lock, not one per thread: the world's requests are
+# answered on Zenoh's threads, whose Python thread state (and so any thread-local) lasts one call
+_GENERATOR = np.random.Generator(np.random.PCG64(0))
+_GENERATOR_LOCK = threading.Lock()
+
+# numpy's SeedSequence constants (numpy/random/bit_generator.pyx, after Melissa O'Neill's
+# seed_seq_fe): the hash of the entropy into a pool of 4 words, and of the pool into state
+_INIT_A, _MULT_A, _INIT_B, _MULT_B = 0x43B0D7E5, 0x931E8875, 0x8B51F9DD, 0x58F38DED
+_MIX_L, _MIX_R, _XSHIFT = 0xCA01F9DD, 0x4973F715, 16
+_PCG_MULTIPLIER = (2549297995355413924 << 64) + 4865540595714422341  # PCG's 128-bit LCG
+_M32, _M128 = 0xFFFFFFFF, (1 << 128) - 1
+
+
+@numba.njit(cache=True)
+def _seed_words(entropy: np.ndarray) -> np.ndarray:
+    """The 4 uint64 words ``SeedSequence(entropy).generate_state(4, np.uint64)`` gives for
+    ``entropy`` (uint32 words, no spawn key): every product taken modulo 2**32."""
+    m = np.uint64(_M32)
+    shift = np.uint64(_XSHIFT)
+    pool = np.zeros(4, np.uint64)
+    const = np.uint64(_INIT_A)
+
+    def hashmix(value, const):
+        value = (value ^ const) & m
+        const = (const * np.uint64(_MULT_A)) & m
+        value = (value * const) & m
+        return value ^ (value >> shift), const
+
+    def mix(x, y):
+        result = (np.uint64(_MIX_L) * x - np.uint64(_MIX_R) * y) & m
+        return result ^ (result >> shift)
+
+    count = entropy.shape[0]
+    for i in range(4):
+        pool[i], const = hashmix(np.uint64(entropy[i]) if i < count else np.uint64(0), const)
+    for source in range(4):
+        for target in range(4):
+            if source != target:
+                hashed, const = hashmix(pool[source], const)
+                pool[target] = mix(pool[target], hashed)
+    for source in range(4, count):
+        for target in range(4):
+            hashed, const = hashmix(np.uint64(entropy[source]), const)
+            pool[target] = mix(pool[target], hashed)
+    out = np.zeros(4, np.uint64)
+    const = np.uint64(_INIT_B)
+    for i in range(8):  # 8 uint32 words, read as 4 little-endian uint64
+        value = (pool[i % 4] ^ const) & m
+        const = (const * np.uint64(_MULT_B)) & m
+        value = (value * const) & m
+        value ^= value >> shift
+        out[i // 2] |= value << np.uint64(32 * (i % 2))
+    return out
+
+
+def _pcg64_state(w0: int, w1: int, w2: int, w3: int) -> dict:
+    """The state ``PCG64`` takes from a seed sequence's 4 words: the 128-bit seed
+    ``w0·2**64 + w1`` and stream ``w2·2**64 + w3``, set as PCG's ``srandom`` does (the
+    increment is the stream shifted left, odd; two LCG steps around adding the seed)."""
+    increment = (((w2 << 64 | w3) << 1) | 1) & _M128
+    state = ((increment + (w0 << 64 | w1)) * _PCG_MULTIPLIER + increment) & _M128
+    return {"bit_generator": "PCG64", "state": {"state": state, "inc": increment},
+            "has_uint32": 0, "uinteger": 0}
 
 
 def _words(key: tuple[int, ...]) -> list[int]:
