@@ -245,6 +245,29 @@ def test_a_redone_tick_that_acts_otherwise_is_refused():
     assert sim.is_settled(1, j)
 
 
+def test_a_process_forked_while_a_block_is_drawn_draws_its_own():
+    """The one generator's lock, held by another thread at the fork (a grid worker forked
+    from a busy parent), is a fresh one in the child: it draws, the same numbers."""
+    import os
+    import time
+
+    from world import noise
+    with noise._GENERATOR_LOCK:
+        pid = os.fork()
+        if pid == 0:  # the child: draw, say whether it matched, leave without cleanup
+            same = np.array_equal(noise._block.__wrapped__((5, 1, 2), 48),
+                                  np.random.default_rng([5, 1, 2]).standard_normal(48))
+            os._exit(0 if same else 3)
+    deadline = time.monotonic() + 30.0
+    while (done := os.waitpid(pid, os.WNOHANG))[0] == 0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    if done[0] == 0:
+        os.kill(pid, 9)
+        os.waitpid(pid, 0)
+        pytest.fail("the forked child hung on the generator's lock")
+    assert os.waitstatus_to_exitcode(done[1]) == 0
+
+
 def test_a_noise_block_is_numpys_draw_of_its_key_seeded_faster():
     """The world hashes a block's key itself (``SeedSequence``'s algorithm, compiled) and sets
     a kept generator's state by ``PCG64``'s seeding rule instead of handing numpy the list: the

@@ -178,6 +178,12 @@ def _joseph(p: np.ndarray, e: np.ndarray, i: int, y0: float, y1: float, r00: flo
                        + n0 * gain[c, 0] + n1 * gain[c, 1])
 
 
+def warm_up() -> None:
+    """Load (or, the first time, compile) the update's compiled kernels now, not at a first
+    reading."""
+    _joseph(np.eye(4), np.zeros(4), 0, 0.0, 0.0, 1.0, 0.0, 1.0)
+
+
 class FloorFilter:
     """The floor's Kalman filter for one follower, in error space (see the module's text).
 

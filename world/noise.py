@@ -23,6 +23,7 @@ most of a draw's cost) — blocks are remembered for the few ticks that still as
 from __future__ import annotations
 
 import functools
+import os
 import threading
 
 import numba
@@ -137,6 +138,19 @@ def _block(key: tuple[int, ...], size: int) -> np.ndarray:
 # answered on Zenoh's threads, whose Python thread state (and so any thread-local) lasts one call
 _GENERATOR = np.random.Generator(np.random.PCG64(0))
 _GENERATOR_LOCK = threading.Lock()
+
+
+def _fresh_lock() -> None:  # a child forked while another thread held the lock gets it free
+    global _GENERATOR_LOCK
+    _GENERATOR_LOCK = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_fresh_lock)
+
+
+def warm_up() -> None:
+    """Load (or, the first time, compile) the block's compiled hash now, not at a first draw."""
+    _seed_words(np.zeros(3, dtype=np.uint32))
 
 # numpy's SeedSequence constants (numpy/random/bit_generator.pyx, after Melissa O'Neill's
 # seed_seq_fe): the hash of the entropy into a pool of 4 words, and of the pool into state

@@ -34,7 +34,7 @@ import numpy as np
 
 from protocol.config import RunConfig
 from protocol.messages import ActResult, ActSensing, Control, Drive, Message, Move, Sensing, Snap
-from world import floor, geometry, motion
+from world import floor, geometry, motion, noise
 from world.noise import gaussian, gaussian_scalar
 from world.sensing import Sensors, TickSensing, Truth, as_pair
 from world.surfaces import Surface, surface_leader_start
@@ -207,6 +207,11 @@ class WorldSim:
                                               self.side)
         self.agents = [AgentState(pos=p.copy(), heading=h.copy())
                        for p, h in zip(positions, headings)]
+        # the noise's and the floor's compiled kernels, loaded now (compiled, the first time in
+        # a checkout: about a second) rather than in the run's first request, which in realtime
+        # has a deadline
+        noise.warm_up()
+        floor.warm_up()
         self.leader_velocity = start[2:].copy()
         self.leader_time = 0.0
         self._leader_at: dict[int, tuple[np.ndarray, float]] = {}  # (velocity, time) per tick
