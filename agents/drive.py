@@ -590,6 +590,11 @@ class Track:
                    settings.spacing, chord_variance(settings), move_variance(settings),
                    settings.side_sign)
 
+    @classmethod
+    def for_follower(cls, settings: AgentSettings) -> Track | None:
+        """A follower's track if it drives; None for a teleporting one, which never uses it."""
+        return cls.from_settings(settings) if settings.drives else None
+
     def chord_variance_angle(self) -> float:
         """The declared variance (rad²) of the chord's angle: the leader read at the rod's
         length across its line of sight, and the rod end from nearby."""

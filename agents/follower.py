@@ -220,7 +220,7 @@ def run_follower(session: zenoh.Session, settings: AgentSettings, agent_id: int,
     if not 1 <= agent_id <= settings.followers:
         raise ValueError(f"--id must be in 1..{settings.followers} for this run, got {agent_id}")
     policy = make_policy(settings)
-    track = Track.from_settings(settings) if settings.drives else None  # a teleport's is unused
+    track = Track.for_follower(settings)
     link = AgentLink.for_agent(session, settings, agent_id)
     state, last, again = None, -1, False
     try:

@@ -89,8 +89,7 @@ def _simulate(config: RunConfig, out_dir: str | Path | None,
     settings = AgentSettings.from_config(config)
     limits = Limits.from_settings(settings) if settings.drives else None
     policies = [policy_factory(estimator_settings(settings)) for _ in range(config.followers)]
-    tracks = [Track.from_settings(settings) if settings.drives else None
-              for _ in range(config.followers)]
+    tracks = [Track.for_follower(settings) for _ in range(config.followers)]
     links = [LocalLink(sim, 0)] + [link_factory(sim, k)
                                    for k in range(1, config.followers + 1)]
     recorder = RunRecorder(out_dir, config)

@@ -240,8 +240,10 @@ def test_the_request_journal_reads_back_what_the_world_answered_after_its_checkp
                 (1, last, 2, Snap(tick=last))]
     assert journal.read(2, last - 1) == expected
     from protocol.config import canonical_json  # a line is composed, not encoded: the same text
-    assert all(world_checkpoint._entry_json(*e) == canonical_json(journal._body(*e))
-               for e in [*expected, (1, last, 3, ("sense", True))])
+    assert all(world_checkpoint._entry_json(*e) == canonical_json(
+        {"agent": e[0], "tick": e[1], "index": e[2],
+         "request": world_checkpoint._request_body(e[3])})
+        for e in [*expected, (1, last, 3, ("sense", True))])
     assert world_checkpoint.attempts(expected)[(1, last)] == [e[3] for e in expected[1:]]
     journal.close()
     with open(path, "ab") as torn:

@@ -142,15 +142,22 @@ def _request_body(request) -> dict:
 
 
 def _entry_json(agent: int, tick: int, index: int, request) -> str:
-    """The canonical JSON of :meth:`Journal._body` (sorted keys, no spaces), composed directly:
-    a line per request the world answers, so a general encoder's cost counts (ints print as
-    JSON does; an action's own map still goes through the encoder)."""
+    """The canonical JSON (sorted keys, no spaces) of the journal entry ``{"agent", "tick",
+    "index", "request": _request_body(request)}``, composed directly: a line per request the
+    world answers, so a general encoder's cost counts (ints print as JSON does; an action's
+    own map still goes through the encoder)."""
     if isinstance(request, tuple):
         inner = '{"sense":true}' if request[1] else '{"sense":false}'
     else:
-        inner = f'{{"act":{canonical_json(to_body(request, check=False))}}}'
+        inner = canonical_json(_request_body(request))
     return (f'{{"agent":{int(agent)},"index":{int(index)},"request":{inner},'
             f'"tick":{int(tick)}}}')
+
+
+def _entry_line(agent: int, tick: int, index: int, request) -> str:
+    """One line of the journal: :func:`_entry_json` with its checksum (what
+    :func:`protocol.config.checked_lines` reads back)."""
+    return checked_canonical(_entry_json(agent, tick, index, request), "sum") + "\n"
 
 
 def _request(body):
@@ -174,13 +181,8 @@ class Journal:
 
     def open(self, kept=()) -> None:
         """Start the file afresh with ``kept`` (agent, tick, index, request) entries."""
-        self._lines = [(entry[1], checked_line(self._body(*entry))) for entry in kept]
+        self._lines = [(entry[1], _entry_line(*entry)) for entry in kept]
         self._rewrite()
-
-    @staticmethod
-    def _body(agent: int, tick: int, index: int, request) -> dict:
-        return {"agent": agent, "tick": tick, "index": index,
-                "request": _request_body(request)}
 
     def _rewrite(self) -> None:
         """Replace the file with the header and the kept lines; if that fails (a full disk),
@@ -195,7 +197,7 @@ class Journal:
         the answer leaves it)."""
         if self._file is None:  # the world is closing: nothing more is answered
             raise OSError(errno.EBADF, "the journal is closed", str(self.path))
-        line = checked_canonical(_entry_json(agent, tick, index, request), "sum") + "\n"
+        line = _entry_line(agent, tick, index, request)
         self._file.append(line.encode("utf-8"))
         self._lines.append((tick, line))
 

@@ -152,6 +152,7 @@ def warm_up() -> None:
     """Load (or, the first time, compile) the block's compiled hash now, not at a first draw."""
     _seed_words(np.zeros(3, dtype=np.uint32))
 
+
 # numpy's SeedSequence constants (numpy/random/bit_generator.pyx, after Melissa O'Neill's
 # seed_seq_fe): the hash of the entropy into a pool of 4 words, and of the pool into state
 _INIT_A, _MULT_A, _INIT_B, _MULT_B = 0x43B0D7E5, 0x931E8875, 0x8B51F9DD, 0x58F38DED
@@ -166,12 +167,10 @@ def _seed_words(entropy: np.ndarray) -> np.ndarray:
     ``entropy`` (uint32 words, no spawn key): every product taken modulo 2**32."""
     m = np.uint64(_M32)
     shift = np.uint64(_XSHIFT)
-    pool = np.zeros(4, np.uint64)
-    const = np.uint64(_INIT_A)
 
-    def hashmix(value, const):
+    def hashmix(value, const, multiplier):  # the value hashed, and the next constant
         value = (value ^ const) & m
-        const = (const * np.uint64(_MULT_A)) & m
+        const = (const * multiplier) & m
         value = (value * const) & m
         return value ^ (value >> shift), const
 
@@ -179,25 +178,23 @@ def _seed_words(entropy: np.ndarray) -> np.ndarray:
         result = (np.uint64(_MIX_L) * x - np.uint64(_MIX_R) * y) & m
         return result ^ (result >> shift)
 
-    count = entropy.shape[0]
+    mult_a, count = np.uint64(_MULT_A), entropy.shape[0]
+    pool, const = np.zeros(4, np.uint64), np.uint64(_INIT_A)
     for i in range(4):
-        pool[i], const = hashmix(np.uint64(entropy[i]) if i < count else np.uint64(0), const)
+        pool[i], const = hashmix(np.uint64(entropy[i]) if i < count else np.uint64(0), const,
+                                 mult_a)
     for source in range(4):
         for target in range(4):
             if source != target:
-                hashed, const = hashmix(pool[source], const)
+                hashed, const = hashmix(pool[source], const, mult_a)
                 pool[target] = mix(pool[target], hashed)
     for source in range(4, count):
         for target in range(4):
-            hashed, const = hashmix(np.uint64(entropy[source]), const)
+            hashed, const = hashmix(np.uint64(entropy[source]), const, mult_a)
             pool[target] = mix(pool[target], hashed)
-    out = np.zeros(4, np.uint64)
-    const = np.uint64(_INIT_B)
+    out, const = np.zeros(4, np.uint64), np.uint64(_INIT_B)
     for i in range(8):  # 8 uint32 words, read as 4 little-endian uint64
-        value = (pool[i % 4] ^ const) & m
-        const = (const * np.uint64(_MULT_B)) & m
-        value = (value * const) & m
-        value ^= value >> shift
+        value, const = hashmix(pool[i % 4], const, np.uint64(_MULT_B))
         out[i // 2] |= value << np.uint64(32 * (i % 2))
     return out
 
