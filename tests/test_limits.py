@@ -375,10 +375,16 @@ def attack(endpoint: str, run_id: str, password: str, rounds: int, stop: threadi
 ATTACK_ROUNDS = 10  # 30 queries and 40 samples, each payload twice
 
 
+def attack_counts() -> dict:
+    """What :func:`attack` tallies: queries answered (none should be), the world's refusals,
+    samples sent, and Zenoh's own errors for queries the world never answered."""
+    return {"answered": 0, "refusals": [], "samples": 0, "unanswered": []}
+
+
 def test_oversized_and_nested_payloads_leave_the_run_unchanged(tmp_path, caplog):
     caplog.set_level("WARNING")
     cfg = RunConfig(run_id="siege", surface="wavy", followers=2, ticks=30)
-    counts: dict = {"answered": 0, "refusals": [], "samples": 0, "unanswered": []}
+    counts = attack_counts()
     clean, attacked = run_under_attack(cfg, tmp_path, lambda endpoint, credentials, stop: attack(
         endpoint, cfg.run_id, credentials.passwords["follower-1"], ATTACK_ROUNDS, stop, counts))
     assert counts["answered"] == 0
