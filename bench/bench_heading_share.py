@@ -14,7 +14,8 @@ probe from here, for measuring only.
   with the filter's declared variance) into the heading its track settles with, as one more
   reading of it. ``S`` (mrad) is a fixed spread added to the reading's variance for what the
   estimate does not say (the rod's transport in the chart, the predecessor's own error against
-  the formation); ``judged`` instead weighs both ends by the mean squared error their tracks
+  the formation); ``declared`` adds the predecessor's settled goal's declared variance
+  instead; ``judged`` weighs both ends by the mean squared error their tracks
   judged of their path tangents against the lag-free one (``Track.errors``), from the third
   judged tick on. The leader's heading, where shared, is its exact one (variance 0): the world
   drives it exactly.
@@ -58,11 +59,12 @@ def _exact(followers: set[int]) -> None:
     sim.WorldSim._settle_driven = settle
 
 
-def _share(spread: float | None, leader: bool) -> None:
+def _share(spread: float | str | None, leader: bool) -> None:
     """Each driving follower fuses its predecessor's settled heading estimate into
     ``Track.fuse``'s result: a reading with the predecessor filter's declared variance plus
-    ``spread``² (rad), or, with ``spread`` None, both ends weighed by their tracks' judged
-    mean squared path-tangent error."""
+    ``spread``² (rad); with ``spread`` None, both ends weighed by their tracks' judged mean
+    squared path-tangent error; with ``"declared"``, the predecessor's settled goal's declared
+    variance added instead of a spread."""
     from agents import drive, follower
     from world import sim
 
@@ -76,6 +78,7 @@ def _share(spread: float | None, leader: bool) -> None:
     sim.WorldSim.__init__ = init
     headings: dict[tuple[int, int], tuple[float, float]] = {}  # (agent, tick): its estimate
     judged: dict[int, float] = {}  # agent: its track's judged mean squared tangent error
+    declared: dict[tuple[int, int], float] = {}  # (agent, tick): its settled goal's variance
     owner: dict[int, int] = {}  # id(track): agent
     now: dict[str, object] = {}  # the driving agent and tick, and its last heading filter
 
@@ -108,7 +111,12 @@ def _share(spread: float | None, leader: bool) -> None:
         shared = headings.get((agent - 1, now["at"][1]))
         if shared is None:
             return own
-        if spread is None:
+        if spread == "declared":  # the predecessor's settled goal's declared variance
+            theirs = 0.0 if agent == 1 else declared.get((agent - 1, now["at"][1]))
+            if theirs is None:
+                return own
+            reading, weight_own = shared[1] + theirs, own.variance
+        elif spread is None:
             theirs = 0.0 if agent == 1 else judged.get(agent - 1)
             mine = judged.get(agent)
             if theirs is None or mine is None:
@@ -123,6 +131,8 @@ def _share(spread: float | None, leader: bool) -> None:
     def record(self, settled):
         plain_record(self, settled)
         agent = owner.get(id(self))
+        if agent is not None and self.settled is not None:
+            declared[(agent, settled.tick)] = self.settled.variance
         if agent is not None and self.judged >= 3:
             judged[agent] = float(min(self.errors)) / self.judged
 
@@ -136,7 +146,8 @@ def install(variant: str) -> None:
         _exact({int(k) for k in rest.split("+")})
     elif kind == "share":
         value, _, leader = rest.partition("/")
-        _share(None if value == "judged" else float(value) / 1000.0, leader != "noleader")
+        _share(value if value == "declared" else None if value == "judged"
+               else float(value) / 1000.0, leader != "noleader")
     elif variant != "today":
         raise ValueError(f"unknown variant {variant!r}")
 
