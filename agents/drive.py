@@ -636,7 +636,8 @@ class Track:
                                      self.spacing), self._filtered(compass, step, advanced))
         if compass is not None and settled.rod is not None:
             chord = -relative(settled)  # from the leader to the rod end
-            self.settled = self.heading(compass, step, chord, previous, both)
+            self.settled = self.heading(compass, step, chord, previous, both,
+                                        settled.shared_heading)
         if self.path is not None:
             self._judge(step, previous, both)
             self.path.state = advanced
@@ -691,18 +692,39 @@ class Track:
 
     def heading(self, compass: float, step: np.ndarray, chord: np.ndarray,
                 previous: tuple[np.ndarray, ...],
-                both: tuple[float, tuple[float, float]] | None = None) -> Settled:
+                both: tuple[float, tuple[float, float]] | None = None,
+                told: tuple[float, float] | None = None) -> Settled:
         """The heading to settle with at the end of ``step`` (from the last rod end), with
         ``chord`` the direction from the leader to it: the path's tangent (:meth:`tangent`;
         ``both`` as there) fused with the heading it settled with last time turned as the
-        chord turned since (:class:`Settled`)."""
-        return self.fuse(*self.tangent(compass, step, previous, both), step, chord)
+        chord turned since (:class:`Settled`), and with what its leader ``told`` of its own
+        (:meth:`fuse`)."""
+        return self.fuse(*self.tangent(compass, step, previous, both), step, chord, told)
 
     def fuse(self, path: float, variance: float | None, step: np.ndarray,
-             chord: np.ndarray) -> Settled:
+             chord: np.ndarray, told: tuple[float, float] | None = None) -> Settled:
         """:meth:`heading` from the path's tangent ``path`` at the end of ``step`` and its
         ``variance`` (:meth:`tangent`, which a caller asking for one goal many times works out
-        once; None: the fit's, the chord's declared variance over the step's squared length)."""
+        once; None: the fit's, the chord's declared variance over the step's squared length),
+        then, under noise, with the heading its leader ``told`` it settled with (its estimate
+        and that estimate's variance as a reading of the heading the formation asks of it,
+        relayed by the world: :func:`told_heading`), one more reading of the same heading
+        weighed by the two variances. In formation a follower's heading is its leader's
+        carried along the rod (design §3); the leader knows its own far better than the
+        follower can infer it from its path, and its declared variance holds what it may miss
+        of the formation's (docs/drive.md, *Stop 51*)."""
+        own = self._fused(path, variance, step, chord)
+        if told is None or self.chord_variance == 0.0:
+            return own
+        total = own.variance + told[1]
+        gain = 0.0 if total == 0.0 else own.variance / total
+        heading = wrap(own.heading + gain * wrap(told[0] - own.heading))
+        return Settled(on_side(heading, own.chord, self.side), (1.0 - gain) * own.variance,
+                       own.chord)
+
+    def _fused(self, path: float, variance: float | None, step: np.ndarray,
+               chord: np.ndarray) -> Settled:
+        """:meth:`fuse` before the leader's told heading: the path with the prior."""
         angle = math.atan2(chord[1], chord[0])
         path = on_side(path, angle, self.side)
         length = float(step @ step)
@@ -1019,7 +1041,9 @@ class Driven:
     where it settled (its best estimate, after every reading) and that estimate's variance
     (both coordinates together); ``leader`` and ``leader_variance`` the same of the leader,
     from its ``pre`` reading and every step's (it stands still through the follower's tick);
-    ``limits`` the follower's, which declare the settled readings' variance."""
+    ``limits`` the follower's, which declare the settled readings' variance; ``told`` what it
+    tells its successor of its heading as it settles (:func:`told_heading`; None without a
+    track or noise)."""
 
     moved: Sensing
     travelled: np.ndarray
@@ -1028,6 +1052,7 @@ class Driven:
     leader: np.ndarray | None = None
     leader_variance: float = 0.0
     limits: Limits | None = None
+    told: tuple[float, float] | None = None
 
     def settled_leader(self, reading: np.ndarray) -> np.ndarray:
         """The leader's offset from where the follower settled (shape (2,)) from every look of
@@ -1072,6 +1097,8 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
     # the path's tangent and its variance per goal (Track.tangent): the move phase keeps one
     paths: dict[bytes, tuple[float, float | None]] = {}
 
+    goals: list[Settled] = []  # the last goal heading worked out, with its variance
+
     def heading_at(point: np.ndarray) -> float:
         step = point - landed
         path = paths.get(key := step.tobytes())
@@ -1081,7 +1108,8 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
                                  if track is None else track.tangent(pre.compass, step, previous))
         if track is None:
             return path[0]
-        return track.fuse(*path, step, point - leader.estimate()[0]).heading
+        goals[:] = [track.fuse(*path, step, point - leader.estimate()[0], pre.shared_heading)]
+        return goals[0].heading
 
     moved, travelled = pre, np.zeros(2)
     reserve = settings.control_steps + settings.snap_steps // 2  # the move phase's end
@@ -1108,4 +1136,15 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
     seen, variance = leader.seen_from(position)
     residual, residual_variance = (rod.seen_from(position) if moved.rod is not None
                                    and rod.points else (None, 0.0))
-    return Driven(moved, travelled, residual, residual_variance, seen, variance, limits)
+    told = (told_heading(filtered, goals[0]) if track is not None and goals
+            and track.chord_variance > 0.0 else None)
+    return Driven(moved, travelled, residual, residual_variance, seen, variance, limits, told)
+
+
+def told_heading(filtered: HeadingFilter, goal: Settled) -> tuple[float, float]:
+    """What a driving follower tells its successor of its heading as it settles (its
+    :class:`protocol.messages.Snap`): its heading filter's estimate, and as its variance the
+    filter's plus the declared variance of the goal heading it steered to (what it may miss
+    of the heading the formation asks of it); its successor fuses the two as one more reading
+    of its own (:meth:`Track.fuse`)."""
+    return filtered.heading, filtered.variance + goal.variance

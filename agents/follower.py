@@ -130,7 +130,7 @@ def follower_tick(link: AgentLink, policy: Policy, settings: AgentSettings, tick
         offset, moved = np.zeros(2), pre
     else:
         moved = link.act(Move(tick=tick, offset=(float(offset[0]), float(offset[1])))).sensing
-    snapped = link.act(Snap(tick=tick))
+    snapped = link.act(Snap(tick=tick, heading=None if driven is None else driven.told))
     lost, settled = not snapped.moved, snapped.sensing
     if driven is not None and not lost:
         settled = at_rod_end(settled, driven)

@@ -247,6 +247,10 @@ class Sensing(Message):
     the ground under it read by its tilt sensor (``(∂F/∂x, ∂F/∂y)`` in the local frame), and
     in the reply to a :class:`Control` the displacement its odometry measured over that
     control step (xy, local frame). Every field passes through its noise channel (design §5).
+    ``shared_heading`` (``--motion drive``, optional on the wire): what the leader told of its
+    own heading when it settled at this tick (:class:`Snap`'s ``heading``), relayed as it was
+    sent: no reading of the world's, so no noise of the world's; None when the leader told
+    nothing (the column's leader, a teleporting run, a missed tick).
     """
 
     TYPE: ClassVar[str] = "sensing"
@@ -260,6 +264,7 @@ class Sensing(Message):
     compass: float | None = _kind("finite?", None, optional=True)
     slope: tuple[float, float] | None = _kind("vec2?", None, optional=True)
     odometry: tuple[float, float] | None = _kind("vec2?", None, optional=True)
+    shared_heading: tuple[float, float] | None = _kind("vec2?", None, optional=True)
 
 
 @dataclass(frozen=True)
@@ -285,9 +290,14 @@ class Snap(Request):
     """Query to ``world/act/<id>`` (followers): move onto the leader's rod end if it is visible
     and take the §3 heading; the reply is :class:`ActSensing` with the ``settled`` sensing.
     With ``--motion drive`` it ends the tick instead: the follower settles where its control
-    steps took it, with its own heading."""
+    steps took it, with its own heading; ``heading`` (optional on the wire) is then what it
+    tells its successor of that heading: ``(angle, variance)``, its own estimate (chart angle,
+    rad, local frame) and the variance (rad²) of that estimate as a reading of the heading the
+    formation asks of it, which the world relays to the successor with its readings of the
+    tick (``Sensing.shared_heading``, design §5)."""
 
     TYPE: ClassVar[str] = "snap"
+    heading: tuple[float, float] | None = _kind("vec2?", None, optional=True)
 
 
 @dataclass(frozen=True)

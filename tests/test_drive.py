@@ -12,11 +12,13 @@ import pytest
 from agents.drive import (
     HeadingFilter,
     Limits,
+    Track,
     chart_turn,
     goal_heading,
     metric_angle,
     slope_ahead,
     step_command,
+    wrap,
 )
 from agents.follower import follower_tick
 from agents.policies import make_policy
@@ -464,6 +466,81 @@ def test_a_driving_follower_has_one_odometer():
             assert np.abs(reading - summed).max() < 1e-12
             exact = (seen[k, j, "pos"] - seen[k, j - 1, "pos"]) / config.comm_period
             assert np.all(reading != exact)
+
+
+class ToldLink(LocalLink):
+    """Notes what a driving follower told of its heading with its :class:`Snap` and what its
+    own readings relayed of its leader's."""
+
+    def __init__(self, sim, agent, seen):
+        super().__init__(sim, agent)
+        self.seen = seen
+
+    def sense(self, tick, look=False):
+        reply = super().sense(tick, look)
+        self.seen[self.agent, tick, "pre"] = reply.shared_heading
+        return reply
+
+    def act(self, request):
+        reply = super().act(request)
+        if isinstance(request, Snap):
+            self.seen[self.agent, request.tick, "told"] = request.heading
+            self.seen[self.agent, request.tick, "settled"] = reply.shared_heading
+            self.seen[self.agent, request.tick, "true"] = self.sim.agents[self.agent].heading
+        return reply
+
+
+def test_a_driving_follower_hears_what_its_leader_told_of_its_heading():
+    """Each driving follower tells its heading as it settles (its filter's estimate, with a
+    variance: the robot's own belief, never the truth), and the world relays exactly that to
+    its successor with the tick's pre-move and settled readings; the column's leader, which
+    drives no filter, tells nothing. Without noise nothing is told (the runs stay exact)."""
+    config = RunConfig(motion="drive", surface="wavy", followers=3, ticks=8, seed=3, **NOISE)
+    seen: dict = {}
+    run_local(config, link_factory=lambda sim, k: ToldLink(sim, k, seen))
+    for j in range(config.ticks):
+        assert seen[1, j, "pre"] is None and seen[1, j, "settled"] is None
+        for k in (2, 3):
+            told = seen[k - 1, j, "told"]
+            assert told is not None and told[1] > 0.0
+            assert seen[k, j, "pre"] == told == seen[k, j, "settled"]
+            true = seen[k - 1, j, "true"]
+            assert told[0] != math.atan2(true[1], true[0])  # an estimate
+            assert abs(wrap(told[0] - math.atan2(true[1], true[0]))) < 0.1
+    seen.clear()
+    run_local(RunConfig(motion="drive", surface="wavy", followers=3, ticks=6),
+              link_factory=lambda sim, k: ToldLink(sim, k, seen))
+    assert all(v is None for key, v in seen.items() if key[2] != "true")
+
+
+def test_a_told_heading_is_refused_where_it_has_no_place():
+    """A teleporting follower takes its heading from its rod end: a Snap telling one is
+    refused, as is a told heading that is no angle or has a negative variance."""
+    config, surface = resolve_with_surface(RunConfig(surface="wavy", followers=1, ticks=4))
+    sim = WorldSim(config, surface)
+    sim.start_tick(0)
+    sim.drive(0, 0, 0.0)
+    sim.sense(1, 0, look=True)
+    with pytest.raises(RequestError, match="teleporting follower"):
+        sim.act(1, Snap(tick=0, heading=(0.1, 0.01)))
+    sim, _ = drive_world(surface="wavy", followers=1, ticks=4)
+    for told in ((4.0, 0.01), (0.1, -1.0)):
+        with pytest.raises(RequestError, match="told heading"):
+            sim.snap(1, 0, told)
+
+
+def test_a_told_heading_is_fused_by_the_two_variances():
+    """``Track.fuse`` weighs the leader's told heading against its own goal by their
+    variances; a noise-free track (nothing declared) leaves it out."""
+    noisy = Track(1.28, 0, 0.02, 0.01, 3.57, chord_variance=4e-4, side=1)
+    step, chord = np.array([1.28, 0.0]), np.array([0.0, 3.57])  # rods point left of east
+    own = noisy.fuse(0.1, 4e-4, step, chord)
+    assert own.heading == 0.1 and own.variance == 4e-4
+    both = noisy.fuse(0.1, 4e-4, step, chord, told=(0.0, 1.2e-3))
+    assert both.heading == pytest.approx(0.1 - 0.25 * 0.1)
+    assert both.variance == pytest.approx(0.75 * 4e-4)
+    exact = Track(1.28, 0, side=1)
+    assert exact.fuse(0.1, None, step, chord, told=(0.0, 1e-4)).heading == 0.1
 
 
 def test_without_noise_the_readings_are_exact_and_the_actuation_too():

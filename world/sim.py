@@ -121,6 +121,9 @@ class AgentState:
     tick: int = -1
     settled: dict[int, np.ndarray] = field(default_factory=dict)
     headings: dict[int, np.ndarray] = field(default_factory=dict)
+    # what a driving follower told of its heading as it settled at each tick (Snap's heading),
+    # relayed to its successor with that tick's readings
+    told: dict[int, tuple[float, float]] = field(default_factory=dict)
     records: dict[int, TickRecord] = field(default_factory=dict)
     # a driving follower's: its step odometry readings' errors summed over each settled tick
     odometry_errors: dict[int, np.ndarray] = field(default_factory=dict)
@@ -279,8 +282,8 @@ class WorldSim:
         if agent == 0:
             self.leader_velocity, self.leader_time = state.begun[2].copy(), state.begun[3]
             self._leader_at.pop(tick, None)
-        for record in (state.settled, state.headings, state.records, state.odometry_errors,
-                       state.sensed):
+        for record in (state.settled, state.headings, state.told, state.records,
+                       state.odometry_errors, state.sensed):
             record.pop(tick, None)
         state.reset_tick()
         state.tick = tick - 1
@@ -364,6 +367,7 @@ class WorldSim:
         for state in self.agents:  # keep only what velocities and baselines still need
             _drop_ticks_before(state.settled, j - 1)
             _drop_ticks_before(state.headings, j - 1)
+            _drop_ticks_before(state.told, j)
             _drop_ticks_before(state.odometry_errors, j - 1)
             _drop_ticks_before(state.records, j)  # j's: control_rows
             _drop_ticks_before(state.sensed, j)  # j's settled reading: the next persist
@@ -540,7 +544,8 @@ class WorldSim:
         """Follower ``agent``'s next reading in ``tick`` (:mod:`world.sensing`; counted, its
         noise keyed by the count): ``role`` is ``pre``, ``moved`` or ``settled``; ``look``:
         whether it looks for its rod end (counted in the required range unless settled). With
-        the interval's odometry, and the oracle velocity in the settled reading when sent."""
+        the interval's odometry, the oracle velocity in the settled reading when sent, and what
+        its leader told of its heading at ``tick`` (a driving leader's :class:`Snap`)."""
         cfg, state = self.config, self.agents[agent]
         oracle = None
         if role == "settled" and self._sends_oracle():
@@ -548,7 +553,9 @@ class WorldSim:
             oracle = oracle if np.all(np.isfinite(oracle)) else None
         fields = self.sensors.read(agent, tick, state.sensed[tick], self._truth(
             agent, tick, look, counted=role != "settled", oracle=oracle), role)
-        return Sensing(**fields, velocity=self._odometry(agent, tick))
+        # relayed, not sensed: what its leader told of its own heading as it settled at tick
+        told = self.agents[agent - 1].told.get(tick)
+        return Sensing(**fields, velocity=self._odometry(agent, tick), shared_heading=told)
 
     def _truth(self, agent: int, tick: int, look: bool, counted: bool = True,
                oracle: np.ndarray | None = None) -> Truth:
@@ -611,19 +618,31 @@ class WorldSim:
         events = state.sensed[tick].events
         events += [floor.move(noise, cfg.noise_move ** 2, odometered=True), floor.DECISION]
 
-    def snap(self, agent: int, tick: int) -> bool:
+    def snap(self, agent: int, tick: int,
+             heading: tuple[float, float] | None = None) -> bool:
         """Follower moves by the rod-end offset it read last (after its move, or before it
         in an initial tick), with actuation noise, if that look found the rod end, and takes
         the heading of design §3 at the true rod end; returns False (lost) if it did not.
 
         The landing point is ``end + reading error + actuation noise``: the same point as
         ``pos + sensed offset + actuation noise``, written so that with no noise it is the
-        rod end exactly."""
+        rod end exactly. A driving follower settles where it stands instead, and may tell
+        its ``heading`` (:class:`protocol.messages.Snap`), which its successor's readings of
+        the tick carry as it was told."""
         self._check_request(agent, tick)
         self._check_follower_turn(agent, tick)
         state, cfg = self.agents[agent], self.config
+        if heading is not None and not cfg.drives:
+            raise RequestError("a teleporting follower takes its heading from its rod end: "
+                               "it has none of its own to tell")
+        if heading is not None and not (abs(heading[0]) <= math.pi and heading[1] >= 0.0):
+            raise RequestError("a told heading must be an angle within [-pi, pi] and a "
+                               "variance >= 0")
         if cfg.drives:
-            return self._settle_driven(agent, tick)
+            settled = self._settle_driven(agent, tick)
+            if heading is not None:
+                state.told[tick] = (float(heading[0]), float(heading[1]))
+            return settled
         if tick >= cfg.init_ticks and state.acted != "move":
             raise RequestError(f"agent {agent} must move to its estimate before snapping")
         sensed = state.sensed[tick]
@@ -771,7 +790,7 @@ class WorldSim:
             sensing = self._read(agent, request.tick, "moved", look=True)
             moved = True
         elif isinstance(request, Snap):
-            moved = self.snap(agent, request.tick)
+            moved = self.snap(agent, request.tick, request.heading)
             sensing = self._read(agent, request.tick, "settled", look=True)
         else:
             raise RequestError(f"{type(request).__name__} is not an action")
