@@ -15,7 +15,10 @@ probe from here, for measuring only.
   reading of it. ``S`` (mrad) is a fixed spread added to the reading's variance for what the
   estimate does not say (the rod's transport in the chart, the predecessor's own error against
   the formation); ``declared`` adds the predecessor's settled goal's declared variance
-  instead; ``judged`` weighs both ends by the mean squared error their tracks
+  instead; ``versus`` judges the told heading as the track judges its own tangents, against
+  the follower's lag-free tangent through each past rod end (so its variance holds the rod's
+  transport, the predecessor's error and what the two share), and weighs it against the
+  track's own judged error; ``judged`` weighs both ends by the mean squared error their tracks
   judged of their path tangents against the lag-free one (``Track.errors``), from the third
   judged tick on. The leader's heading, where shared, is its exact one (variance 0): the world
   drives it exactly.
@@ -111,7 +114,12 @@ def _share(spread: float | str | None, leader: bool) -> None:
         shared = headings.get((agent - 1, now["at"][1]))
         if shared is None:
             return own
-        if spread == "declared":  # the predecessor's settled goal's declared variance
+        if spread == "versus":  # both judged against the follower's own lag-free tangents
+            theirs, mine = versus.get(agent), judged.get(agent)
+            if theirs is None or mine is None:
+                return own
+            reading, weight_own = theirs[0] / theirs[1], mine
+        elif spread == "declared":  # the predecessor's settled goal's declared variance
             theirs = 0.0 if agent == 1 else declared.get((agent - 1, now["at"][1]))
             if theirs is None:
                 return own
@@ -128,7 +136,24 @@ def _share(spread: float | str | None, leader: bool) -> None:
         heading = drive.wrap(own.heading + gain * drive.wrap(shared[0] - own.heading))
         return drive.Settled(heading, (1.0 - gain) * own.variance, own.chord)
 
+    plain_judge = drive.Track._judge
+
+    def judge(self, step, previous, both):
+        agent = owner.get(id(self))
+        told = None if agent is None else headings.get((agent - 1, settled_tick[0] - 1))
+        if told is not None and previous:
+            middle = drive.middle_tangent(previous[-1], step)
+            off = drive.axial(told[0] - math.atan2(middle[1], middle[0]))
+            total = versus.get(agent, (0.0, 0))
+            versus[agent] = (total[0] + off * off, total[1] + 1)
+        return plain_judge(self, step, previous, both)
+
+    drive.Track._judge = judge
+    settled_tick = [0]
+    versus: dict[int, tuple[float, int]] = {}  # agent: the told headings' squared errors, count
+
     def record(self, settled):
+        settled_tick[0] = settled.tick
         plain_record(self, settled)
         agent = owner.get(id(self))
         if agent is not None and self.settled is not None:
@@ -146,7 +171,7 @@ def install(variant: str) -> None:
         _exact({int(k) for k in rest.split("+")})
     elif kind == "share":
         value, _, leader = rest.partition("/")
-        _share(value if value == "declared" else None if value == "judged"
+        _share(value if value in ("declared", "versus") else None if value == "judged"
                else float(value) / 1000.0, leader != "noleader")
     elif variant != "today":
         raise ValueError(f"unknown variant {variant!r}")
