@@ -606,15 +606,18 @@ class Track:
         self.landed = np.zeros(2)
         self.settled = None
         self.proposed = None
+        self.told = None  # the heading its leader told at the last tick recorded
         if self.path is not None:
             self.path.reset()
 
     def reset(self) -> None:
-        """Forget everything learnt, the judged errors of the path's tangents too (which a
-        missed tick, :meth:`skip`, keeps: they describe the path's kind, not its last ticks):
-        a rejoining follower rebuilds it all from its replay log."""
+        """Forget everything learnt, the judged errors of the path's tangents and of the
+        leader's told headings too (which a missed tick, :meth:`skip`, keeps: they describe the
+        path's kind, not its last ticks): a rejoining follower rebuilds it all from its replay
+        log."""
         self.skip()
         self.judged, self.errors = 0, np.zeros(2)
+        self.told_judged, self.told_errors = 0, 0.0
 
     def record(self, settled: Sensing) -> None:
         if settled.velocity is None:
@@ -641,6 +644,7 @@ class Track:
         if self.path is not None:
             self._judge(step, previous, both)
             self.path.state = advanced
+        self.told = settled.shared_heading
         self.steps.append(step)
         self.landed = landed
         del self.steps[:-self.length]
@@ -650,13 +654,19 @@ class Track:
         """Judge the tangents the fit and the filter gave for the last tick's rod end against
         the lag-free one through it (:func:`middle_tangent`, now that the step beyond it is
         known), and remember this tick's, ``both`` (the fit's; the filter's with its
-        variance), for the next."""
-        if self.proposed is not None and previous:
+        variance), for the next; and the heading the leader told at that tick against the same
+        tangent (:meth:`fuse` weighs it by what it erred so)."""
+        if previous and (self.proposed is not None or self.told is not None):
             middle = middle_tangent(previous[-1], step)
             truth = math.atan2(middle[1], middle[0])
-            off = axial(np.array(self.proposed) - truth)
-            self.errors += off * off
-            self.judged += 1
+            if self.told is not None:
+                off = float(axial(self.told[0] - truth))
+                self.told_errors += off * off
+                self.told_judged += 1
+            if self.proposed is not None:
+                off = axial(np.array(self.proposed) - truth)
+                self.errors += off * off
+                self.judged += 1
         self.proposed = None if both is None else (both[0], both[1][0])
 
     def _filtered(self, compass: float, step: np.ndarray,
@@ -706,18 +716,24 @@ class Track:
         """:meth:`heading` from the path's tangent ``path`` at the end of ``step`` and its
         ``variance`` (:meth:`tangent`, which a caller asking for one goal many times works out
         once; None: the fit's, the chord's declared variance over the step's squared length),
-        then, under noise, with the heading its leader ``told`` it settled with (its estimate
-        and that estimate's variance as a reading of the heading the formation asks of it,
-        relayed by the world: :func:`told_heading`), one more reading of the same heading
-        weighed by the two variances. In formation a follower's heading is its leader's
-        carried along the rod (design §3); the leader knows its own far better than the
-        follower can infer it from its path, and its declared variance holds what it may miss
-        of the formation's (docs/drive.md, *Stop 51*)."""
+        then, under noise, with the heading its leader ``told`` it settled with (its heading
+        filter's estimate, relayed by the world: :func:`told_heading`), one more reading of the
+        same heading. Both are weighed by what they erred on this follower's own path: the
+        mean squared error of its tangents and of the told headings against the lag-free
+        tangent through each past rod end (:meth:`_judge`), so the told reading's variance
+        holds the rod's transport in the chart, the leader's own error and the lag both share,
+        none of which a declared variance says; it is used once the track has judged
+        :data:`JUDGED` ticks and the told headings one. In formation a follower's heading is
+        its leader's carried along the rod (design §3), which the leader knows far better
+        than the follower can infer it from its path (docs/drive.md, *Stop 51*)."""
         own = self._fused(path, variance, step, chord)
-        if told is None or self.chord_variance == 0.0:
+        if (told is None or self.chord_variance == 0.0 or self.judged < JUDGED
+                or self.told_judged == 0):
             return own
-        total = own.variance + told[1]
-        gain = 0.0 if total == 0.0 else own.variance / total
+        mine = float(np.min(self.errors)) / self.judged
+        theirs = self.told_errors / self.told_judged
+        total = mine + theirs
+        gain = 0.0 if total == 0.0 else mine / total
         heading = wrap(own.heading + gain * wrap(told[0] - own.heading))
         return Settled(on_side(heading, own.chord, self.side), (1.0 - gain) * own.variance,
                        own.chord)
@@ -1097,8 +1113,6 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
     # the path's tangent and its variance per goal (Track.tangent): the move phase keeps one
     paths: dict[bytes, tuple[float, float | None]] = {}
 
-    goals: list[Settled] = []  # the last goal heading worked out, with its variance
-
     def heading_at(point: np.ndarray) -> float:
         step = point - landed
         path = paths.get(key := step.tobytes())
@@ -1108,8 +1122,7 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
                                  if track is None else track.tangent(pre.compass, step, previous))
         if track is None:
             return path[0]
-        goals[:] = [track.fuse(*path, step, point - leader.estimate()[0], pre.shared_heading)]
-        return goals[0].heading
+        return track.fuse(*path, step, point - leader.estimate()[0], pre.shared_heading).heading
 
     moved, travelled = pre, np.zeros(2)
     reserve = settings.control_steps + settings.snap_steps // 2  # the move phase's end
@@ -1136,15 +1149,16 @@ def drive_tick(act: Callable[[Control], ActSensing], pre: Sensing, goal: np.ndar
     seen, variance = leader.seen_from(position)
     residual, residual_variance = (rod.seen_from(position) if moved.rod is not None
                                    and rod.points else (None, 0.0))
-    told = (told_heading(filtered, goals[0]) if track is not None and goals
-            and track.chord_variance > 0.0 else None)
+    told = (told_heading(filtered) if track is not None and track.chord_variance > 0.0
+            else None)
     return Driven(moved, travelled, residual, residual_variance, seen, variance, limits, told)
 
 
-def told_heading(filtered: HeadingFilter, goal: Settled) -> tuple[float, float]:
+def told_heading(filtered: HeadingFilter) -> tuple[float, float]:
     """What a driving follower tells its successor of its heading as it settles (its
-    :class:`protocol.messages.Snap`): its heading filter's estimate, and as its variance the
-    filter's plus the declared variance of the goal heading it steered to (what it may miss
-    of the heading the formation asks of it); its successor fuses the two as one more reading
-    of its own (:meth:`Track.fuse`)."""
-    return filtered.heading, filtered.variance + goal.variance
+    :class:`protocol.messages.Snap`): its heading filter's estimate and that filter's variance,
+    what it knows of its own heading. Its successor weighs it as one more reading of its own
+    by what it erred against its own path (:meth:`Track.fuse`), which holds what the
+    filter's variance cannot: how the heading turns along the rod, and the leader's own
+    error against the formation."""
+    return filtered.heading, filtered.variance

@@ -292,9 +292,9 @@ class Snap(Request):
     With ``--motion drive`` it ends the tick instead: the follower settles where its control
     steps took it, with its own heading; ``heading`` (optional on the wire) is then what it
     tells its successor of that heading: ``(angle, variance)``, its own estimate (chart angle,
-    rad, local frame) and the variance (rad²) of that estimate as a reading of the heading the
-    formation asks of it, which the world relays to the successor with its readings of the
-    tick (``Sensing.shared_heading``, design §5)."""
+    rad, local frame) and that estimate's variance (rad²), which the world relays to the
+    successor with its pre-move and settled readings of the tick (``Sensing.shared_heading``,
+    design §5)."""
 
     TYPE: ClassVar[str] = "snap"
     heading: tuple[float, float] | None = _kind("vec2?", None, optional=True)

@@ -23,7 +23,7 @@ from agents.drive import (
 from agents.follower import follower_tick
 from agents.policies import make_policy
 from protocol.config import CORRECTION_SHARE, AgentSettings, RunConfig
-from protocol.messages import Control, Move, Snap
+from protocol.messages import Control, Move, Sensing, Snap
 from protocol.record import read_controls, read_ticks
 from swarm.cli import main as swarm_main
 from swarm.local import LocalLink, run_local
@@ -529,16 +529,29 @@ def test_a_told_heading_is_refused_where_it_has_no_place():
             sim.snap(1, 0, told)
 
 
-def test_a_told_heading_is_fused_by_the_two_variances():
-    """``Track.fuse`` weighs the leader's told heading against its own goal by their
-    variances; a noise-free track (nothing declared) leaves it out."""
-    noisy = Track(1.28, 0, 0.02, 0.01, 3.57, chord_variance=4e-4, side=1)
-    step, chord = np.array([1.28, 0.0]), np.array([0.0, 3.57])  # rods point left of east
-    own = noisy.fuse(0.1, 4e-4, step, chord)
-    assert own.heading == 0.1 and own.variance == 4e-4
-    both = noisy.fuse(0.1, 4e-4, step, chord, told=(0.0, 1.2e-3))
-    assert both.heading == pytest.approx(0.1 - 0.25 * 0.1)
-    assert both.variance == pytest.approx(0.75 * 4e-4)
+def test_a_told_heading_is_weighed_by_what_it_erred_on_the_followers_own_path():
+    """``Track`` judges the heading its leader told at each tick against the lag-free tangent
+    through that tick's rod end, as it judges its own tangents, and ``fuse`` weighs the two by
+    those mean squared errors — from :data:`agents.drive.JUDGED` judged ticks of its own and
+    one of the told headings on; without noise the told heading is left out."""
+    track = Track(1.28, 0, 0.02, 0.01, 3.57, chord_variance=4e-4, odometry_variance=1e-4,
+                  side=1)
+    for tick in range(8):  # straight east at 1 m/s, the leader 3.57 m to the south
+        track.record(Sensing(tick=tick, r=3.57, theta=-math.pi / 2, rod=(0.0, 0.0),
+                             velocity=(1.0, 0.0), compass=0.0, shared_heading=(0.05, 1e-4)))
+    assert track.told_judged >= 1 and track.judged >= 3
+    assert track.told_errors / track.told_judged == pytest.approx(0.05**2)
+    step, chord = np.array([1.28, 0.0]), np.array([0.0, 3.57])
+    own = track.fuse(0.1, 4e-4, step, chord)
+    # its own tangents were exact on this path: the told heading, 0.05 off, moves nothing
+    assert track.fuse(0.1, 4e-4, step, chord, told=(0.0, 1e-4)) == own
+    track.errors = np.array([3e-4, 2e-4]) * track.judged  # had they erred (the filter less)
+    gain = 2e-4 / (2e-4 + 0.05**2)
+    told = track.fuse(0.1, 4e-4, step, chord, told=(0.0, 1e-4))
+    assert told.heading == pytest.approx(own.heading * (1.0 - gain)) and told.heading < 0.095
+    assert told.variance == pytest.approx((1.0 - gain) * own.variance)
+    fresh = Track(1.28, 0, 0.02, 0.01, 3.57, chord_variance=4e-4, side=1)  # nothing judged
+    assert fresh.fuse(0.1, 4e-4, step, chord, told=(0.0, 1e-4)).heading == 0.1
     exact = Track(1.28, 0, side=1)
     assert exact.fuse(0.1, None, step, chord, told=(0.0, 1e-4)).heading == 0.1
 
