@@ -92,19 +92,14 @@ def test_a_driving_edmds_cold_start_under_noise_is_no_worse_than_persists():
     the noise's (tens), and the column drove 2.24 m out at tick 5 where persist's is 1.10 m
     out at worst. A driving follower now follows only a prediction the pairs determine
     beyond one reading's noise (:meth:`agents.estimators.StreamingEDMD.noise_gain`), persist
-    standing in, counted, until they do. Compared over the cold start (the first three
-    estimated ticks, where the fits came from); later EDMD follows its own predictions, and
-    the run as a whole stays within the formation tolerance."""
+    standing in, counted, until they do."""
     base = dict(surface="wavy", followers=5, ticks=10, motion="drive", noise_range=0.05,
                 noise_bearing=0.03, seed=2)
-    cold = RunConfig(**base).init_ticks + 3
     _, persist = run_local(RunConfig(**base, estimator="persist"))
     summary, edmd = run_local(RunConfig(**base))
     assert summary["estimator"] == "edmd" and summary["dictionary"] == "b"
     assert sum(f["fallback_ticks"] for f in summary["followers"].values()) > 0
-    early = [[r for r in rows if r["tick"] < cold] for rows in (edmd, persist)]
-    assert max(_worst(early[0]).values()) <= max(_worst(early[1]).values()) + 1e-9
-    assert max(_worst(edmd).values()) < summary["formation_tolerance"]
+    assert max(_worst(edmd).values()) <= max(_worst(persist).values()) + 1e-9
 
 
 class WildOnce(Persist):
