@@ -727,8 +727,7 @@ class Track:
         its leader's carried along the rod (design §3), which the leader knows far better
         than the follower can infer it from its path (docs/drive.md, *Stop 51*)."""
         own = self._fused(path, variance, step, chord)
-        if (told is None or self.chord_variance == 0.0 or self.judged < JUDGED
-                or self.told_judged == 0):
+        if told is None or self.judged < JUDGED or self.told_judged == 0:  # none without noise
             return own
         mine = float(np.min(self.errors)) / self.judged
         theirs = self.told_errors / self.told_judged

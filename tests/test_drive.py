@@ -427,9 +427,9 @@ def test_every_control_step_draws_from_a_noise_block_of_its_own():
             assert np.all(a != b), (channel, phase)
 
 
-class OdometryLink(LocalLink):
-    """Notes a driving follower's odometry: its velocity readings (``pre``, ``settled``), its
-    step readings, and where it settled."""
+class NotingLink(LocalLink):
+    """A follower's in-memory link that notes in ``seen`` what :meth:`note` takes from each
+    reply: the pre-move sensing's (``request`` None) and every action's."""
 
     def __init__(self, sim, agent, seen):
         super().__init__(sim, agent)
@@ -437,18 +437,31 @@ class OdometryLink(LocalLink):
 
     def sense(self, tick, look=False):
         reply = super().sense(tick, look)
-        self.seen[self.agent, tick, "pre"] = reply.velocity
+        self.note(tick, None, reply)
         return reply
 
     def act(self, request):
         reply = super().act(request)
-        key = (self.agent, request.tick)
-        if isinstance(request, Control):
+        self.note(request.tick, request, reply)
+        return reply
+
+    def note(self, tick, request, reply) -> None:
+        raise NotImplementedError
+
+
+class OdometryLink(NotingLink):
+    """Notes a driving follower's odometry: its velocity readings (``pre``, ``settled``), its
+    step readings, and where it settled."""
+
+    def note(self, tick, request, reply):
+        key = (self.agent, tick)
+        if request is None:
+            self.seen[*key, "pre"] = reply.velocity
+        elif isinstance(request, Control):
             self.seen.setdefault((*key, "steps"), []).append(reply.odometry)
         elif isinstance(request, Snap):
             self.seen[*key, "settled"] = reply.velocity
             self.seen[*key, "pos"] = self.sim.agents[self.agent].pos.copy()
-        return reply
 
 
 def test_a_driving_follower_has_one_odometer():
@@ -468,26 +481,18 @@ def test_a_driving_follower_has_one_odometer():
             assert np.all(reading != exact)
 
 
-class ToldLink(LocalLink):
+class ToldLink(NotingLink):
     """Notes what a driving follower told of its heading with its :class:`Snap` and what its
     own readings relayed of its leader's."""
 
-    def __init__(self, sim, agent, seen):
-        super().__init__(sim, agent)
-        self.seen = seen
-
-    def sense(self, tick, look=False):
-        reply = super().sense(tick, look)
-        self.seen[self.agent, tick, "pre"] = reply.shared_heading
-        return reply
-
-    def act(self, request):
-        reply = super().act(request)
-        if isinstance(request, Snap):
-            self.seen[self.agent, request.tick, "told"] = request.heading
-            self.seen[self.agent, request.tick, "settled"] = reply.shared_heading
-            self.seen[self.agent, request.tick, "true"] = self.sim.agents[self.agent].heading
-        return reply
+    def note(self, tick, request, reply):
+        key = (self.agent, tick)
+        if request is None:
+            self.seen[*key, "pre"] = reply.shared_heading
+        elif isinstance(request, Snap):
+            self.seen[*key, "told"] = request.heading
+            self.seen[*key, "settled"] = reply.shared_heading
+            self.seen[*key, "true"] = self.sim.agents[self.agent].heading
 
 
 def test_a_driving_follower_hears_what_its_leader_told_of_its_heading():
