@@ -1,10 +1,13 @@
 """What a driving follower's heading costs the column, and what sharing headings would give:
 ``python bench/bench_heading_share.py [--cells wavy:5:0.05:0.03] [--seeds 3]``.
 
-Two probes, each run in memory (:mod:`swarm.local`) in a fresh process per run, ``persist``,
-150 ticks, against the same runs unpatched ("today") and teleporting (issue #30's bound,
-2 × teleport's last-follower mean + 0.05 m). Neither is a feature: both patch the code they
-probe from here, for measuring only.
+Since stop 51 each driving follower weighs the heading its leader tells
+(``agents.drive.Track.fuse``, the ``versus`` rule below without the leader's heading): that is
+``today``; ``unshared`` leaves it out, as before stop 51 (docs/drive.md quotes those figures
+as "today"). Two probes, each run in memory (:mod:`swarm.local`) in a fresh process per
+run, ``persist``, 150 ticks, against the same runs unpatched ("today") and teleporting
+(issue #30's bound, 2 × teleport's last-follower mean + 0.05 m). Neither is a feature: both
+patch the code they probe from here, for measuring only.
 
 - ``exact:K+…`` — the world settles followers ``K+…`` with the exact heading of design §3 at
   their true rod end (teleport's), the others driving as they do: how much each follower's
@@ -42,7 +45,7 @@ from protocol.config import RunConfig, estimator_options  # noqa: E402
 
 TICKS = 150
 PRESETS = ("elliptic", "hyperbolic", "wavy", "gaussian-hill", "ripple")
-VARIANTS = ("today", "exact:1", "exact:1+2", "exact:1+2+3+4", "share:20", "share:30",
+VARIANTS = ("today", "unshared", "exact:1", "exact:1+2", "exact:1+2+3+4", "share:20", "share:30",
             "share:20/noleader", "share:judged/noleader")
 
 
@@ -106,7 +109,7 @@ def _share(spread: float | str | None, leader: bool) -> None:
     follower.drive_tick = drive_tick
     plain_fuse, plain_record = drive.Track.fuse, drive.Track.record
 
-    def fuse(self, path, variance, step, chord):
+    def fuse(self, path, variance, step, chord, told=None):  # the built rule replaced
         own = plain_fuse(self, path, variance, step, chord)
         agent = owner.get(id(self))
         if agent is None or now.get("at", (None,))[0] != agent or self.chord_variance == 0:
@@ -164,10 +167,25 @@ def _share(spread: float | str | None, leader: bool) -> None:
     drive.Track.fuse, drive.Track.record = fuse, record
 
 
+def _unshared() -> None:
+    """Each driving follower leaves out the heading its leader tells (before stop 51)."""
+    from agents import drive
+
+    plain = drive.Track.fuse
+
+    def fuse(self, path, variance, step, chord, told=None):
+        return plain(self, path, variance, step, chord)
+
+    drive.Track.fuse = fuse
+
+
 def install(variant: str) -> None:
-    """Patch this process for ``variant`` (module docstring)."""
+    """Patch this process for ``variant`` (module docstring). A ``share:`` rule replaces the
+    built one (it fuses into ``Track.fuse``'s result without the told heading)."""
     kind, _, rest = variant.partition(":")
-    if kind == "exact":
+    if variant == "unshared":
+        _unshared()
+    elif kind == "exact":
         _exact({int(k) for k in rest.split("+")})
     elif kind == "share":
         value, _, leader = rest.partition("/")
